@@ -1,0 +1,13 @@
+"""Errors a user can cause. The CLI prints them as one line and exits non-zero, without a traceback."""
+
+
+class UserError(Exception):
+    """Bad input or environment: the message names the file/cause and the fix."""
+
+    exit_code = 2
+
+
+class NotBuiltYet(UserError):
+    """A stage that exists in the CLI but whose implementation has not landed."""
+
+    exit_code = 3
