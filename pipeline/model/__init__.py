@@ -1,0 +1,1 @@
+"""The textured surfel model: raw (pre-activation) parameters + jagged textures."""

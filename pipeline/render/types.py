@@ -1,0 +1,43 @@
+"""Typed inputs and outputs of the renderer (see docs/renderer.md for the exact definition)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class SurfelInputs:
+    """Activated per-primitive quantities, world units. Letters: N primitives, T texels, K SH coeffs."""
+
+    means: torch.Tensor  # [N, 3]
+    quats: torch.Tensor  # [N, 4] (w, x, y, z), normalised inside the renderer
+    scales: torch.Tensor  # [N, 2] standard deviations along tangent u, v (world units, > 0)
+    opacities: torch.Tensor  # [N] in [0, 1]
+    sh: torch.Tensor  # [N, K, 3], K in {1, 4, 9, 16}
+    texel_size: torch.Tensor  # [N] or [N, 2] world units per texel along (u, v)
+    textures: torch.Tensor  # [T, 3] activated texel offsets (jagged, flat)
+    tex_res: torch.Tensor  # [N, 2] int32 (res_u, res_v); (0, 0) = no texture
+    tex_offset: torch.Tensor  # [N] int64 start row of each primitive in `textures`
+
+    @property
+    def num_primitives(self) -> int:
+        return int(self.means.shape[0])
+
+
+@dataclass
+class ErrorStats:
+    """Per-primitive error statistics for one view (forward only; used by training routines)."""
+
+    count: torch.Tensor  # [N] int32 pixels where the primitive was blended
+    contrib: torch.Tensor  # [N] sum over those pixels of w = alpha * T
+    err: torch.Tensor  # [N] sum over those pixels of e * w
+
+
+@dataclass
+class RenderOutput:
+    rgb: torch.Tensor  # [H, W, 3]
+    alpha: torch.Tensor  # [H, W] = 1 - final transmittance
+    depth: torch.Tensor  # [H, W] alpha-weighted sum of hit depths (divide by alpha for expected depth)
+    stats: ErrorStats | None = None  # only when an error image was passed

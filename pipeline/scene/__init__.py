@@ -1,0 +1,1 @@
+"""Scenes: COLMAP models + images -> cameras, views, SfM points (see pipeline.scene.types)."""
