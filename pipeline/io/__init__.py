@@ -1,0 +1,1 @@
+"""File I/O helpers shared by the stages (images, downloads)."""
