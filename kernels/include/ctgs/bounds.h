@@ -1,0 +1,58 @@
+// Conservative screen bounds of a surfel, in tiles (docs/renderer.md "Screen bounds"): the projected
+// 3-sigma corners in object space (2DGS fix: a screen-space 3-sigma box misses tiles of long tilted
+// surfels) united with the screen-space fallback box m +- sqrt(CUTOFF_RHO / FILTER_INV_SQUARE) px.
+#pragma once
+
+#include <math.h>
+
+#include "ctgs/constants.h"
+#include "ctgs/surfel.h"
+
+namespace ctgs {
+
+// Tiles [x0, x1) x [y0, y1); empty if x0 >= x1 or y0 >= y1.
+struct TileRect {
+  int x0, y0, x1, y1;
+};
+
+HOST_DEVICE inline int tiles_x(int width) { return (width + TILE_W - 1) / TILE_W; }
+HOST_DEVICE inline int tiles_y(int height) { return (height + TILE_H - 1) / TILE_H; }
+
+// Pixel range [lo, hi] (inclusive) whose centres can lie in [vmin, vmax], with one pixel of margin for
+// rounding, clamped to [0, size-1] before converting to int (values can be huge or infinite).
+template <typename S>
+HOST_DEVICE inline void pixel_span(S vmin, S vmax, int size, int* lo, int* hi) {
+  S a = floor(vmin) - S(1), b = ceil(vmax) + S(1);
+  if (!(a >= S(0))) a = S(0);  // also catches NaN: conservative
+  if (!(b <= S(size - 1))) b = S(size - 1);
+  *lo = static_cast<int>(a);
+  *hi = static_cast<int>(b);
+}
+
+template <typename S>
+HOST_DEVICE inline TileRect surfel_tile_rect(const SurfelPrim<S>& P, const Intrinsics<S>& K) {
+  const TileRect whole = {0, 0, tiles_x(K.width), tiles_y(K.height)};
+  const TileRect empty = {0, 0, 0, 0};
+  const S r2 = S(sqrt(CUTOFF_RHO / FILTER_INV_SQUARE));
+  S xmin = P.mx - r2, xmax = P.mx + r2, ymin = P.my - r2, ymax = P.my + r2;
+  const Vec3<S> a = S(3) * P.sx * P.u, b = S(3) * P.sy * P.v;
+  for (int k = 0; k < 4; ++k) {
+    const S su = (k & 1) ? S(1) : S(-1), sv = (k & 2) ? S(1) : S(-1);
+    const Vec3<S> c = P.mu + su * a + sv * b;
+    if (!(c.z >= K.near_plane)) return whole;  // straddles the near plane (or NaN): project nothing
+    const S x = K.fx * c.x / c.z + K.cx, y = K.fy * c.y / c.z + K.cy;
+    xmin = x < xmin ? x : xmin;
+    xmax = x > xmax ? x : xmax;
+    ymin = y < ymin ? y : ymin;
+    ymax = y > ymax ? y : ymax;
+  }
+  if (xmax < S(0) || ymax < S(0) || xmin > S(K.width) || ymin > S(K.height)) return empty;
+  int px0, px1, py0, py1;
+  pixel_span(xmin, xmax, K.width, &px0, &px1);
+  pixel_span(ymin, ymax, K.height, &py0, &py1);
+  if (px0 > px1 || py0 > py1) return empty;
+  TileRect r = {px0 / TILE_W, py0 / TILE_H, px1 / TILE_W + 1, py1 / TILE_H + 1};
+  return r;
+}
+
+}  // namespace ctgs

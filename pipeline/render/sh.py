@@ -1,0 +1,46 @@
+"""Real spherical harmonics -> view-dependent colour, 3DGS layout and constants (degrees 0..3)."""
+
+from __future__ import annotations
+
+import torch
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def num_sh_coeffs(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """sh [N, K, 3] with K >= (degree+1)^2, unit view directions dirs [N, 3] -> colour [N, 3] = SH + 0.5.
+
+    Not clamped (the renderer clamps after adding the texture).
+    """
+    out = SH_C0 * sh[:, 0]
+    if degree >= 1:
+        x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]  # [N, 1] each
+        out = out - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
+        if degree >= 2:
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            out = (out + SH_C2[0] * xy * sh[:, 4] + SH_C2[1] * yz * sh[:, 5]
+                   + SH_C2[2] * (2.0 * zz - xx - yy) * sh[:, 6] + SH_C2[3] * xz * sh[:, 7]
+                   + SH_C2[4] * (xx - yy) * sh[:, 8])
+            if degree >= 3:
+                out = (out + SH_C3[0] * y * (3.0 * xx - yy) * sh[:, 9] + SH_C3[1] * xy * z * sh[:, 10]
+                       + SH_C3[2] * y * (4.0 * zz - xx - yy) * sh[:, 11]
+                       + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[:, 12]
+                       + SH_C3[4] * x * (4.0 * zz - xx - yy) * sh[:, 13] + SH_C3[5] * z * (xx - yy) * sh[:, 14]
+                       + SH_C3[6] * x * (xx - 3.0 * yy) * sh[:, 15])
+    return out + 0.5
+
+
+def view_dirs(means: torch.Tensor, camera_center: torch.Tensor) -> torch.Tensor:
+    """normalize(mean - camera centre) [N, 3]; a mean exactly at the centre gets direction 0 (no NaN)."""
+    d = means - camera_center
+    sq = (d * d).sum(-1, keepdim=True)
+    nonzero = sq > 0
+    return d * torch.where(nonzero, torch.rsqrt(torch.where(nonzero, sq, torch.ones_like(sq))), 0.0)
