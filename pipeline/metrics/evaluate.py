@@ -133,8 +133,9 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
 
     order = sorted(range(len(rows)), key=lambda i: rows[i].psnr)
     # Distinct views: the worst NUM_STRIPS, then the best among the rest (few test views may overlap).
-    worst = order[:NUM_STRIPS]
-    best = [i for i in order[::-1] if i not in worst][:NUM_STRIPS]
+    per_side = min(NUM_STRIPS, max(1, len(order) // 2))
+    worst = order[:per_side]
+    best = [i for i in order[::-1] if i not in worst][:per_side]
     os.makedirs(os.path.join(opts.out_dir, "strips"), exist_ok=True)
     strips = []
     for rank, i in [("worst", i) for i in worst] + [("best", i) for i in best]:
