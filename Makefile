@@ -58,7 +58,7 @@ lpips-weights: $(LPIPS_WEIGHTS)
 $(RUNS)/%/model.pt: | $(STAMP)
 	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
 	scene=$(DATA_ROOT)/$$dataset/$*; \
-	test -d $$scene || $(CTGS) fetch $$dataset $* -o $(DATA_ROOT); \
+	test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; \
 	$(CTGS) train $$scene -o $(RUNS)/$* --images $$images --set holdout=$$holdout $(TRAIN_OPTS)
 
 # Any run folder (benchmark scenes and the demo alike): export, then compress the export.
