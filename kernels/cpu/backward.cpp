@@ -17,10 +17,25 @@ enum : int { G_MU = 0, G_RC = 3, G_SCALE = 12, G_OPACITY = 14, G_COLOR = 15, G_T
 }  // namespace
 
 template <typename S>
+inline void add_grad(SurfelGrad<S>& sum, const SurfelGrad<S>& g) {
+  sum.mu += g.mu;
+  sum.u += g.u;
+  sum.v += g.v;
+  sum.n += g.n;
+  sum.sx += g.sx;
+  sum.sy += g.sy;
+  sum.opacity += g.opacity;
+  sum.ku += g.ku;
+  sum.kv += g.kv;
+  for (int c = 0; c < 3; ++c) sum.color[c] += g.color[c];
+}
+
+template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out) {
   std::vector<SurfelPrim<S>> prims;
-  bin_primitives<S>(a, prims, nullptr);  // camera-space constants only; the lists come from forward
+  std::vector<PixelRect> rects;
+  bin_primitives<S>(a, prims, rects, nullptr);  // camera-space constants only; the lists come from forward
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
   const int nt = std::max(1, a.num_threads);
@@ -28,64 +43,63 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   std::vector<S> bgbuf(size_t(nt) * 3, S(0));
   std::fill(out.v_textures, out.v_textures + 3 * a.T, S(0));
   const S bg[3] = {a.background[0], a.background[1], a.background[2]};
+  constexpr int TP = TILE_W * TILE_H;
 
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
     S* g_thread = gbuf.data() + size_t(tid) * N * G_STRIDE;
     const int64_t begin = bins.offsets[tile];
-    if (bins.offsets[tile + 1] == begin) continue;
     const int x0 = (tile % ntx) * TILE_W, y0 = (tile / ntx) * TILE_H;
-    const int x1 = std::min(x0 + TILE_W, W), y1 = std::min(y0 + TILE_H, H);
-    for (int y = y0; y < y1; ++y) {
+    const int x1 = std::min(x0 + TILE_W, W), y1 = std::min(y0 + TILE_H, H);  // exclusive
+    PixelRay<S> rays[TP];
+    S T[TP], acc[TP], gC[TP][3], gD[TP];
+    int32_t ncon[TP];
+    int32_t jmax = 0;
+    for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x) {
-        const PixelRay<S> ray = pixel_ray<S>(x, y, a.K);
+        const int p = (y - y0) * TILE_W + (x - x0);
         const int64_t pix = int64_t(y) * W + x;
-        const S gC[3] = {v_rgb[3 * pix], v_rgb[3 * pix + 1], v_rgb[3 * pix + 2]};
-        const S gA = v_alpha[pix], gD = v_depth[pix];
-        S T = final_T[pix];
-        bgbuf[3 * tid] += T * gC[0];
-        bgbuf[3 * tid + 1] += T * gC[1];
-        bgbuf[3 * tid + 2] += T * gC[2];
+        rays[p] = pixel_ray<S>(x, y, a.K);
+        for (int c = 0; c < 3; ++c) gC[p][c] = v_rgb[3 * pix + c];
+        gD[p] = v_depth[pix];
+        T[p] = final_T[pix];
+        for (int c = 0; c < 3; ++c) bgbuf[3 * tid + c] += T[p] * gC[p][c];
         // acc = sum_{j>i} w_j f_j + T_final (bg . gC - gA), f_j = c_j . gC + z_j gD: everything behind i
         // that alpha_i attenuates (alpha = 1 - T_final, hence -gA).
-        S acc = T * (bg[0] * gC[0] + bg[1] * gC[1] + bg[2] * gC[2] - gA);
-        for (int64_t j = begin + n_contrib[pix] - 1; j >= begin; --j) {
-          const int32_t i = bins.list[j];
-          const SurfelPrim<S>& P = prims[i];
+        acc[p] = T[p] * (bg[0] * gC[p][0] + bg[1] * gC[p][1] + bg[2] * gC[p][2] - v_alpha[pix]);
+        ncon[p] = n_contrib[pix];
+        jmax = std::max(jmax, ncon[p]);
+      }
+    for (int32_t jj = jmax - 1; jj >= 0; --jj) {
+      const int32_t i = bins.list[begin + jj];
+      const SurfelPrim<S>& P = prims[i];
+      const PixelRect& r = rects[i];
+      const int rx0 = std::max(r.x0, x0), rx1 = std::min(r.x1, x1 - 1);
+      const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
+      SurfelGrad<S> sum;
+      const Vec3<S> zero = make_vec3(S(0), S(0), S(0));
+      sum.mu = sum.u = sum.v = sum.n = zero;
+      sum.sx = sum.sy = sum.opacity = sum.ku = sum.kv = S(0);
+      sum.color[0] = sum.color[1] = sum.color[2] = S(0);
+      bool any = false;
+      for (int y = ry0; y <= ry1; ++y) {
+        for (int x = rx0; x <= rx1; ++x) {
+          const int p = (y - y0) * TILE_W + (x - x0);
+          if (jj >= ncon[p]) continue;  // behind where this pixel stopped
           SurfelHit<S> h;
-          if (!surfel_alpha(P, ray, a.K.near_plane, h)) continue;
+          if (!surfel_alpha(P, rays[p], a.K.near_plane, h)) continue;
           surfel_color(P, a.textures, h);
           const S one_minus = std::max(S(T_RECOVER_EPS), S(1) - h.alpha);
-          const S T_i = T / one_minus;
+          const S T_i = T[p] / one_minus;
           const S w = h.alpha * T_i;
-          const S f = h.c[0] * gC[0] + h.c[1] * gC[1] + h.c[2] * gC[2] + h.z * gD;
-          const S v_a = T_i * f - acc / one_minus;
-          const S v_c[3] = {w * gC[0], w * gC[1], w * gC[2]};
+          const S f = h.c[0] * gC[p][0] + h.c[1] * gC[p][1] + h.c[2] * gC[p][2] + h.z * gD[p];
+          const S v_a = T_i * f - acc[p] / one_minus;
+          const S v_c[3] = {w * gC[p][0], w * gC[p][1], w * gC[p][2]};
           SurfelGrad<S> g;
-          surfel_backward(P, ray, a.K, h, a.textures, v_a, v_c, w * gD, g);
-          S* r = g_thread + size_t(i) * G_STRIDE;
-          r[G_MU] += g.mu.x;
-          r[G_MU + 1] += g.mu.y;
-          r[G_MU + 2] += g.mu.z;
-          // Rc row-major with columns u, v, n: element (row k, col c) at 3k + c.
-          r[G_RC + 0] += g.u.x;
-          r[G_RC + 3] += g.u.y;
-          r[G_RC + 6] += g.u.z;
-          r[G_RC + 1] += g.v.x;
-          r[G_RC + 4] += g.v.y;
-          r[G_RC + 7] += g.v.z;
-          r[G_RC + 2] += g.n.x;
-          r[G_RC + 5] += g.n.y;
-          r[G_RC + 8] += g.n.z;
-          r[G_SCALE] += g.sx;
-          r[G_SCALE + 1] += g.sy;
-          r[G_OPACITY] += g.opacity;
-          r[G_COLOR] += g.color[0];
-          r[G_COLOR + 1] += g.color[1];
-          r[G_COLOR + 2] += g.color[2];
-          r[G_TEXEL] += g.ku;
-          r[G_TEXEL + 1] += g.kv;
+          surfel_backward(P, rays[p], a.K, h, a.textures, v_a, v_c, w * gD[p], g);
+          add_grad(sum, g);
+          any = true;
           if (h.taps.active) {
             for (int k = 0; k < 4; ++k) {
               if (h.taps.row[k] < 0) continue;
@@ -97,10 +111,33 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
               }
             }
           }
-          acc += w * f;
-          T = T_i;
+          acc[p] += w * f;
+          T[p] = T_i;
         }
       }
+      if (!any) continue;
+      S* row = g_thread + size_t(i) * G_STRIDE;
+      row[G_MU] += sum.mu.x;
+      row[G_MU + 1] += sum.mu.y;
+      row[G_MU + 2] += sum.mu.z;
+      // Rc row-major with columns u, v, n: element (row k, col c) at 3k + c.
+      row[G_RC + 0] += sum.u.x;
+      row[G_RC + 3] += sum.u.y;
+      row[G_RC + 6] += sum.u.z;
+      row[G_RC + 1] += sum.v.x;
+      row[G_RC + 4] += sum.v.y;
+      row[G_RC + 7] += sum.v.z;
+      row[G_RC + 2] += sum.n.x;
+      row[G_RC + 5] += sum.n.y;
+      row[G_RC + 8] += sum.n.z;
+      row[G_SCALE] += sum.sx;
+      row[G_SCALE + 1] += sum.sy;
+      row[G_OPACITY] += sum.opacity;
+      row[G_COLOR] += sum.color[0];
+      row[G_COLOR + 1] += sum.color[1];
+      row[G_COLOR + 2] += sum.color[2];
+      row[G_TEXEL] += sum.ku;
+      row[G_TEXEL + 1] += sum.kv;
     }
   }
 

@@ -1,5 +1,8 @@
-// Forward pass of the CPU backend: front-to-back blending per pixel over its tile's depth-sorted list,
-// tiles in parallel (docs/renderer.md step 8), plus the per-primitive error statistics.
+// Forward pass of the CPU backend (docs/renderer.md step 8) plus the per-primitive error statistics.
+// Per tile, primitives are the outer loop (in blending order) and only the pixels inside each one's
+// pixel bounds are visited, with per-pixel blending state kept in small arrays: the same per-pixel
+// front-to-back result as a pixel-outer loop, but the work scales with the area primitives cover, not
+// with (pixels x primitives in the tile).
 #include <omp.h>
 
 #include <algorithm>
@@ -12,7 +15,8 @@ namespace cpu {
 template <typename S>
 void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
   std::vector<SurfelPrim<S>> prims;
-  bin_primitives(a, prims, bins);
+  std::vector<PixelRect> rects;
+  bin_primitives(a, prims, rects, bins);
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
   const bool stats = out.error_image != nullptr;
@@ -21,6 +25,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
   std::vector<int32_t> count_buf(stats ? size_t(nt) * N : 0, 0);
   std::vector<S> contrib_buf(stats ? size_t(nt) * N : 0, S(0)), err_buf(stats ? size_t(nt) * N : 0, S(0));
   const S bg[3] = {a.background[0], a.background[1], a.background[2]};
+  constexpr int TP = TILE_W * TILE_H;
 
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
@@ -28,45 +33,75 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
     const int64_t begin = bins->offsets[tile], end = bins->offsets[tile + 1];
     const int32_t* list = bins->list.data();
     const int x0 = (tile % ntx) * TILE_W, y0 = (tile / ntx) * TILE_H;
-    const int x1 = std::min(x0 + TILE_W, W), y1 = std::min(y0 + TILE_H, H);
-    for (int y = y0; y < y1; ++y) {
+    const int x1 = std::min(x0 + TILE_W, W), y1 = std::min(y0 + TILE_H, H);  // exclusive
+    PixelRay<S> rays[TP];
+    S T[TP], D[TP], C[TP][3], E[TP];
+    int32_t last[TP];
+    bool done[TP];
+    int alive = 0;
+    for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x) {
-        const PixelRay<S> ray = pixel_ray<S>(x, y, a.K);
-        const int64_t pix = int64_t(y) * W + x;
-        const S e = stats ? out.error_image[pix] : S(0);
-        S T = S(1), D = S(0), C[3] = {S(0), S(0), S(0)};
-        int32_t last = 0;
-        for (int64_t j = begin; j < end; ++j) {
-          const int32_t i = list[j];
-          const SurfelPrim<S>& P = prims[i];
+        const int p = (y - y0) * TILE_W + (x - x0);
+        rays[p] = pixel_ray<S>(x, y, a.K);
+        T[p] = S(1);
+        D[p] = C[p][0] = C[p][1] = C[p][2] = S(0);
+        E[p] = stats ? out.error_image[int64_t(y) * W + x] : S(0);
+        last[p] = 0;
+        done[p] = false;
+        ++alive;
+      }
+    for (int64_t j = begin; j < end && alive > 0; ++j) {
+      const int32_t i = list[j];
+      const SurfelPrim<S>& P = prims[i];
+      const PixelRect& r = rects[i];
+      const int rx0 = std::max(r.x0, x0), rx1 = std::min(r.x1, x1 - 1);
+      const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
+      int32_t n_blend = 0;
+      S sum_w = S(0), sum_ew = S(0);
+      for (int y = ry0; y <= ry1; ++y) {
+        for (int x = rx0; x <= rx1; ++x) {
+          const int p = (y - y0) * TILE_W + (x - x0);
+          if (done[p]) continue;
           SurfelHit<S> h;
-          if (!surfel_alpha(P, ray, a.K.near_plane, h)) continue;
-          const S T_next = T * (S(1) - h.alpha);
-          if (T_next < S(T_EPS)) break;  // 3DGS rule: stop without blending this one
-          surfel_color(P, a.textures, h);
-          const S w = h.alpha * T;
-          C[0] += w * h.c[0];
-          C[1] += w * h.c[1];
-          C[2] += w * h.c[2];
-          D += w * h.z;
-          T = T_next;
-          last = int32_t(j - begin + 1);
-          if (stats) {
-            const size_t k = size_t(tid) * N + i;
-            count_buf[k] += 1;
-            contrib_buf[k] += w;
-            err_buf[k] += e * w;
+          if (!surfel_alpha(P, rays[p], a.K.near_plane, h)) continue;
+          const S T_next = T[p] * (S(1) - h.alpha);
+          if (T_next < S(T_EPS)) {  // 3DGS rule: stop without blending this one
+            done[p] = true;
+            --alive;
+            continue;
           }
+          surfel_color(P, a.textures, h);
+          const S w = h.alpha * T[p];
+          C[p][0] += w * h.c[0];
+          C[p][1] += w * h.c[1];
+          C[p][2] += w * h.c[2];
+          D[p] += w * h.z;
+          T[p] = T_next;
+          last[p] = int32_t(j - begin + 1);
+          ++n_blend;
+          sum_w += w;
+          sum_ew += E[p] * w;
         }
-        out.rgb[3 * pix] = C[0] + T * bg[0];
-        out.rgb[3 * pix + 1] = C[1] + T * bg[1];
-        out.rgb[3 * pix + 2] = C[2] + T * bg[2];
-        out.alpha[pix] = S(1) - T;
-        out.depth[pix] = D;
-        out.final_T[pix] = T;
-        out.n_contrib[pix] = last;
+      }
+      if (stats && n_blend > 0) {
+        const size_t k = size_t(tid) * N + i;
+        count_buf[k] += n_blend;
+        contrib_buf[k] += sum_w;
+        err_buf[k] += sum_ew;
       }
     }
+    for (int y = y0; y < y1; ++y)
+      for (int x = x0; x < x1; ++x) {
+        const int p = (y - y0) * TILE_W + (x - x0);
+        const int64_t pix = int64_t(y) * W + x;
+        out.rgb[3 * pix] = C[p][0] + T[p] * bg[0];
+        out.rgb[3 * pix + 1] = C[p][1] + T[p] * bg[1];
+        out.rgb[3 * pix + 2] = C[p][2] + T[p] * bg[2];
+        out.alpha[pix] = S(1) - T[p];
+        out.depth[pix] = D[p];
+        out.final_T[pix] = T[p];
+        out.n_contrib[pix] = last[p];
+      }
   }
   if (stats) {
 #pragma omp parallel for schedule(static) num_threads(nt)

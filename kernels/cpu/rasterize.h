@@ -42,10 +42,12 @@ struct TileBinsView {
   const int32_t* list;     // [pairs]
 };
 
-// Camera-space primitives for every index, and the tile lists. Culls mu_c.z < near, opacity < MIN_ALPHA
-// (it can never reach MIN_ALPHA) and primitives whose bounds miss the image.
+// Camera-space primitives and their pixel bounds for every index, and (if bins) the tile lists. Culls
+// mu_c.z < near, opacity < MIN_ALPHA (alpha <= opacity can never reach MIN_ALPHA) and primitives whose
+// bounds miss the image (their rect is empty).
 template <typename S>
-void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, TileBins* bins);
+void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
+                    TileBins* bins);
 
 // Forward outputs; stats pointers may be null when no error image is given.
 template <typename S>

@@ -26,6 +26,13 @@ def _fail(name: str, expected: str, t: torch.Tensor) -> None:
     raise ValueError(f"{name} must have shape {expected}, got {list(t.shape)} ({t.dtype}, {t.device})")
 
 
+def _all_finite(t: torch.Tensor) -> bool:
+    # min/max propagate NaN and expose +-inf in one pass without a [T, 3] bool temporary (textures are big).
+    with torch.no_grad():
+        lo, hi = torch.aminmax(t.detach())
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
+
+
 def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like: torch.Tensor) -> None:
     if not isinstance(t, torch.Tensor):
         raise ValueError(f"{name} must be a tensor of shape {expected}, got {type(t).__name__}")
@@ -35,7 +42,7 @@ def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like
         raise ValueError(f"{name} must have dtype {like.dtype} (the dtype of means), shape {expected}; got {t.dtype}")
     if t.device != like.device:
         raise ValueError(f"{name} must be on {like.device} (the device of means), shape {expected}; got {t.device}")
-    if t.numel() and not bool(torch.isfinite(t).all()):
+    if t.numel() and not _all_finite(t):
         raise ValueError(f"{name} (shape {expected}) contains NaN or infinite values")
 
 

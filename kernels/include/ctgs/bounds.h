@@ -29,10 +29,15 @@ HOST_DEVICE inline void pixel_span(S vmin, S vmax, int size, int* lo, int* hi) {
   *hi = static_cast<int>(b);
 }
 
+// Pixels [x0, x1] x [y0, y1] (inclusive) that the surfel can touch; empty if x0 > x1 or y0 > y1.
+struct PixelRect {
+  int x0, y0, x1, y1;
+};
+
 template <typename S>
-HOST_DEVICE inline TileRect surfel_tile_rect(const SurfelPrim<S>& P, const Intrinsics<S>& K) {
-  const TileRect whole = {0, 0, tiles_x(K.width), tiles_y(K.height)};
-  const TileRect empty = {0, 0, 0, 0};
+HOST_DEVICE inline PixelRect surfel_pixel_rect(const SurfelPrim<S>& P, const Intrinsics<S>& K) {
+  const PixelRect whole = {0, 0, K.width - 1, K.height - 1};
+  const PixelRect empty = {0, 0, -1, -1};
   const S r2 = S(sqrt(CUTOFF_RHO / FILTER_INV_SQUARE));
   S xmin = P.mx - r2, xmax = P.mx + r2, ymin = P.my - r2, ymax = P.my + r2;
   const Vec3<S> a = S(3) * P.sx * P.u, b = S(3) * P.sy * P.v;
@@ -46,13 +51,17 @@ HOST_DEVICE inline TileRect surfel_tile_rect(const SurfelPrim<S>& P, const Intri
     ymin = y < ymin ? y : ymin;
     ymax = y > ymax ? y : ymax;
   }
+  // Pixel centres lie in [0.5, size - 0.5].
   if (xmax < S(0) || ymax < S(0) || xmin > S(K.width) || ymin > S(K.height)) return empty;
-  int px0, px1, py0, py1;
-  pixel_span(xmin, xmax, K.width, &px0, &px1);
-  pixel_span(ymin, ymax, K.height, &py0, &py1);
-  if (px0 > px1 || py0 > py1) return empty;
-  TileRect r = {px0 / TILE_W, py0 / TILE_H, px1 / TILE_W + 1, py1 / TILE_H + 1};
+  PixelRect r;
+  pixel_span(xmin, xmax, K.width, &r.x0, &r.x1);
+  pixel_span(ymin, ymax, K.height, &r.y0, &r.y1);
   return r;
+}
+
+HOST_DEVICE inline TileRect tiles_of(const PixelRect& r) {
+  if (r.x0 > r.x1 || r.y0 > r.y1) return TileRect{0, 0, 0, 0};
+  return TileRect{r.x0 / TILE_W, r.y0 / TILE_H, r.x1 / TILE_W + 1, r.y1 / TILE_H + 1};
 }
 
 }  // namespace ctgs
