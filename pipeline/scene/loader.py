@@ -22,8 +22,8 @@ from pipeline.render.camera import Camera
 from pipeline.scene.colmap import ColmapModel, ModelImage, find_model_dir, read_colmap_model
 from pipeline.scene.types import Scene, View
 
-# Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5) but a larger
-# difference means the images do not belong to this model (wrong folder, rotated or cropped images).
+# Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
+# rounding in a small image) but a larger difference means the images do not belong to this model (wrong folder, rotated or cropped images).
 MAX_ASPECT_MISMATCH = 0.02
 
 
@@ -61,7 +61,8 @@ def _find_image(images_dir: str, name: str) -> str | None:
 def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: int, height: int) -> Camera:
     intr = model.cameras[image.camera_id]
     sx, sy = width / intr.width, height / intr.height
-    if abs(sx - sy) > MAX_ASPECT_MISMATCH * max(sx, sy):
+    expected_height = intr.height * sx  # if the image kept the camera's aspect ratio
+    if abs(height - expected_height) > 1.0 + MAX_ASPECT_MISMATCH * expected_height:  # 1 px: size rounding
         raise UserError(
             f"{path}: image is {width}x{height} but its camera {image.camera_id} is {intr.width}x{intr.height} "
             f"(different aspect ratio); use the image folder that belongs to this COLMAP model"

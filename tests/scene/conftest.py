@@ -1,0 +1,22 @@
+"""Shared fixtures of the scene tests: one tiny demo scene per session (fast: ~1 s)."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from pipeline.scene.demo import make_demo_scene
+
+TINY = dict(num_views=10, width=64, height=48, seed=3, points=600, supersample=2)
+
+
+@pytest.fixture(scope="session")
+def tiny_demo_master(tmp_path_factory) -> str:
+    return make_demo_scene(str(tmp_path_factory.mktemp("demo") / "scene"), **TINY)
+
+
+@pytest.fixture
+def tiny_demo(tiny_demo_master, tmp_path) -> str:
+    """A private copy tests may modify."""
+    return shutil.copytree(tiny_demo_master, tmp_path / "scene")
