@@ -73,7 +73,7 @@ def read_image(path: str) -> np.ndarray:
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         # A truncated file decodes partially: OIIO reports it through has_error / a None result.
         if pixels is None or inp.has_error:
-            detail = " ".join((inp.geterror() or _oiio_message()).split())[:200]
+            detail = _first_line(inp.geterror() or _oiio_message())
             raise _bad(path, f"corrupt or truncated image ({detail})")
     finally:
         inp.close()
@@ -184,6 +184,11 @@ def list_images(folder: str) -> list[str]:
     )
 
 
+def _first_line(message: str) -> str:
+    """OIIO repeats one failure over several lines; the first says it best."""
+    lines = [line.strip() for line in message.splitlines() if line.strip()]
+    return (lines[0] if lines else "unknown OpenImageIO error")[:200]
+
+
 def _oiio_message() -> str:
-    message = " ".join((oiio.geterror() or "unknown OpenImageIO error").split())
-    return message[:200]
+    return _first_line(oiio.geterror() or "")
