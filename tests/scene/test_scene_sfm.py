@@ -13,6 +13,7 @@ from pipeline.cli import main
 from pipeline.scene import load_scene
 from pipeline.scene.colmap import read_colmap_model
 from pipeline.scene.demo import make_demo_scene
+from pipeline.scene import sfm
 from pipeline.scene.sfm import umeyama
 
 VIEWS, WIDTH, HEIGHT = 24, 256, 192
@@ -35,11 +36,28 @@ def _centers(model) -> dict[str, np.ndarray]:
 
 
 @pytest.mark.slow
-def test_sfm_reconstructs_the_demo_scene(tmp_path):
+def test_sfm_reconstructs_the_demo_scene(tmp_path, monkeypatch):
     demo = make_demo_scene(str(tmp_path / "demo"), num_views=VIEWS, width=WIDTH, height=HEIGHT, seed=0)
     scene_dir = tmp_path / "recon"
+
+    # First run interrupted during undistortion: SCENE_DIR must not exist, the work folder must.
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(sfm, "_undistort", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            sfm.run_sfm(os.path.join(demo, "images"), str(scene_dir), sfm.SfmOptions(threads=2))
+    assert not scene_dir.exists() and (tmp_path / ".recon.sfm-work" / "mapping.done").is_file()
+
+    # The re-run resumes: extraction, matching and mapping are not redone.
+    calls = []
+    for step in ("_extract", "_match", "_map"):
+        monkeypatch.setattr(sfm, step, lambda *a, _s=step, **k: calls.append(_s))
     result = CliRunner().invoke(main, ["sfm", os.path.join(demo, "images"), "-o", str(scene_dir), "--threads", "2"])
     assert result.exit_code == 0, result.output
+    assert calls == []
+    monkeypatch.undo()
     with open(scene_dir / "sfm_report.json") as f:
         report = json.load(f)
     assert report["given"] == VIEWS
