@@ -1,0 +1,163 @@
+"""render() input validation (ValueError naming the argument and its shape), backend dispatch, the
+lazy JIT build and its error messages, and the NaN-poisoned output buffers."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+
+import pytest
+import torch
+from scenes import make_surfels, pinhole
+
+import pipeline.render._ext as ext
+import pipeline.render.api as api
+from pipeline.errors import UserError
+from pipeline.render import render
+
+
+def _scene(dtype=torch.float32):
+    s = make_surfels(means=[[0.0, 0.0, 2.0], [0.1, 0.1, 3.0]], quats=[[1.0, 0.0, 0.0, 0.0]] * 2,
+                     scales=[[0.3, 0.3]] * 2, opacities=[0.5, 0.6], sh=[[0.1, 0.2, 0.3]] * 2,
+                     texel_size=[0.1, 0.1], tex_res=[[2, 2], [3, 1]], dtype=dtype)
+    return s, pinhole(16, 12, 10.0).to("cpu", dtype)
+
+
+BAD_SHAPES = [
+    ("means", torch.zeros(2, 4), "[N, 3]"),
+    ("quats", torch.zeros(2, 3), "[2, 4]"),
+    ("scales", torch.ones(2), "[2, 2]"),
+    ("opacities", torch.ones(2, 1), "[2]"),
+    ("sh", torch.zeros(2, 2, 3), "[2, K, 3]"),
+    ("texel_size", torch.ones(3), "[2] or [2, 2]"),
+    ("textures", torch.zeros(7, 4), "[T, 3]"),
+    ("tex_res", torch.ones(2, 3, dtype=torch.int32), "[2, 2] int32"),
+    ("tex_offset", torch.zeros(2, 1, dtype=torch.int64), "[2] int64"),
+]
+
+
+@pytest.mark.parametrize("name,bad,shape", BAD_SHAPES, ids=[b[0] for b in BAD_SHAPES])
+def test_wrong_shape_names_argument_and_shape(name, bad, shape):
+    s, cam = _scene()
+    with pytest.raises(ValueError) as info:
+        render(replace(s, **{name: bad}), cam, backend="cpu")
+    assert name in str(info.value) and shape in str(info.value)
+
+
+FLOATS = ["quats", "scales", "opacities", "sh", "texel_size", "textures"]
+
+
+@pytest.mark.parametrize("name", FLOATS)
+def test_wrong_dtype(name):
+    s, cam = _scene()
+    with pytest.raises(ValueError, match=name):
+        render(replace(s, **{name: getattr(s, name).double()}), cam, backend="cpu")
+
+
+@pytest.mark.parametrize("name,dtype", [("tex_res", torch.int64), ("tex_offset", torch.int32)])
+def test_wrong_index_dtype(name, dtype):
+    s, cam = _scene()
+    with pytest.raises(ValueError, match=name):
+        render(replace(s, **{name: getattr(s, name).to(dtype)}), cam, backend="cpu")
+
+
+@pytest.mark.parametrize("name", FLOATS + ["tex_res"])
+def test_wrong_device(name):
+    s, cam = _scene()
+    with pytest.raises(ValueError, match=name):
+        render(replace(s, **{name: getattr(s, name).to("meta")}), cam, backend="cpu")
+
+
+@pytest.mark.parametrize("name", ["means"] + FLOATS)
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite(name, value):
+    s, cam = _scene()
+    t = getattr(s, name).clone()
+    t.view(-1)[-1] = value
+    with pytest.raises(ValueError, match=name):
+        render(replace(s, **{name: t}), cam, backend="cpu")
+
+
+@pytest.mark.parametrize("name,value", [("scales", 0.0), ("texel_size", -1.0), ("opacities", 1.5),
+                                        ("opacities", -0.1)])
+def test_out_of_range_values(name, value):
+    s, cam = _scene()
+    t = getattr(s, name).clone()
+    t.view(-1)[0] = value
+    with pytest.raises(ValueError, match=name):
+        render(replace(s, **{name: t}), cam, backend="cpu")
+
+
+def test_jagged_layout_out_of_range():
+    s, cam = _scene()
+    with pytest.raises(ValueError, match="tex_offset"):
+        render(replace(s, tex_offset=torch.tensor([0, 5], dtype=torch.int64)), cam, backend="cpu")
+    with pytest.raises(ValueError, match="tex_res"):
+        render(replace(s, tex_res=torch.tensor([[2, 2], [-1, 1]], dtype=torch.int32)), cam, backend="cpu")
+
+
+def test_background_error_image_backend_and_degree():
+    s, cam = _scene()
+    with pytest.raises(ValueError, match=r"background.*\[3\]"):
+        render(s, cam, backend="cpu", background=torch.zeros(4))
+    with pytest.raises(ValueError, match=r"error_image.*\[12, 16\]"):
+        render(s, cam, backend="cpu", error_image=torch.zeros(16, 12))
+    with pytest.raises(ValueError, match="backend"):
+        render(s, cam, backend="gpu")
+    with pytest.raises(ValueError, match="sh_degree"):
+        render(s, cam, backend="cpu", sh_degree=1)
+    with pytest.raises(UserError, match="cuda"):
+        render(s, cam, backend="cuda")
+
+
+def test_non_contiguous_inputs_match_contiguous():
+    s, cam = _scene()
+    nc = replace(s, means=s.means.t().contiguous().t(), sh=s.sh.transpose(0, 1).contiguous().transpose(0, 1))
+    assert not nc.means.is_contiguous()
+    torch.testing.assert_close(render(nc, cam, backend="cpu").rgb, render(s, cam, backend="cpu").rgb, atol=0, rtol=0)
+
+
+def test_binding_checks_shapes_too():
+    """The extension validates on its own (a caller bypassing render() gets an error, not a crash)."""
+    mod = ext.load_cpu()
+    z = torch.zeros
+    with pytest.raises(RuntimeError, match=r"Rc must have shape \[N, 3, 3\]"):
+        mod.forward_cpu(z(1, 3), z(1, 3), z(1, 2), z(1), z(1, 3), z(1, 2), z(0, 3), z(1, 2, dtype=torch.int32),
+                        z(1, dtype=torch.int64), z(3), 1.0, 1.0, 0.0, 0.0, 4, 4, 0.01, None, 1, False)
+    with pytest.raises(RuntimeError, match="exceeds the texel count"):
+        mod.forward_cpu(z(1, 3), z(1, 3, 3), z(1, 2), z(1), z(1, 3), z(1, 2), z(3, 3),
+                        torch.tensor([[2, 2]], dtype=torch.int32), z(1, dtype=torch.int64), z(3), 1.0, 1.0, 0.0,
+                        0.0, 4, 4, 0.01, None, 1, False)
+
+
+def test_poisoned_outputs_are_all_overwritten(monkeypatch):
+    """Poisoning works (fresh buffers are NaN / -1) and the kernel overwrites every pixel of them."""
+    s, cam = _scene()
+    from pipeline.render.preprocess import to_camera_space
+
+    p = to_camera_space(s.means, s.quats, s.sh, cam, 0)
+    args = (p.mu_c, p.Rc, s.scales, s.opacities, p.colors, s.texel_size[:, None].expand(-1, 2).contiguous(),
+            s.textures, s.tex_res, s.tex_offset, torch.zeros(3), cam.fx, cam.fy, cam.cx, cam.cy, 37, 21, cam.near,
+            None, 2, True)
+    rgb, alpha, depth, final_T, n_contrib = ext.load_cpu().forward_cpu(*args)[:5]
+    for t in (rgb, alpha, depth, final_T):
+        assert torch.isfinite(t).all()
+    assert (n_contrib >= 0).all()
+
+
+def test_import_does_not_build_extension():
+    code = ("import pipeline, pipeline.render, pipeline.render.api, pipeline.render._ext as e, sys; "
+            "assert e._cpu_module is None; assert 'torch.utils.cpp_extension' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_build_errors_say_what_to_do(monkeypatch):
+    monkeypatch.setattr(ext, "_cpu_module", None)
+    monkeypatch.setenv("CXX", "no-such-compiler-ctgs")
+    with pytest.raises(UserError, match="--backend reference"):
+        ext.load_cpu()
+    monkeypatch.delenv("CXX")
+    monkeypatch.setattr(ext, "CPU_SOURCES", ["cpu/missing.cpp"])
+    with pytest.raises(UserError, match="--backend reference"):
+        ext.load_cpu()
