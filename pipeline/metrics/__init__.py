@@ -1,0 +1,1 @@
+"""Image quality metrics (SSIM here; PSNR/LPIPS live beside it)."""

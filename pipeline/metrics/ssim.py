@@ -1,0 +1,54 @@
+"""Differentiable SSIM (Wang et al. 2004) with the 3DGS/2DGS convention: 11x11 Gaussian window,
+sigma 1.5, C1 = 0.01^2, C2 = 0.03^2 (images in [0, 1]), zero padding ("same" size map).
+
+Used by the training loss, the per-primitive error image E and evaluation, so all three agree.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+WINDOW_SIZE = 11
+WINDOW_SIGMA = 1.5
+C1 = 0.01 ** 2
+C2 = 0.03 ** 2
+
+_WINDOWS: dict[tuple, torch.Tensor] = {}
+
+
+def _window(channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    key = (channels, dtype, str(device))
+    if key not in _WINDOWS:
+        x = torch.arange(WINDOW_SIZE, dtype=torch.float64) - WINDOW_SIZE // 2
+        g = torch.exp(-(x ** 2) / (2 * WINDOW_SIGMA ** 2))
+        g = g / g.sum()
+        w2 = (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
+        _WINDOWS[key] = w2.expand(channels, 1, WINDOW_SIZE, WINDOW_SIZE).contiguous()
+    return _WINDOWS[key]
+
+
+def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM of two [H, W, C] images in [0, 1] -> [H, W, C] (differentiable)."""
+    if a.shape != b.shape or a.ndim != 3:
+        raise ValueError(f"ssim_map expects two [H, W, C] images of one shape, got {list(a.shape)}, {list(b.shape)}")
+    c = a.shape[2]
+    x = a.permute(2, 0, 1)[None]  # [1, C, H, W]
+    y = b.permute(2, 0, 1)[None]
+    w = _window(c, a.dtype, a.device)
+    pad = WINDOW_SIZE // 2
+    mu_x = F.conv2d(x, w, padding=pad, groups=c)
+    mu_y = F.conv2d(y, w, padding=pad, groups=c)
+    # One conv for the three second moments: fewer kernel launches matter on 2 CPU cores.
+    second = F.conv2d(torch.cat([x * x, y * y, x * y], 1), w.repeat(3, 1, 1, 1), padding=pad, groups=3 * c)
+    sxx, syy, sxy = second.split(c, dim=1)
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    sigma_x, sigma_y, sigma_xy = sxx - mu_xx, syy - mu_yy, sxy - mu_xy
+    num = (2 * mu_xy + C1) * (2 * sigma_xy + C2)
+    den = (mu_xx + mu_yy + C1) * (sigma_x + sigma_y + C2)
+    return (num / den)[0].permute(1, 2, 0)
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of two [H, W, C] images in [0, 1] -> scalar tensor (differentiable)."""
+    return ssim_map(a, b).mean()

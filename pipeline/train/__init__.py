@@ -1,0 +1,1 @@
+"""Training: config, initialisation, optimiser, loss, texel-size adaptation routines, the trainer loop."""

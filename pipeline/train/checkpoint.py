@@ -1,0 +1,47 @@
+"""Atomic checkpoints with everything needed to resume bit-for-bit (up to kernel non-determinism)."""
+
+from __future__ import annotations
+
+import os
+import random
+
+import numpy as np
+import torch
+
+CKPT_NAME = "last.pt"
+
+
+def atomic_torch_save(obj, path: str) -> None:
+    """Write to a temporary name in the same folder, fsync, rename: never a half-written file."""
+    tmp = f"{path}.tmp.{os.getpid()}"
+    with open(tmp, "wb") as fh:
+        torch.save(obj, fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def rng_state(gen: torch.Generator) -> dict:
+    return {"torch": torch.get_rng_state(), "gen": gen.get_state(), "numpy": np.random.get_state(),
+            "python": random.getstate(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
+
+
+def restore_rng(state: dict, gen: torch.Generator) -> None:
+    torch.set_rng_state(state["torch"])
+    gen.set_state(state["gen"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if state.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def checkpoint_path(run_dir: str) -> str:
+    return os.path.join(run_dir, "checkpoints", CKPT_NAME)
+
+
+def load_checkpoint(run_dir: str) -> dict | None:
+    path = checkpoint_path(run_dir)
+    if not os.path.exists(path):
+        return None
+    return torch.load(path, map_location="cpu", weights_only=False)
