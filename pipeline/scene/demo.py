@@ -165,7 +165,7 @@ def _prefilter(rects: list[Rect], centers: np.ndarray, focal: float) -> None:
         h = min(tex.shape[0], max(8, math.ceil(2 * rect.half[1] * density)))
         if (h, w) != tex.shape[:2]:
             tex = resize(tex, (h, w), anti_aliasing=True, order=1)
-        rect.texture = np.clip(tex, 0.0, 1.0)
+        rect.texture = np.clip(tex, 0.0, 1.0).astype(np.float32)
 
 
 def _inside_box(p: np.ndarray, rects: list[Rect]) -> np.ndarray:
