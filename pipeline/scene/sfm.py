@@ -280,6 +280,9 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
     images_dir, scene_dir = os.path.abspath(images_dir), os.path.abspath(scene_dir)
     if scene_dir == images_dir:
         raise UserError(f"{scene_dir}: SCENE_DIR must differ from IMAGES_DIR (it gets its own images/ folder)")
+    if images_dir == os.path.join(scene_dir, "images"):
+        raise UserError(f"{images_dir}: the input folder would be replaced by the undistorted images; move your "
+                        f"photos to {os.path.join(scene_dir, 'input')} (3DGS layout) and pass that folder")
     existing = read_report(scene_dir)
     if existing is not None and not opts.force:
         return existing, False
@@ -293,12 +296,14 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
     import pycolmap
 
     # COLMAP's glog INFO lines (one per image and step) would bury the spinner and the report.
-    previous_level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 2 if quiet else previous_level
+    # logtostderr: glog would otherwise also leave log files in /tmp on every run.
+    previous = pycolmap.logging.minloglevel, pycolmap.logging.logtostderr
+    pycolmap.logging.minloglevel = 2 if quiet else previous[0]
+    pycolmap.logging.logtostderr = True
     try:
         return _run_steps(images_dir, scene_dir, names, opts, status)
     finally:
-        pycolmap.logging.minloglevel = previous_level
+        pycolmap.logging.minloglevel, pycolmap.logging.logtostderr = previous
 
 
 def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions,

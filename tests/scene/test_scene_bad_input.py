@@ -93,6 +93,14 @@ def test_scene_dir_that_is_something_else_is_not_touched(tmp_path):
     assert os.listdir(tmp_path / "out") == ["precious.txt"]
 
 
+def test_input_folder_that_would_be_overwritten(tmp_path):
+    for i in range(3):
+        _noise(tmp_path / "scene" / "images" / f"{i}.png", seed=i)
+    result = CliRunner().invoke(main, ["sfm", str(tmp_path / "scene" / "images"), "-o", str(tmp_path / "scene")])
+    assert result.exit_code == 2 and "scene/input" in result.stderr
+    assert sorted(os.listdir(tmp_path / "scene")) == ["images"]
+
+
 # ---- load_scene (used by train/eval): UserError with one line naming the file and the fix ----
 
 def _one_line_error(fn, *needles) -> str:

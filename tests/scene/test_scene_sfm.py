@@ -35,9 +35,15 @@ def _centers(model) -> dict[str, np.ndarray]:
     return {im.name: -im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images}
 
 
+@pytest.fixture(scope="module")
+def demo24(tmp_path_factory) -> str:
+    return make_demo_scene(str(tmp_path_factory.mktemp("sfm") / "demo"), num_views=VIEWS, width=WIDTH, height=HEIGHT,
+                           seed=0)
+
+
 @pytest.mark.slow
-def test_sfm_reconstructs_the_demo_scene(tmp_path, monkeypatch):
-    demo = make_demo_scene(str(tmp_path / "demo"), num_views=VIEWS, width=WIDTH, height=HEIGHT, seed=0)
+def test_sfm_reconstructs_the_demo_scene(tmp_path, monkeypatch, demo24):
+    demo = demo24
     scene_dir = tmp_path / "recon"
 
     # First run interrupted during undistortion: SCENE_DIR must not exist, the work folder must.
@@ -88,3 +94,16 @@ def test_sfm_reconstructs_the_demo_scene(tmp_path, monkeypatch):
     # Re-running skips everything (no --force) and says so.
     again = CliRunner().invoke(main, ["sfm", os.path.join(demo, "images"), "-o", str(scene_dir)])
     assert again.exit_code == 0 and "already reconstructed" in " ".join(again.output.split())
+
+
+@pytest.mark.slow
+def test_sequential_matcher_on_ordered_frames(tmp_path, demo24):
+    """Video-style input (names in capture order): neighbours-only matching still registers the arc."""
+    scene_dir = tmp_path / "seq"
+    result = CliRunner().invoke(main, ["sfm", os.path.join(demo24, "images"), "-o", str(scene_dir),
+                                       "--matcher", "sequential", "--threads", "2"])
+    assert result.exit_code == 0, result.output
+    with open(scene_dir / "sfm_report.json") as f:
+        report = json.load(f)
+    assert report["matcher"] == "sequential"
+    assert report["registered"] >= 0.9 * VIEWS and report["mean_reprojection_error_px"] < 1.0
