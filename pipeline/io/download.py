@@ -10,6 +10,7 @@ beside it, so re-runs skip hashing multi-gigabyte archives again.
 from __future__ import annotations
 
 import hashlib
+import http.client
 import os
 import urllib.error
 import urllib.request
@@ -92,13 +93,18 @@ def download(url: str, dest: str, *, size: int | None = None, sha256: str | None
                 total = size or ((int(length) + offset) if length else None)
                 with _progress_bar(quiet) as bar, open(part, "ab" if offset else "wb") as out:
                     task = bar.add_task(os.path.basename(dest), total=total, completed=offset)
+                    received = 0
                     try:
                         while block := response.read(CHUNK):
                             out.write(block)
+                            received += len(block)
                             bar.advance(task, len(block))
-                    except (OSError, TimeoutError) as exc:
-                        raise UserError(f"{url}: download interrupted ({exc}); run the same command again "
-                                        f"to resume from {part}") from None
+                        # A dropped connection can look like a clean end of file: compare with the header.
+                        if length and received < int(length):
+                            raise http.client.IncompleteRead(b"", int(length) - received)
+                    except (OSError, http.client.HTTPException) as exc:  # IncompleteRead, reset, timeout
+                        raise UserError(f"{url}: download interrupted ({type(exc).__name__}); run the same "
+                                        f"command again to resume from {part}") from None
 
     got = os.path.getsize(part)
     if size is not None and got != size:

@@ -29,6 +29,7 @@ class _Server:
         self.files: dict[str, bytes] = {}
         self.ranges: list[str | None] = []
         self.honour_range = True
+        self.cut_after: int | None = None  # send only this many bytes once, then drop the connection
         server = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -51,6 +52,11 @@ class _Server:
                 if status == 206:
                     self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
                 self.end_headers()
+                if server.cut_after is not None:
+                    self.wfile.write(data[start:start + server.cut_after])
+                    server.cut_after = None
+                    self.close_connection = True
+                    return
                 self.wfile.write(data[start:])
 
             def log_message(self, *args):
@@ -174,6 +180,20 @@ def test_download_resumes_a_partial_file(tmp_path, server):
     assert not (tmp_path / "a.bin.part").exists()
     assert download(server.url + "/a.bin", str(dest), size=len(data), quiet=True).skipped
     assert len(server.ranges) == 1
+
+
+def test_interrupted_download_resumes_on_the_next_run(tmp_path, server):
+    data = os.urandom(200_000)
+    server.files["/a.bin"] = data
+    server.cut_after = 70_000
+    dest = tmp_path / "a.bin"
+    sha = hashlib.sha256(data).hexdigest()
+    with pytest.raises(UserError, match="interrupted.*resume"):
+        download(server.url + "/a.bin", str(dest), size=len(data), sha256=sha, quiet=True)
+    assert (tmp_path / "a.bin.part").stat().st_size == 70_000 and not dest.exists()
+    result = download(server.url + "/a.bin", str(dest), size=len(data), sha256=sha, quiet=True)
+    assert result.resumed_from == 70_000 and dest.read_bytes() == data
+    assert server.ranges == [None, "bytes=70000-"]
 
 
 def test_download_restarts_when_the_server_ignores_range(tmp_path, server):
