@@ -103,7 +103,9 @@ def build_table(metrics_list: list[dict]) -> tuple[str, str]:
     for dataset in sorted(groups):
         rows = sorted(groups[dataset], key=lambda m: m.get("scene", ""))
         for m in rows:
-            label = m.get("scene", "?") + (f" (K={m['codebook_size']})" if m.get("codebook_size") else "")
+            label = m.get("scene", "?")
+            if m.get("compressed") or m.get("codebook_size"):
+                label += f" (compressed, K={m['codebook_size']})" if m.get("codebook_size") else " (compressed)"
             md.append("| " + " | ".join([dataset, label] + [_fmt(m.get(k), f) for _, k, f in TABLE_COLUMNS]) + " |")
             w.writerow([dataset, label] + ["" if m.get(k) is None else m.get(k) for _, k, _ in TABLE_COLUMNS])
         means = {k: _mean([m.get(k) for m in rows]) for _, k, _ in TABLE_COLUMNS}

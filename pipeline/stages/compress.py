@@ -26,16 +26,20 @@ def command(model_dir: str, out_dir: str, codebook_size: int, half: bool, seed: 
     if os.path.abspath(model_dir) == os.path.abspath(out_dir):
         raise UserError(f"{out_dir}: output must differ from the input model folder")
     model, files = read_model(model_dir)
-    if files.manifest.get("texture_encoding") != "raw":
+    if files.manifest.get("texture_encoding") != "raw" or "compression" in files.manifest:
         raise UserError(f"{model_dir}: already compressed; compress the exported model instead")
-    result = kmeans_codebook(model, codebook_size, seed=seed, half=half)
     before = files.bytes_on_disk
-    info = {"source": os.path.abspath(model_dir), "codebook_size": codebook_size, "half": half,
-            "method": result.method, "rmse_activated": result.rmse_activated, "seconds": result.seconds,
-            "bytes_before": before}
-    manifest = write_model(model, out_dir, blob=result.blob, half=half, plain_ply=False,
-                           extra={"compression": info})
+    info = {"source": os.path.abspath(model_dir), "codebook_size": codebook_size, "half": half, "bytes_before": before}
+    if model.num_texels == 0:
+        # Untextured models (2DGS baseline, runs stopped before texturing): nothing to cluster, only fp16.
+        info.update(codebook_size=None, method="none (no texels)", rmse_activated=0.0, seconds=0.0)
+        blob = None
+    else:
+        result = kmeans_codebook(model, codebook_size, seed=seed, half=half)
+        blob = result.blob
+        info.update(method=result.method, rmse_activated=result.rmse_activated, seconds=result.seconds)
+    manifest = write_model(model, out_dir, blob=blob, half=half, plain_ply=False, extra={"compression": info})
     after = os.path.getsize(os.path.join(out_dir, "manifest.json")) + sum(manifest["file_bytes"].values())
     click.echo(f"{model_dir}: {before / 1e6:.3f} MB -> {out_dir}: {after / 1e6:.3f} MB "
-               f"(x{before / max(after, 1):.2f} smaller); K={codebook_size} ({result.method}, "
-               f"{result.seconds:.1f} s), texel RMSE {result.rmse_activated:.4f}")
+               f"(x{before / max(after, 1):.2f} smaller); K={info['codebook_size']} ({info['method']}, "
+               f"{info['seconds']:.1f} s), texel RMSE {info['rmse_activated']:.4f}")

@@ -19,7 +19,7 @@ SCHEMA = {
     "scene_dir": str, "images": str, "holdout": int, "num_test_views": int, "psnr": float, "ssim": float,
     "lpips": (float, type(None)), "lpips_status": str, "points": int, "texels": int, "params": int,
     "texels_per_primitive": float, "model_memory_bytes": int, "bytes_on_disk": int, "texture_encoding": str,
-    "codebook_size": (int, type(None)), "fps": float, "render_ms_mean": float, "backend": str, "device": str,
+    "codebook_size": (int, type(None)), "compressed": bool, "fps": float, "render_ms_mean": float, "backend": str, "device": str,
     "resolution": list, "peak_memory_bytes": int, "peak_memory_kind": str, "train_seconds": (float, type(None)),
     "iterations": int, "machine": dict, "files": dict, "per_image": list,
 }
@@ -87,7 +87,7 @@ def test_eval_exported_and_compressed_models(run_dir, tmp_path):
     assert res.exit_code == 0, res.output
     md = (tmp_path / "table" / "table.md").read_text()
     assert "| SSIM | PSNR | LPIPS | Points | Texels | Params | FPS | Mem | Texels/Primitive |" in md
-    assert "mean (2)" in md and "(K=16)" in md
+    assert "mean (2)" in md and "(compressed, K=16)" in md
     lines = (tmp_path / "table" / "table.csv").read_text().strip().splitlines()
     assert len(lines) == 1 + 2 + 1  # header, two runs, the dataset mean
 

@@ -94,3 +94,15 @@ def test_index_dtype_is_compact(exported):
     index_code = HEADER.unpack_from(data)[8]
     assert index_code == 1  # uint8
     assert np.frombuffer(data[:8], "S8")[0] == b"CTGSTEX"
+
+
+def test_untextured_model_compresses_without_codebook(tmp_path):
+    model = random_model(n=10, texture_mode="none")
+    model.tex_res.zero_()
+    model.tex_offset.zero_()
+    model.textures_raw = model.textures_raw[:0]
+    write_model(model, str(tmp_path / "m"))
+    res = CliRunner().invoke(main, ["compress", str(tmp_path / "m"), "-o", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    back, files = read_model(str(tmp_path / "c"))
+    assert back.num_texels == 0 and files.manifest["compression"]["codebook_size"] is None
