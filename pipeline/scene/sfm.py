@@ -28,6 +28,8 @@ MIN_REGISTERED_FRACTION = 0.5
 PYRAMID_FACTORS = (2, 4, 8)
 REPORT_NAME = "sfm_report.json"
 STEPS = ("features", "matches", "mapping", "undistort", "pyramid")
+# What COLMAP's image reader decodes; float formats (EXR/HDR) must be tone-mapped to 8/16 bit first.
+SFM_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
 @dataclass
@@ -72,6 +74,10 @@ def check_input_images(images_dir: str) -> list[str]:
     names = list_images(images_dir)
     if not names:
         raise UserError(f"{images_dir}: no images (.png/.jpg/.exr/.tif) in this folder; put your photos there")
+    unsupported = [n for n in names if os.path.splitext(n)[1].lower() not in SFM_EXTENSIONS]
+    if unsupported:
+        raise UserError(f"{os.path.join(images_dir, unsupported[0])}: SfM reads PNG/JPEG/TIFF only; convert "
+                        f"{len(unsupported)} float image(s) (EXR/HDR) to 8/16-bit PNG first")
     if len(names) < MIN_IMAGES:
         raise UserError(f"{images_dir}: only {len(names)} image(s); SfM needs at least {MIN_IMAGES} overlapping "
                         f"photos (30+ recommended)")

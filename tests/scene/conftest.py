@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.scene.demo import make_demo_scene
 
-TINY = dict(num_views=10, width=64, height=48, seed=3, points=600, supersample=2)
+from scene_fixtures import TINY
 
 
 @pytest.fixture(scope="session")

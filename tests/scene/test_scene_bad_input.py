@@ -161,3 +161,11 @@ def test_loader_corrupt_model_file(tiny_demo):
     with open(os.path.join(tiny_demo, "sparse", "0", "images.bin"), "wb") as f:
         f.write(b"\x01\x02\x03")
     _one_line_error(lambda: load_scene(tiny_demo), "cannot read the COLMAP model")
+
+
+def test_float_images_are_refused_by_sfm(tmp_path):
+    for i in range(3):
+        _noise(tmp_path / "imgs" / f"{i}.png", seed=i)
+    _noise(tmp_path / "imgs" / "3.exr", seed=3)
+    code, lines = _run_sfm(tmp_path / "imgs", tmp_path / "out")
+    _assert_clean_failure(tmp_path, tmp_path / "out", code, lines, "3.exr", "PNG")

@@ -15,7 +15,7 @@ from pipeline.io.images import read_image
 from pipeline.scene.demo import make_demo_scene
 from pipeline.scene.raycast import Rect, render
 
-from conftest import TINY
+from scene_fixtures import TINY
 
 
 def test_raycaster_reproduces_a_texture_seen_at_one_texel_per_pixel():

@@ -15,7 +15,7 @@ from pipeline.io.images import read_image, resize_image, write_image
 from pipeline.scene import load_scene
 from pipeline.scene.loader import is_test_index, scene_extent
 
-from conftest import TINY
+from scene_fixtures import TINY
 
 
 def _meta(scene_dir) -> dict:
