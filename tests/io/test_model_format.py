@@ -144,3 +144,14 @@ def test_failed_write_leaves_nothing(tmp_path):
     with pytest.raises(ValueError):
         write_model(model, str(tmp_path / "m"), blob=TextureBlob(np.zeros((1, 3), np.float32)))
     assert os.listdir(tmp_path) == []
+
+
+def test_refuses_to_replace_a_folder_that_is_not_a_model(tmp_path):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "model.pt").write_bytes(b"precious")
+    with pytest.raises(UserError, match="not a ctgs model folder"):
+        write_model(random_model(n=3), str(tmp_path / "run"))
+    assert (tmp_path / "run" / "model.pt").read_bytes() == b"precious"
+    write_model(random_model(n=3), str(tmp_path / "m"))
+    write_model(random_model(n=4), str(tmp_path / "m"))  # an earlier model folder is replaced
+    assert read_model(str(tmp_path / "m"))[0].num_primitives == 4
