@@ -1,0 +1,216 @@
+// Torch binding of the CUDA backend (module ctgs_cuda): checks every tensor (shape, dtype, device,
+// contiguity), allocates outputs and scratch from torch's caching allocator, and dispatches float/double to
+// the raw-pointer cores in kernels/cuda on the current CUDA stream. Same functions, arguments and outputs as
+// the CPU binding (kernels/bindings.cpp), so pipeline/render dispatches to either the same way.
+#ifndef CTGS_WITH_CUDA
+#error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (pipeline/render/_ext_cuda.py)"
+#endif
+
+#include <c10/cuda/CUDAStream.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <torch/extension.h>
+
+#include <limits>
+#include <vector>
+
+#include "cuda/rasterize.cuh"
+
+namespace {
+
+using torch::Tensor;
+
+void check_tensor(const Tensor& t, const char* name, const char* shape, std::vector<int64_t> sizes,
+                  at::ScalarType dtype, const at::Device& device) {
+  TORCH_CHECK(t.device() == device, name, " must be on ", device, " (the device of mu_c) for the cuda backend, got ",
+              t.device());
+  TORCH_CHECK(t.scalar_type() == dtype, name, " must have dtype ", dtype, ", got ", t.scalar_type());
+  TORCH_CHECK(t.dim() == int64_t(sizes.size()), name, " must have shape ", shape, ", got ", t.sizes());
+  for (size_t k = 0; k < sizes.size(); ++k)
+    TORCH_CHECK(sizes[k] < 0 || t.size(k) == sizes[k], name, " must have shape ", shape, ", got ", t.sizes());
+  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+}
+
+struct Scene {
+  Tensor mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background;
+  double fx, fy, cx, cy, near_plane;
+  int64_t width, height;
+};
+
+Scene check_scene(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors, Tensor texel_size,
+                  Tensor textures, Tensor tex_res, Tensor tex_offset, Tensor background, double fx, double fy,
+                  double cx, double cy, int64_t width, int64_t height, double near_plane) {
+  TORCH_CHECK(mu_c.is_cuda(), "mu_c must be a CUDA tensor for the cuda backend, got ", mu_c.device());
+  const at::Device dev = mu_c.device();
+  const int64_t N = mu_c.size(0);
+  const auto dt = mu_c.scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "mu_c must be float32 or float64, got ", dt);
+  check_tensor(mu_c, "mu_c", "[N, 3]", {N, 3}, dt, dev);
+  check_tensor(Rc, "Rc", "[N, 3, 3]", {N, 3, 3}, dt, dev);
+  check_tensor(scales, "scales", "[N, 2]", {N, 2}, dt, dev);
+  check_tensor(opacities, "opacities", "[N]", {N}, dt, dev);
+  check_tensor(colors, "colors", "[N, 3]", {N, 3}, dt, dev);
+  check_tensor(texel_size, "texel_size", "[N, 2]", {N, 2}, dt, dev);
+  check_tensor(textures, "textures", "[T, 3]", {-1, 3}, dt, dev);
+  check_tensor(tex_res, "tex_res", "[N, 2] int32", {N, 2}, at::kInt, dev);
+  check_tensor(tex_offset, "tex_offset", "[N] int64", {N}, at::kLong, dev);
+  check_tensor(background, "background", "[3]", {3}, dt, dev);
+  TORCH_CHECK(N <= INT32_MAX, "at most 2^31-1 primitives, got ", N);
+  TORCH_CHECK(width >= 1 && height >= 1, "image size must be >= 1x1, got ", width, "x", height);
+  TORCH_CHECK(fx != 0.0 && fy != 0.0, "focal lengths must be non-zero");
+  // Out-of-range texel rows would read (and, in backward, write) outside `textures`: checked on the device
+  // (one synchronisation), as the CPU binding does on the host.
+  if (N > 0) {
+    const Tensor res = tex_res.to(at::kLong);
+    TORCH_CHECK(!(res < 0).any().item<bool>(), "tex_res must be >= 0");
+    const Tensor size = res.select(1, 0) * res.select(1, 1);
+    const Tensor used = size > 0;
+    const Tensor bad = used & ((tex_offset < 0) | (tex_offset + size > textures.size(0)));
+    TORCH_CHECK(!bad.any().item<bool>(), "tex_offset + res_u*res_v exceeds the texel count T = ", textures.size(0),
+                " (or tex_offset < 0) for some primitive");
+  }
+  return Scene{mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+               fx, fy, cx, cy, near_plane, width, height};
+}
+
+template <typename S>
+ctgs::gpu::SceneArgs<S> scene_args(const Scene& s) {
+  ctgs::gpu::SceneArgs<S> a;
+  a.N = int(s.mu_c.size(0));
+  a.mu_c = s.mu_c.data_ptr<S>();
+  a.Rc = s.Rc.data_ptr<S>();
+  a.scales = s.scales.data_ptr<S>();
+  a.opacities = s.opacities.data_ptr<S>();
+  a.colors = s.colors.data_ptr<S>();
+  a.texel_size = s.texel_size.data_ptr<S>();
+  a.textures = s.textures.data_ptr<S>();
+  a.T = s.textures.size(0);
+  a.tex_res = s.tex_res.data_ptr<int32_t>();
+  a.tex_offset = reinterpret_cast<const long long*>(s.tex_offset.data_ptr<int64_t>());
+  a.background = s.background.data_ptr<S>();
+  a.K = ctgs::Intrinsics<S>{S(s.fx), S(s.fy), S(s.cx), S(s.cy), S(s.near_plane), int(s.width), int(s.height)};
+  return a;
+}
+
+// Scratch tensors live until the binding returns; the kernels that use them are queued on the same stream,
+// which is what the caching allocator needs to recycle them safely.
+struct TorchAllocators {
+  std::vector<Tensor> keep;
+  Tensor tile_list;
+  ctgs::gpu::Allocators make(const at::Device& dev) {
+    ctgs::gpu::Allocators a;
+    a.scratch = [this, dev](size_t bytes) -> void* {
+      keep.push_back(torch::empty({int64_t(bytes)}, torch::dtype(at::kByte).device(dev)));
+      return keep.back().data_ptr();
+    };
+    a.tile_list = [this, dev](int64_t pairs) -> int32_t* {
+      tile_list = torch::empty({pairs}, torch::dtype(at::kInt).device(dev));
+      return tile_list.data_ptr<int32_t>();
+    };
+    return a;
+  }
+};
+
+// Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
+// [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (the last three empty
+// unless error_image [H,W] is given). num_threads is accepted for symmetry with the CPU binding and ignored.
+// With poison=true outputs start as NaN, so unwritten pixels show up.
+std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                 Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                 Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                 int64_t height, double near_plane, c10::optional<Tensor> error_image,
+                                 int64_t num_threads, bool poison) {
+  (void)num_threads;
+  const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
+                              background, fx, fy, cx, cy, width, height, near_plane);
+  const c10::cuda::CUDAGuard guard(mu_c.device());
+  const int64_t N = mu_c.size(0), H = height, W = width;
+  const bool stats = error_image.has_value();
+  if (stats) check_tensor(*error_image, "error_image", "[H, W]", {H, W}, mu_c.scalar_type(), mu_c.device());
+  auto fopt = mu_c.options();
+  auto make = [&](std::vector<int64_t> sz) {
+    return poison ? torch::full(sz, std::numeric_limits<double>::quiet_NaN(), fopt) : torch::empty(sz, fopt);
+  };
+  Tensor rgb = make({H, W, 3}), alpha = make({H, W}), depth = make({H, W}), final_T = make({H, W});
+  Tensor n_contrib = poison ? torch::full({H, W}, -1, fopt.dtype(at::kInt)) : torch::empty({H, W}, fopt.dtype(at::kInt));
+  const int64_t num_tiles = int64_t(ctgs::tiles_x(int(W))) * ctgs::tiles_y(int(H));
+  Tensor tile_offsets = torch::empty({num_tiles + 1}, fopt.dtype(at::kLong));
+  Tensor count = torch::zeros({stats ? N : 0}, fopt.dtype(at::kInt));
+  Tensor contrib = torch::zeros({stats ? N : 0}, fopt), err = torch::zeros({stats ? N : 0}, fopt);
+  TorchAllocators alloc;
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  AT_DISPATCH_FLOATING_TYPES(mu_c.scalar_type(), "ctgs_forward_cuda", [&] {
+    ctgs::gpu::ForwardOut<scalar_t> o;
+    o.rgb = rgb.data_ptr<scalar_t>();
+    o.alpha = alpha.data_ptr<scalar_t>();
+    o.depth = depth.data_ptr<scalar_t>();
+    o.final_T = final_T.data_ptr<scalar_t>();
+    o.n_contrib = n_contrib.data_ptr<int32_t>();
+    o.tile_offsets = tile_offsets.data_ptr<int64_t>();
+    o.error_image = stats ? error_image->data_ptr<scalar_t>() : nullptr;
+    o.count = stats ? count.data_ptr<int32_t>() : nullptr;
+    o.contrib = stats ? contrib.data_ptr<scalar_t>() : nullptr;
+    o.err = stats ? err.data_ptr<scalar_t>() : nullptr;
+    ctgs::gpu::forward<scalar_t>(scene_args<scalar_t>(s), o, alloc.make(mu_c.device()), stream);
+  });
+  return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, alloc.tile_list, count, contrib, err};
+}
+
+// Returns v_mu_c [N,3], v_Rc [N,3,3], v_scales [N,2], v_opacities [N], v_colors [N,3], v_texel_size [N,2],
+// v_textures [T,3], v_background [3].
+std::vector<Tensor> backward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                  Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                  Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                  int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
+                                  Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
+                                  int64_t num_threads) {
+  (void)num_threads;
+  const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
+                              background, fx, fy, cx, cy, width, height, near_plane);
+  const c10::cuda::CUDAGuard guard(mu_c.device());
+  const at::Device dev = mu_c.device();
+  const int64_t H = height, W = width;
+  const auto dt = mu_c.scalar_type();
+  const int64_t num_tiles = int64_t(ctgs::tiles_x(int(W))) * ctgs::tiles_y(int(H));
+  check_tensor(tile_offsets, "tile_offsets", "[tiles + 1] int64", {num_tiles + 1}, at::kLong, dev);
+  check_tensor(tile_list, "tile_list", "[pairs] int32", {-1}, at::kInt, dev);
+  TORCH_CHECK(tile_offsets[num_tiles].item<int64_t>() == tile_list.size(0), "tile_offsets/tile_list mismatch");
+  check_tensor(final_T, "final_T", "[H, W]", {H, W}, dt, dev);
+  check_tensor(n_contrib, "n_contrib", "[H, W] int32", {H, W}, at::kInt, dev);
+  check_tensor(v_rgb, "v_rgb", "[H, W, 3]", {H, W, 3}, dt, dev);
+  check_tensor(v_alpha, "v_alpha", "[H, W]", {H, W}, dt, dev);
+  check_tensor(v_depth, "v_depth", "[H, W]", {H, W}, dt, dev);
+  Tensor v_mu_c = torch::empty_like(mu_c), v_Rc = torch::empty_like(Rc), v_scales = torch::empty_like(scales);
+  Tensor v_opacities = torch::empty_like(opacities), v_colors = torch::empty_like(colors);
+  Tensor v_texel_size = torch::empty_like(texel_size), v_textures = torch::empty_like(textures);
+  Tensor v_background = torch::empty_like(background);
+  TorchAllocators alloc;
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_backward_cuda", [&] {
+    ctgs::gpu::BackwardOut<scalar_t> o;
+    o.v_mu_c = v_mu_c.data_ptr<scalar_t>();
+    o.v_Rc = v_Rc.data_ptr<scalar_t>();
+    o.v_scales = v_scales.data_ptr<scalar_t>();
+    o.v_opacities = v_opacities.data_ptr<scalar_t>();
+    o.v_colors = v_colors.data_ptr<scalar_t>();
+    o.v_texel_size = v_texel_size.data_ptr<scalar_t>();
+    o.v_textures = v_textures.data_ptr<scalar_t>();
+    o.v_background = v_background.data_ptr<scalar_t>();
+    const ctgs::gpu::TileBinsView bins{tile_offsets.data_ptr<int64_t>(), tile_list.data_ptr<int32_t>()};
+    ctgs::gpu::backward<scalar_t>(scene_args<scalar_t>(s), bins, final_T.data_ptr<scalar_t>(),
+                                  n_contrib.data_ptr<int32_t>(), v_rgb.data_ptr<scalar_t>(),
+                                  v_alpha.data_ptr<scalar_t>(), v_depth.data_ptr<scalar_t>(), o,
+                                  alloc.make(dev), stream);
+  });
+  return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, CUDA backend (see docs/renderer.md)";
+  m.def("forward_cuda", &forward_cuda, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
+        "tile_list, count, contrib, err)");
+  m.def("backward_cuda", &backward_cuda, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
+        "v_texel_size, v_textures, v_background)");
+  m.def("tile_size", [] { return ctgs::TILE_SIZE; });
+}

@@ -1,0 +1,92 @@
+// Entry points of the CUDA backend (raw device pointers + sizes + a stream, no torch: nvcc compiles this
+// on a machine without torch headers or a GPU; kernels/bindings_cuda.cpp adapts tensors). Same semantics
+// and buffers as the CPU backend (kernels/cpu/rasterize.h, docs/renderer.md); templated on the scalar S
+// (float, double), explicit instantiations in the .cu files. Errors throw std::runtime_error.
+#pragma once
+
+#include <cuda_runtime_api.h>
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+
+#include "ctgs/bounds.h"
+#include "ctgs/surfel.h"
+
+namespace ctgs {
+namespace gpu {
+
+// The scene as the kernels see it (camera space; docs/renderer.md "Per primitive"). All device pointers.
+template <typename S>
+struct SceneArgs {
+  int N;                        // primitives
+  const S* mu_c;                // [N, 3] centres, camera space
+  const S* Rc;                  // [N, 3, 3] row-major, columns u, v, n
+  const S* scales;              // [N, 2] world units
+  const S* opacities;           // [N]
+  const S* colors;              // [N, 3] SH + 0.5
+  const S* texel_size;          // [N, 2] world units per texel
+  const S* textures;            // [T, 3]
+  long long T;                  // texels
+  const int* tex_res;           // [N, 2]
+  const long long* tex_offset;  // [N]
+  const S* background;          // [3] (device)
+  Intrinsics<S> K;
+};
+
+// Device memory the core cannot allocate itself (it knows no torch): the binding hands out tensors from
+// torch's caching allocator and keeps them alive until the call returns (scratch) or beyond (tile_list).
+struct Allocators {
+  std::function<void*(size_t bytes)> scratch;         // temporary device bytes, 256-byte aligned
+  std::function<int32_t*(int64_t pairs)> tile_list;   // [pairs] output kept for backward
+};
+
+// Per-tile lists produced by forward: tile k blends list[offsets[k] .. offsets[k+1]) in order (centre
+// depth, then index) -- the same lists as the CPU backend's TileBins.
+struct TileBinsView {
+  const int64_t* offsets;  // [num_tiles + 1]
+  const int32_t* list;     // [pairs] primitive indices
+};
+
+// Forward outputs (device). stats pointers may be null when no error image is given.
+template <typename S>
+struct ForwardOut {
+  S* rgb;                // [H, W, 3]
+  S* alpha;              // [H, W] 1 - final T
+  S* depth;              // [H, W] sum of w z
+  S* final_T;            // [H, W] saved for backward
+  int32_t* n_contrib;    // [H, W] entries of the tile list processed (last blended position + 1)
+  int64_t* tile_offsets; // [num_tiles + 1] (the list itself comes from Allocators::tile_list)
+  const S* error_image;  // [H, W] or null
+  int32_t* count;        // [N] pixels blended
+  S* contrib;            // [N] sum of w
+  S* err;                // [N] sum of e w
+};
+
+// Bins the primitives, renders, and (if error_image) accumulates the per-primitive error statistics.
+// Returns the number of (tile, primitive) pairs (the length of the tile list). Synchronises the stream once
+// (to learn that number); everything else is asynchronous on `stream`.
+template <typename S>
+int64_t forward(const SceneArgs<S>& a, const ForwardOut<S>& out, const Allocators& alloc, cudaStream_t stream);
+
+// Gradients, same shapes as the inputs they belong to. All outputs are overwritten.
+template <typename S>
+struct BackwardOut {
+  S* v_mu_c;        // [N, 3]
+  S* v_Rc;          // [N, 3, 3]
+  S* v_scales;      // [N, 2]
+  S* v_opacities;   // [N]
+  S* v_colors;      // [N, 3]
+  S* v_texel_size;  // [N, 2]
+  S* v_textures;    // [T, 3]
+  S* v_background;  // [3]
+};
+
+// v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W]: dL/d outputs. final_T, n_contrib, bins from forward.
+template <typename S>
+void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
+              const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
+              const Allocators& alloc, cudaStream_t stream);
+
+}  // namespace gpu
+}  // namespace ctgs
