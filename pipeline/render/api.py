@@ -180,9 +180,9 @@ def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_d
     means = surfels.means
     bg = background if background is not None else means.new_zeros(3)
     if backend == "cuda":
-        from pipeline.render._ext import load_cuda
+        from pipeline.render.cuda_backend import render_cuda
 
-        load_cuda()
+        return render_cuda(surfels, camera, degree, bg, error_image, POISON_OUTPUTS)
     if means.device.type != "cpu":
         raise ValueError(f"the cpu backend needs CPU tensors (means is on {means.device}); pass backend='auto'")
     return _render_cpu(surfels, camera, degree, bg, error_image)
