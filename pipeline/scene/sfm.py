@@ -9,9 +9,11 @@ holds the input images), so SCENE_DIR is never half-written. pycolmap 4.x API.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -82,16 +84,41 @@ def check_input_images(images_dir: str) -> list[str]:
         raise UserError(f"{images_dir}: only {len(names)} image(s); SfM needs at least {MIN_IMAGES} overlapping "
                         f"photos (30+ recommended)")
     sizes: dict[tuple[int, int], str] = {}
-    for name in names:
-        path = os.path.join(images_dir, name)
-        read_image(path)  # full decode: a truncated file must fail here, not inside COLMAP
-        info = image_info(path)
-        sizes.setdefault((info.width, info.height), name)
-        if len(sizes) > 1:
-            (w0, h0), n0 = next(iter(sizes.items()))
-            raise UserError(f"{path}: image is {info.width}x{info.height} but {n0} is {w0}x{h0}; all images must "
-                            f"have one size (one camera): resize them or split them into separate folders")
+    with _stderr_silenced():  # libpng prints its own line for a corrupt file; our UserError says it once
+        for name in names:
+            _check_one(images_dir, name, sizes)
     return names
+
+
+def _check_one(images_dir: str, name: str, sizes: dict[tuple[int, int], str]) -> None:
+    """Full decode (a truncated file must fail here, not inside COLMAP) and the one-size rule."""
+    path = os.path.join(images_dir, name)
+    read_image(path)
+    info = image_info(path)
+    sizes.setdefault((info.width, info.height), name)
+    if len(sizes) > 1:
+        (w0, h0), n0 = next(iter(sizes.items()))
+        raise UserError(f"{path}: image is {info.width}x{info.height} but {n0} is {w0}x{h0}; all images must "
+                        f"have one size (one camera): resize them or split them into separate folders")
+
+
+@contextlib.contextmanager
+def _stderr_silenced():
+    """Point file descriptor 2 at /dev/null (C libraries write there directly), then restore it."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (e.g. embedded): nothing to silence
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def _work_dir(scene_dir: str) -> str:
@@ -301,10 +328,11 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
     names = check_input_images(images_dir)
     import pycolmap
 
-    # COLMAP's glog INFO lines (one per image and step) would bury the spinner and the report.
+    # COLMAP's glog lines (one per image and step, and its own failure lines) would bury the spinner, the
+    # report and our one-line errors.
     # logtostderr: glog would otherwise also leave log files in /tmp on every run.
     previous = pycolmap.logging.minloglevel, pycolmap.logging.logtostderr
-    pycolmap.logging.minloglevel = 2 if quiet else previous[0]
+    pycolmap.logging.minloglevel = 3 if quiet else previous[0]  # 3: FATAL only; our errors explain
     pycolmap.logging.logtostderr = True
     try:
         return _run_steps(images_dir, scene_dir, names, opts, status)

@@ -30,7 +30,7 @@ def _run_sfm(images_dir, scene_dir):
 def _assert_clean_failure(tmp_path, scene_dir, code, lines, *needles):
     assert code != 0
     errors = [line for line in lines if line.startswith("error:")]
-    assert len(errors) == 1, lines
+    assert len(errors) == 1 and len(lines) == 1, lines
     for needle in needles:
         assert needle in errors[0], errors[0]
     assert not os.path.exists(scene_dir)
