@@ -18,14 +18,23 @@ _WINDOWS: dict[tuple, torch.Tensor] = {}
 
 
 def _window(channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """[channels, 1, 1, 11] normalised 1D Gaussian (the 2D window is separable: two 1D passes)."""
     key = (channels, dtype, str(device))
     if key not in _WINDOWS:
         x = torch.arange(WINDOW_SIZE, dtype=torch.float64) - WINDOW_SIZE // 2
         g = torch.exp(-(x ** 2) / (2 * WINDOW_SIGMA ** 2))
-        g = g / g.sum()
-        w2 = (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
-        _WINDOWS[key] = w2.expand(channels, 1, WINDOW_SIZE, WINDOW_SIZE).contiguous()
+        g = (g / g.sum()).to(dtype=dtype, device=device)
+        _WINDOWS[key] = g.view(1, 1, 1, WINDOW_SIZE).expand(channels, 1, 1, WINDOW_SIZE).contiguous()
     return _WINDOWS[key]
+
+
+def _blur(x: torch.Tensor) -> torch.Tensor:
+    """Gaussian window of every channel of x [1, C, H, W], zero padded, same size (separable: ~5x cheaper)."""
+    c = x.shape[1]
+    w = _window(c, x.dtype, x.device)
+    pad = WINDOW_SIZE // 2
+    x = F.conv2d(x, w, padding=(0, pad), groups=c)
+    return F.conv2d(x, w.transpose(2, 3), padding=(pad, 0), groups=c)
 
 
 def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -35,13 +44,8 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     c = a.shape[2]
     x = a.permute(2, 0, 1)[None]  # [1, C, H, W]
     y = b.permute(2, 0, 1)[None]
-    w = _window(c, a.dtype, a.device)
-    pad = WINDOW_SIZE // 2
-    mu_x = F.conv2d(x, w, padding=pad, groups=c)
-    mu_y = F.conv2d(y, w, padding=pad, groups=c)
-    # One conv for the three second moments: fewer kernel launches matter on 2 CPU cores.
-    second = F.conv2d(torch.cat([x * x, y * y, x * y], 1), w.repeat(3, 1, 1, 1), padding=pad, groups=3 * c)
-    sxx, syy, sxy = second.split(c, dim=1)
+    # One blur for all five moments: fewer kernel launches matter on 2 CPU cores.
+    mu_x, mu_y, sxx, syy, sxy = _blur(torch.cat([x, y, x * x, y * y, x * y], 1)).split(c, dim=1)
     mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
     sigma_x, sigma_y, sigma_xy = sxx - mu_xx, syy - mu_yy, sxy - mu_xy
     num = (2 * mu_xy + C1) * (2 * sigma_xy + C2)

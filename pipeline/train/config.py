@@ -31,6 +31,7 @@ class TrainConfig:
     backend: str = _f("auto", "renderer backend: auto | cpu | cuda | reference")
     device: str = _f("auto", "torch device: auto (cuda if available) | cpu | cuda")
     seed: int = _f(0, "seed of every random number generator")
+    threads: int = _f(0, "CPU threads for torch and the CPU backend (0 = torch's default; 1 on a shared machine)")
     method: str = _f("content_aware", "content_aware (the paper) | 2dgs | fixed_texture (baselines)")
     iterations: int = _f(30000, "training iterations")
     schedule_scale: float = _f(1.0, "multiplies every iteration count below (paper scale = 1)")

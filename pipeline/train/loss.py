@@ -41,4 +41,4 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg) ->
         texel_vis = torch.repeat_interleave(vis, sizes)  # [T]
         total = total + cfg.lambda_texture * (model.textures.abs().sum(1) * texel_vis).sum()
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)
-    return LossTerms(total=total, l1=float(l1), ssim=float(s), psnr=float(-10 * torch.log10(mse)))
+    return LossTerms(total=total, l1=float(l1.detach()), ssim=float(s.detach()), psnr=float(-10 * torch.log10(mse)))

@@ -71,6 +71,8 @@ class Trainer:
         self.cfg = cfg
         self.run_dir = run_dir
         self.device = pick_device(cfg)
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)  # OpenMP spin-waiting on an oversubscribed CPU costs ~5x
         self.extent = float(scene.extent)
         self.train_views = make_views(scene.train, self.device)
         self.test_views = make_views(scene.test, self.device)

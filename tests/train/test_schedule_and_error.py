@@ -1,0 +1,94 @@
+"""k_min (analytic), E (hand-computed), percentile selection, tau_tr schedule, routine calendar."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from pipeline.metrics.ssim import ssim, ssim_map
+from pipeline.render.camera import Camera
+from pipeline.train import schedule
+from pipeline.train.config import TrainConfig
+from pipeline.train.error import accumulate_error, error_image, top_fraction_mask
+from pipeline.train.kmin import compute_k_min
+
+
+def _cam(tz: float, f: float) -> Camera:
+    vm = torch.eye(4)
+    vm[2, 3] = tz  # camera at world z = -tz looking down +z
+    return Camera(fx=f, fy=f, cx=50, cy=40, width=100, height=80, viewmat=vm)
+
+
+def test_k_min_closest_camera_and_unseen():
+    means = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, 1.0], [100.0, 0.0, 5.0]])
+    cams = [_cam(0.0, 100.0), _cam(3.0, 50.0)]  # second camera: depth 8 (point 0) and 4 (point 1)
+    k = compute_k_min(means, cams)
+    # point 0: min(5/100, 8/50) = 0.05; point 1: min(1/100, 4/50) = 0.01; point 2 unseen: the largest seen.
+    assert torch.allclose(k, torch.tensor([0.05, 0.01, 0.05]))
+    behind = compute_k_min(torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 2.0]]), [_cam(0.0, 100.0)])
+    assert torch.allclose(behind, torch.tensor([0.02, 0.02]))
+
+
+def test_E_hand_computed():
+    # Two views (HW = 4 and 2), two primitives.
+    v1 = (torch.tensor([0.4, 0.0]), torch.tensor([2.0, 0.0]), 4)
+    v2 = (torch.tensor([0.1, 0.3]), torch.tensor([1.0, 1.0]), 2)
+    e = accumulate_error([v1, v2])
+    # prim 0: num = (0.4/4)(2/4) + (0.1/2)(1/2) = 0.05 + 0.025; den = 0.5 + 0.5 -> 0.075
+    # prim 1: num = 0 + (0.3/2)(1/2) = 0.075; den = 0.5 -> 0.15
+    assert torch.allclose(e, torch.tensor([0.075, 0.15]))
+    assert accumulate_error([(torch.zeros(1), torch.zeros(1), 4)]).tolist() == [0.0]
+
+
+def test_error_image_formula():
+    a = torch.rand(20, 24, 3, generator=torch.Generator().manual_seed(0))
+    b = torch.rand(20, 24, 3, generator=torch.Generator().manual_seed(1))
+    e = error_image(a, b, 0.2)
+    expect = 0.8 * (a - b).abs().mean(-1) + 0.2 * (1 - ssim_map(a, b)).mean(-1)
+    assert e.shape == (20, 24) and torch.allclose(e, expect)
+    assert float(error_image(a, a).abs().max()) < 1e-5
+
+
+def test_ssim_properties():
+    a = torch.rand(32, 40, 3, generator=torch.Generator().manual_seed(0))
+    assert abs(float(ssim(a, a)) - 1) < 1e-5
+    b = (a + 0.2 * torch.randn(a.shape, generator=torch.Generator().manual_seed(2))).clamp(0, 1)
+    assert float(ssim(a, b)) < 0.9
+    # Matches skimage (Gaussian 11x11, sigma 1.5) away from the border, where padding conventions differ.
+    from skimage.metrics import structural_similarity
+
+    _, full = structural_similarity(a.numpy(), b.numpy(), channel_axis=2, gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False, data_range=1.0, full=True)
+    ours = ssim_map(a, b).numpy()
+    assert abs(ours[6:-6, 6:-6] - full[6:-6, 6:-6]).max() < 1e-4
+    x = a.clone().requires_grad_(True)
+    ssim(x, b).backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_top_fraction_is_the_top_ten_percent():
+    e = torch.randperm(1000).float() + 1
+    m = top_fraction_mask(e, 0.1)
+    assert int(m.sum()) == 100 and float(e[m].min()) == 901.0
+    # Never-seen primitives (E = 0) are never selected, even if they fill the top decile.
+    z = torch.zeros(50)
+    assert not top_fraction_mask(z, 0.1).any()
+
+
+def test_tau_tr_schedule_and_calendar():
+    c = TrainConfig()
+    assert schedule.tau_tr(c, 0) == 64 and schedule.tau_tr(c, 3500) == 48 and schedule.tau_tr(c, 7000) == 32
+    assert schedule.tau_tr(c, 20000) == 32
+    assert schedule.routine_kind(c, 250) is None  # before texture start (500)
+    assert schedule.routine_kind(c, 500) == "full" and schedule.routine_kind(c, 750) == "full"
+    assert schedule.routine_kind(c, 760) is None
+    assert schedule.routine_kind(c, 25000) == "full" and schedule.routine_kind(c, 25250) is None
+    assert schedule.routine_kind(c, 26000) == "late" and schedule.routine_kind(c, 30000) is None
+    short = TrainConfig(iterations=10000)  # full routines end at iterations - 3000
+    assert schedule.routine_kind(short, 7000) == "full" and schedule.routine_kind(short, 7250) is None
+    assert schedule.sh_degree(c, 999) == 0 and schedule.sh_degree(c, 3000) == 3 and schedule.sh_degree(c, 9000) == 3
+    assert schedule.position_lr(c, 0, 2.0) == 1.6e-4 * 2 and math.isclose(schedule.position_lr(c, 30000, 1.0), 1.6e-6)
+    lrs = schedule.learning_rates(c, 499, 1.0, 16, "cpu")
+    assert lrs["textures_raw"] == 0.0 and schedule.learning_rates(c, 500, 1.0, 16, "cpu")["textures_raw"] == 7e-4
+    assert lrs["sh"][0, 0, 0] == 2.5e-3 and lrs["sh"][0, 1, 0] == 1.25e-4
