@@ -13,7 +13,9 @@ interrupted run never leaves a half-written image behind.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import tempfile
 from dataclasses import dataclass
 
@@ -192,3 +194,24 @@ def _first_line(message: str) -> str:
 
 def _oiio_message() -> str:
     return _first_line(oiio.geterror() or "")
+
+
+@contextlib.contextmanager
+def stderr_silenced():
+    """Point file descriptor 2 at /dev/null, then restore it: libpng/libjpeg print their own line for a
+    corrupt file, while our UserError already names the file. Wrap whole batches (not single reads
+    from several threads): the redirection is process-wide."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (e.g. embedded): nothing to silence
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from pipeline.errors import UserError
-from pipeline.io.images import IMAGE_EXTENSIONS, image_info, read_rgb
+from pipeline.io.images import IMAGE_EXTENSIONS, image_info, read_rgb, stderr_silenced
 from pipeline.render.camera import Camera
 from pipeline.scene.colmap import ColmapModel, ModelImage, find_model_dir, read_colmap_model
 from pipeline.scene.types import Scene, View
@@ -108,7 +108,7 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
         info = image_info(paths[i])  # header only: the camera still needs the real size
         return None, info.width, info.height
 
-    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+    with stderr_silenced(), ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         loaded = list(pool.map(read, range(len(paths))))
 
     views = []

@@ -9,11 +9,9 @@ holds the input images), so SCENE_DIR is never half-written. pycolmap 4.x API.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -21,7 +19,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.images import image_info, list_images, read_image, resize_image, write_image
+from pipeline.io.images import image_info, list_images, read_image, resize_image, stderr_silenced, write_image
 
 MIN_IMAGES = 3
 # Fewer registered images than this fraction means SfM failed on this input (too little overlap or
@@ -84,7 +82,7 @@ def check_input_images(images_dir: str) -> list[str]:
         raise UserError(f"{images_dir}: only {len(names)} image(s); SfM needs at least {MIN_IMAGES} overlapping "
                         f"photos (30+ recommended)")
     sizes: dict[tuple[int, int], str] = {}
-    with _stderr_silenced():  # libpng prints its own line for a corrupt file; our UserError says it once
+    with stderr_silenced():  # libpng prints its own line for a corrupt file; our UserError says it once
         for name in names:
             _check_one(images_dir, name, sizes)
     return names
@@ -100,25 +98,6 @@ def _check_one(images_dir: str, name: str, sizes: dict[tuple[int, int], str]) ->
         (w0, h0), n0 = next(iter(sizes.items()))
         raise UserError(f"{path}: image is {info.width}x{info.height} but {n0} is {w0}x{h0}; all images must "
                         f"have one size (one camera): resize them or split them into separate folders")
-
-
-@contextlib.contextmanager
-def _stderr_silenced():
-    """Point file descriptor 2 at /dev/null (C libraries write there directly), then restore it."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):  # no real stderr (e.g. embedded): nothing to silence
-        yield
-        return
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
 
 
 def _work_dir(scene_dir: str) -> str:
