@@ -276,3 +276,20 @@ def load_demo_meta(scene_dir: str) -> dict:
         raise UserError(f"{path}: not a demo scene (no {META_NAME}); run `ctgs demo-scene {scene_dir}`")
     with open(path) as f:
         return json.load(f)
+
+
+def surface_of(points: np.ndarray, meta: dict, tol: float = 0.02) -> np.ndarray:
+    """Index into meta["surfaces"] of the surface each point [N, 3] lies on (within `tol` world units of
+    its plane and inside its extents grown by `tol`), the nearest plane winning; -1 for none."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    best = np.full(len(pts), -1, dtype=np.int64)
+    best_dist = np.full(len(pts), np.inf)
+    for k, s in enumerate(meta["surfaces"]):
+        rel = pts - np.asarray(s["center"])
+        dist = np.abs(rel @ np.asarray(s["normal"]))
+        inside = (np.abs(rel @ np.asarray(s["u"])) <= s["half_extents"][0] + tol) & \
+                 (np.abs(rel @ np.asarray(s["v"])) <= s["half_extents"][1] + tol)
+        better = inside & (dist <= tol) & (dist < best_dist)
+        best = np.where(better, k, best)
+        best_dist = np.where(better, dist, best_dist)
+    return best

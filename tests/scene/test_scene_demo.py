@@ -66,6 +66,22 @@ def test_metadata_describes_surfaces_and_points_lie_on_them(tiny_demo_master):
     assert dist.max() < 1e-9  # every point lies on some surface
 
 
+def test_surface_of_classifies_points_by_surface(tiny_demo_master):
+    from pipeline.scene.colmap import read_colmap_model
+    from pipeline.scene.demo import load_demo_meta, surface_of
+
+    meta = load_demo_meta(tiny_demo_master)
+    points = read_colmap_model(os.path.join(tiny_demo_master, "sparse", "0")).points
+    ids = surface_of(points, meta)
+    assert (ids >= 0).all()  # every sampled point lies on a surface
+    floor = [s["id"] for s in meta["surfaces"]].index("floor")
+    assert surface_of(np.array([[0.3, -2.0, 0.001], [0.3, -2.0, 0.5], [9.0, 9.0, 0.0]]), meta).tolist() == \
+        [floor, -1, -1]
+    # the photo surfaces hold most of the area here, so most points are on photos
+    kinds = np.array([meta["surfaces"][i]["kind"] for i in ids])
+    assert 0.4 < (kinds == "photo").mean() < 0.9
+
+
 def test_deterministic_for_a_seed_and_idempotent(tmp_path, tiny_demo_master):
     params = dict(TINY, num_views=3)
     a = make_demo_scene(str(tmp_path / "a"), **params)
