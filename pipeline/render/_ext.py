@@ -69,5 +69,7 @@ def load_cpu(verbose: bool = False) -> ModuleType:
 
 
 def load_cuda(verbose: bool = False) -> ModuleType:
-    """The CUDA backend (a later issue): not part of this version yet."""
-    raise UserError("the cuda renderer backend is not built in this version: pass --backend cpu or reference")
+    """The compiled CUDA backend; built by pipeline.render._ext_cuda (only where a GPU is visible)."""
+    from pipeline.render._ext_cuda import load_cuda as _load_cuda
+
+    return _load_cuda(verbose)
