@@ -56,10 +56,14 @@ def densify_and_prune(model, opt, acc: GradAccumulator, cfg, extent: float, gen:
     clone = big_grad & small
     splt = big_grad & ~small
     if cfg.max_primitives > 0:
+        # Each clone or split adds one primitive net: keep the largest gradients that fit the budget.
         room = max(0, cfg.max_primitives - n)
-        if int(clone.sum()) + int(splt.sum()) > room:
-            clone &= False
-            splt &= False
+        if int(big_grad.sum()) > room:
+            order = torch.argsort(torch.where(big_grad, avg, torch.full_like(avg, -1.0)), descending=True)
+            allowed = torch.zeros_like(big_grad)
+            allowed[order[:room]] = True
+            clone &= allowed
+            splt &= allowed
     keep = torch.nonzero(~splt).flatten()
     cl = torch.nonzero(clone).flatten()
     sp = torch.nonzero(splt).flatten()

@@ -225,11 +225,11 @@ class Trainer:
             events = list(self._adapt(it))
             self.train_seconds += time.perf_counter() - t0
             if it % cfg.log_every == 0 or it == 1:
-                self._log({"type": "step", "it": it, "loss": float(loss), "l1": terms.l1, "ssim": terms.ssim,
+                self._log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                            "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
                            "sh_degree": self.model.sh_degree, "lr_pos": lrs["means"],
                            "seconds": round(self.train_seconds, 3)})
-            yield Step(it, float(loss), terms.psnr, self.model.num_primitives, self.model.num_texels,
+            yield Step(it, float(loss.detach()), terms.psnr, self.model.num_primitives, self.model.num_texels,
                        self.train_seconds)
             for ev in events:
                 self._log({"type": "routine", "it": ev.it, "kind": ev.kind, **ev.stats,
