@@ -10,6 +10,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/extension.h>
 
+#include <algorithm>
 #include <limits>
 #include <vector>
 
@@ -99,7 +100,8 @@ struct TorchAllocators {
   ctgs::gpu::Allocators make(const at::Device& dev) {
     ctgs::gpu::Allocators a;
     a.scratch = [this, dev](size_t bytes) -> void* {
-      keep.push_back(torch::empty({int64_t(bytes)}, torch::dtype(at::kByte).device(dev)));
+      // Never a null pointer (an empty tensor's): cub reads a null temp buffer as a size query.
+      keep.push_back(torch::empty({int64_t(std::max<size_t>(bytes, 16))}, torch::dtype(at::kByte).device(dev)));
       return keep.back().data_ptr();
     };
     a.tile_list = [this, dev](int64_t pairs) -> int32_t* {

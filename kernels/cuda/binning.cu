@@ -111,10 +111,11 @@ TileList bin_tiles(const SceneArgs<S>& a, const SurfelPrim<S>* prims, const Pixe
   depth_keys_kernel<S><<<grid_1d(N), LINEAR_BLOCK, 0, stream>>>(N, prims, keys, index);
   CTGS_CUDA_LAUNCH_CHECK("depth_keys_kernel");
   size_t bytes = 0;
-  CTGS_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, bytes, keys, keys_sorted, index, order, N, 0,
+  // int64 item counts here too: one cub instantiation for both sorts (it dominates the compile time).
+  CTGS_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, bytes, keys, keys_sorted, index, order, int64_t(N), 0,
                                                   int(8 * sizeof(S)), stream));
   void* temp = alloc.scratch(bytes);
-  CTGS_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp, bytes, keys, keys_sorted, index, order, N, 0,
+  CTGS_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp, bytes, keys, keys_sorted, index, order, int64_t(N), 0,
                                                   int(8 * sizeof(S)), stream));
   rank_kernel<<<grid_1d(N), LINEAR_BLOCK, 0, stream>>>(N, order, rank);
   CTGS_CUDA_LAUNCH_CHECK("rank_kernel");

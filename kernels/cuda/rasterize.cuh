@@ -37,7 +37,7 @@ struct SceneArgs {
 // Device memory the core cannot allocate itself (it knows no torch): the binding hands out tensors from
 // torch's caching allocator and keeps them alive until the call returns (scratch) or beyond (tile_list).
 struct Allocators {
-  std::function<void*(size_t bytes)> scratch;         // temporary device bytes, 256-byte aligned
+  std::function<void*(size_t bytes)> scratch;         // temporary device bytes, 256-byte aligned, never null
   std::function<int32_t*(int64_t pairs)> tile_list;   // [pairs] output kept for backward
 };
 
