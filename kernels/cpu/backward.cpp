@@ -1,10 +1,12 @@
 // Hand-written backward of the CPU backend: back-to-front per pixel over the entries the forward
 // processed (3DGS), recovering T by division (alpha <= MAX_ALPHA keeps it safe). Tiles in parallel;
-// per-primitive gradients go to per-thread buffers reduced at the end, texel gradients use atomics
-// (a per-thread copy of the whole texel buffer would not fit for large scenes).
+// per-primitive gradients go to per-thread buffers reduced at the end. Texel gradients go to per-thread
+// copies of the texel buffer too while those stay small (MAX_PRIVATE_TEXEL_BYTES), else to the output
+// with atomics (a float atomic add is a CAS loop: 12 per pair would dominate the backward).
 #include <omp.h>
 
 #include <algorithm>
+#include <memory>
 
 #include "rasterize.h"
 
@@ -14,6 +16,8 @@ namespace cpu {
 namespace {
 // Layout of one primitive's gradient row in the per-thread buffers.
 enum : int { G_MU = 0, G_RC = 3, G_SCALE = 12, G_OPACITY = 14, G_COLOR = 15, G_TEXEL = 18, G_STRIDE = 20 };
+// Above this many bytes of extra per-thread texel-gradient copies, atomics are used instead.
+constexpr size_t MAX_PRIVATE_TEXEL_BYTES = size_t(256) << 20;
 }  // namespace
 
 template <typename S>
@@ -41,9 +45,18 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   const int nt = std::max(1, a.num_threads);
   std::vector<S> gbuf(size_t(nt) * N * G_STRIDE, S(0));
   std::vector<S> bgbuf(size_t(nt) * 3, S(0));
+  // Thread 0 writes texel gradients straight into the output, threads 1.. into private copies.
+  const size_t tex_n = size_t(3) * size_t(a.T);
+  const bool private_tex = nt > 1 && tex_n * (nt - 1) * sizeof(S) <= MAX_PRIVATE_TEXEL_BYTES;
+  std::unique_ptr<S[]> tbuf(private_tex ? new S[tex_n * (nt - 1)] : nullptr);
+  const size_t tex_zero_n = private_tex ? tex_n * nt : tex_n;
   // Zeroed in parallel: for large jagged textures (hundreds of MB) this first touch is a visible cost.
 #pragma omp parallel for schedule(static) num_threads(nt)
-  for (long long k = 0; k < 3 * a.T; ++k) out.v_textures[k] = S(0);
+  for (long long k = 0; k < (long long)tex_zero_n; ++k) {
+    if (size_t(k) < tex_n) out.v_textures[k] = S(0);
+    else tbuf[k - tex_n] = S(0);
+  }
+  const bool use_atomics = nt > 1 && !private_tex;
   const S bg[3] = {a.background[0], a.background[1], a.background[2]};
   constexpr int TP = TILE_W * TILE_H;
 
@@ -51,6 +64,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
     S* g_thread = gbuf.data() + size_t(tid) * N * G_STRIDE;
+    S* v_tex_thread = (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n;
     const int64_t begin = bins.offsets[tile];
     const int x0 = (tile % ntx) * TILE_W, y0 = (tile / ntx) * TILE_H;
     const int x1 = std::min(x0 + TILE_W, W), y1 = std::min(y0 + TILE_H, H);  // exclusive
@@ -105,11 +119,15 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
           if (h.taps.active) {
             for (int k = 0; k < 4; ++k) {
               if (h.taps.row[k] < 0) continue;
-              S* dst = out.v_textures + 3 * h.taps.row[k];
-              for (int c = 0; c < 3; ++c) {
-                const S val = h.taps.w[k] * g.tex[c];
+              S* dst = v_tex_thread + 3 * h.taps.row[k];
+              if (use_atomics) {
+                for (int c = 0; c < 3; ++c) {
+                  const S val = h.taps.w[k] * g.tex[c];
 #pragma omp atomic
-                dst[c] += val;
+                  dst[c] += val;
+                }
+              } else {
+                for (int c = 0; c < 3; ++c) dst[c] += h.taps.w[k] * g.tex[c];
               }
             }
           }
@@ -156,6 +174,14 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     out.v_opacities[i] = row[G_OPACITY];
     for (int k = 0; k < 3; ++k) out.v_colors[3 * i + k] = row[G_COLOR + k];
     for (int k = 0; k < 2; ++k) out.v_texel_size[2 * i + k] = row[G_TEXEL + k];
+  }
+  if (private_tex) {
+#pragma omp parallel for schedule(static) num_threads(nt)
+    for (long long k = 0; k < (long long)tex_n; ++k) {
+      S s = out.v_textures[k];
+      for (int t = 0; t + 1 < nt; ++t) s += tbuf[size_t(t) * tex_n + k];
+      out.v_textures[k] = s;
+    }
   }
   for (int c = 0; c < 3; ++c) {
     S s = S(0);
