@@ -133,7 +133,8 @@ std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     return poison ? torch::full(sz, std::numeric_limits<double>::quiet_NaN(), fopt) : torch::empty(sz, fopt);
   };
   Tensor rgb = make({H, W, 3}), alpha = make({H, W}), depth = make({H, W}), final_T = make({H, W});
-  Tensor n_contrib = poison ? torch::full({H, W}, -1, fopt.dtype(at::kInt)) : torch::empty({H, W}, fopt.dtype(at::kInt));
+  const auto iopt = fopt.dtype(at::kInt);
+  Tensor n_contrib = poison ? torch::full({H, W}, -1, iopt) : torch::empty({H, W}, iopt);
   const int64_t num_tiles = int64_t(ctgs::tiles_x(int(W))) * ctgs::tiles_y(int(H));
   Tensor tile_offsets = torch::empty({num_tiles + 1}, fopt.dtype(at::kLong));
   Tensor count = torch::zeros({stats ? N : 0}, fopt.dtype(at::kInt));

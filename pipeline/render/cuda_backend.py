@@ -23,7 +23,8 @@ class _RasterizeCUDA(torch.autograd.Function):
 
         cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
                int(camera.height), float(camera.near))
-        (rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err) = load_cuda().forward_cuda(
+        ext = load_cuda()
+        (rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err) = ext.forward_cuda(
             mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, *cam,
             error_image, 0, poison)
         ctx.save_for_backward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,

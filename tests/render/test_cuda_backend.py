@@ -268,8 +268,8 @@ def test_extreme_opacity_grazing_near_plane_resolutions(dtype):
 @needs_cuda
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_no_texels_and_empty_scene(dtype):
-    s = replace(_pair(dtype), tex_res=torch.zeros(2, 2, dtype=torch.int32), tex_offset=torch.zeros(2, dtype=torch.int64),
-                textures=torch.zeros(0, 3, dtype=dtype))
+    s = replace(_pair(dtype), tex_res=torch.zeros(2, 2, dtype=torch.int32),
+                tex_offset=torch.zeros(2, dtype=torch.int64), textures=torch.zeros(0, 3, dtype=dtype))
     _extreme(s, _cam(dtype), dtype)
     empty = make_surfels(means=torch.zeros(0, 3), quats=torch.zeros(0, 4), scales=torch.zeros(0, 2),
                          opacities=torch.zeros(0), sh=torch.zeros(0, 1, 3), texel_size=torch.zeros(0),
