@@ -1,0 +1,67 @@
+"""Texture start (t2p so the extent is ~8 texels, min exponent), allocation rule, split budget, init."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline.train import texels
+from pipeline.train.init import farthest_point_subsample, init_model
+from pipeline.train.split import split
+
+from train_helpers import image, model, optimiser
+
+
+def test_texture_start_sets_about_8_texels_and_allocates_zero_textures():
+    m = model(means=[[0.0, 0.0, 3.0], [0.5, 0.0, 3.0], [0, 0.3, 3.0]], scales=[[0.2, 0.2], [0.003, 0.003], [0.2, 0.1]],
+              opacities=[0.9, 0.9, 0.9], tex_res=[[0, 0]] * 3, textures=torch.zeros(0, 3), k_min=[0.002] * 3)
+    opt = optimiser(m)
+    before = image(m)
+    texels.start_textures(m, opt, start_texels=8, min_exp=1, cap=256)
+    extent = 2 * texels.active_half_extent(m).max(1).values
+    k = texels.texel_size(m)
+    # Prim 0: extent ~1.2 / (8 * 0.002) = 75 -> 2^6 = 64 (nearest power of two); prim 1 hits the minimum.
+    assert m.t2p_exp.tolist()[0] == 6 and m.t2p_exp.tolist()[1] == 1
+    assert 8 / 2 ** 0.5 <= float(extent[0] / k[0]) <= 8 * 2 ** 0.5
+    # Allocation: active extent + 1 texel padding, power of two, zero offsets -> image unchanged.
+    assert m.tex_res[0].tolist() == [16, 16] and m.tex_res[2].tolist() == [16, 8]
+    assert float(m.textures_raw.detach().abs().sum()) == 0.0
+    assert torch.abs(image(m) - before).max() < 1e-6
+
+
+def test_allocation_is_capped_at_256():
+    m = model(means=[[0.0, 0.0, 3.0]], scales=[[5.0, 0.0003]], opacities=[0.9], tex_res=[[2, 2]], k_min=[0.001])
+    assert texels.needed_res(m, 256)[0].tolist() == [256, 2]
+
+
+def test_split_respects_the_primitive_budget():
+    means = [[x, 0.0, 3.0] for x in np.linspace(-1, 1, 4)]
+    m = model(means=means, scales=[[0.3, 0.05]] * 4, opacities=[0.9] * 4, tex_res=[[2, 2]] * 4, k_min=[0.005] * 4)
+    opt = optimiser(m)
+    prio = torch.tensor([0.1, 0.4, 0.3, 0.2])
+    n, _ = split(m, opt, torch.ones(4, dtype=torch.bool), tau=4.0, max_primitives=6, priority=prio)
+    assert n == 2 and m.num_primitives == 6
+    # The two with the largest priority were split (their parents are gone).
+    xs = sorted(round(v, 4) for v in m.means[:, 0].tolist())
+    assert round(float(np.linspace(-1, 1, 4)[1]), 4) not in xs and round(float(np.linspace(-1, 1, 4)[2]), 4) not in xs
+
+
+def test_init_from_points():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (500, 3)).astype(np.float32)
+    cols = rng.uniform(0, 1, (500, 3)).astype(np.float32)
+    idx = farthest_point_subsample(pts, 50)
+    assert len(set(idx.tolist())) == 50
+    # Farthest-point: the subset spreads out (min pairwise distance beats a random subset's).
+    d = lambda p: np.min(np.linalg.norm(p[:, None] - p[None], axis=-1) + np.eye(len(p)) * 9)  # noqa: E731
+    assert d(pts[idx]) > d(pts[:50])
+    m = init_model(pts, cols, max_points=100, opacity=0.1, max_sh_degree=3, random_rotation=True,
+                   texture_mode="content_aware", fixed_res=16, seed=0)
+    assert m.num_primitives == 100 and m.sh.shape == (100, 16, 3) and m.num_texels == 0
+    assert torch.allclose(m.opacities, torch.full((100,), 0.1))
+    sub = farthest_point_subsample(pts, 100, 0)
+    assert torch.allclose(m.sh[:, 0] * 0.28209479177387814 + 0.5, torch.from_numpy(cols[sub]), atol=1e-6)
+    assert torch.allclose(m.means, torch.from_numpy(pts[sub]))
+    f = init_model(pts, cols, max_points=0, opacity=0.1, max_sh_degree=0, random_rotation=False,
+                   texture_mode="fixed", fixed_res=16, seed=0)
+    assert f.num_texels == 500 * 256 and bool((f.quats[:, 0] == 1).all())
