@@ -17,7 +17,7 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras) -> dict:
     E = compute_E(model, views, render_fn, cfg.lambda_ssim)
     top = top_fraction_mask(E, cfg.top_fraction)
     n0 = model.num_primitives
-    n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=None)
+    n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E)
     up = texels.upscale(model, opt, top, cfg.min_t2p_exp)
     down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
     n_pruned = prune(model, opt, cfg.prune_opacity)

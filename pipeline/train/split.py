@@ -30,7 +30,7 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
         if max_primitives > 0:
             budget = max(0, max_primitives - n)
             if int(sel.sum()) > budget:
-                order = torch.argsort(priority if priority is not None else torch.zeros(n), descending=True)
+                order = torch.argsort(priority if priority is not None else torch.zeros(n, device=sel.device), descending=True)
                 ranked = order[sel[order]][:budget]
                 sel = torch.zeros_like(sel)
                 sel[ranked] = True
