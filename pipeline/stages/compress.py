@@ -13,7 +13,7 @@ from pipeline.errors import UserError
 @click.argument("model_dir", type=click.Path(file_okay=False))
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output model folder (replaced atomically).")
-@click.option("--codebook-size", "-k", default=4096, show_default=True,
+@click.option("--codebook-size", "-k", default=256, show_default=True,
               help="K, number of codebook colours (<= 256: uint8 indices, <= 65536: uint16).")
 @click.option("--half/--no-half", default=True, show_default=True,
               help="Store SH coefficients and the codebook as float16 (positions/rotations/scales stay float32).")
