@@ -59,7 +59,8 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
 	scene=$(DATA_ROOT)/$$dataset/$*; \
 	test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; \
-	$(CTGS) train $$scene -o $(RUNS)/$* --images $$images --set holdout=$$holdout $(TRAIN_OPTS)
+	resume=$$(test -d $(RUNS)/$*/checkpoints && echo --resume); \
+	$(CTGS) train $$scene -o $(RUNS)/$* --images $$images --set holdout=$$holdout $(TRAIN_OPTS) $$resume
 
 # Any run folder (benchmark scenes and the demo alike): export, then compress the export.
 %/model/manifest.json: %/model.pt
@@ -94,7 +95,7 @@ $(DEMO_DIR)/scene/sparse: | $(STAMP)
 
 $(DEMO_DIR)/run/model.pt: | $(DEMO_DIR)/scene/sparse
 	$(CTGS) train $(DEMO_DIR)/scene -o $(DEMO_DIR)/run --config configs/demo.toml --backend $(BACKEND) \
-		$(if $(ITERATIONS),--iterations $(ITERATIONS))
+		$(if $(ITERATIONS),--iterations $(ITERATIONS)) $$(test -d $(DEMO_DIR)/run/checkpoints && echo --resume)
 
 $(DEMO_DIR)/run/eval/metrics.json: $(DEMO_DIR)/run/model/manifest.json | $(LPIPS_WEIGHTS)
 	$(CTGS) eval $(DEMO_DIR)/run --model $(DEMO_DIR)/run/model -o $(DEMO_DIR)/run/eval --dataset demo --backend $(BACKEND)
