@@ -56,8 +56,20 @@ def main() -> None:
         path = os.path.join(args.work, name, "train_summary.json")
         if os.path.exists(path):
             with open(path) as fh:
-                rows.append({"config": name, "config_file": cfg, **json.load(fh)})
+                row = {"config": name, "config_file": cfg, **json.load(fh)}
+            row["texels_per_area"] = texel_density(os.path.join(args.work, name), scene)
+            rows.append(row)
     write(rows, args, host, out_json)
+
+
+def texel_density(run_dir: str, scene: str) -> dict:
+    """Texels per unit area on photo / flat / smooth demo surfaces (pipeline.train.allocation)."""
+    from pipeline.train.allocation import texel_density_by_kind
+    from pipeline.train.run import load_run
+
+    model, _ = load_run(run_dir)
+    with open(os.path.join(scene, "demo_meta.json")) as fh:
+        return texel_density_by_kind(model, json.load(fh))
 
 
 def write(rows, args, host, out_json) -> None:
@@ -70,11 +82,12 @@ def write(rows, args, host, out_json) -> None:
              "Configs: configs/demo*.toml (1000 iterations, paper schedule x 0.04, tau_tr scaled to the image "
              "size). Params = 59/primitive (58 for 2dgs) + 3/texel. 2dgs_equal_params: 2dgs with max_primitives "
              "= default params / 58. Training seconds on a 2-core machine shared with other jobs (noisy).", "",
-             "| config | test PSNR | test SSIM | points | texels | params | train s | backend | machine |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| config | test PSNR | test SSIM | points | texels | params | train s | texels/area photo : flat | backend | machine |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         lines.append(f"| {r['config']} | {r['final_test_psnr']:.2f} | {r['final_test_ssim']:.4f} | "
                      f"{r['num_primitives']} | {r['num_texels']} | {r['num_params']} | {r['train_seconds']:.0f} | "
+                     f"{r['texels_per_area'].get('photo', 0):.0f} : {r['texels_per_area'].get('flat', 0):.0f} | "
                      f"{r['backend']} | {r['machine']} |")
     with open(out_json[:-5] + ".md", "w") as fh:
         fh.write("\n".join(lines) + "\n")
