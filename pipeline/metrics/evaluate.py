@@ -81,6 +81,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
         bytes_on_disk, model_source, manifest = files.bytes_on_disk, os.path.abspath(opts.model_dir), files.manifest
     model = type(model).from_state_dict(model.state_dict(), device=device)
     backend = opts.backend or str(run.config.get("backend", "auto"))
+    if backend == "auto":  # the renderer's rule: cuda when the inputs live on a GPU, else cpu
+        backend = "cuda" if device.type == "cuda" else "cpu"
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
     if not scene.test:
         raise UserError(f"{run.scene_dir}: no test views (holdout={run.holdout}); train with holdout > 0 to evaluate")
