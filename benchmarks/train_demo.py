@@ -62,6 +62,17 @@ def main() -> None:
     write(rows, args, host, out_json)
 
 
+NOTES = """Notes (recorded by hand from the runs of 2026-11-21, same scene and machine):
+- Before configs/demo.toml raised lr_texture to 7e-3, the default reached 20.16 dB / SSIM 0.695 with
+  2857 points, 29,944 texels, 258,395 params, and 2dgs capped to that budget (4375 points, 253,750
+  params) reached 21.47 dB: at equal parameters on this tiny scene 2DGS won. With lr_texture 7e-3 the
+  default wins in PSNR but spends more parameters than uncapped 2dgs (2.1M vs 0.9M).
+- texels/area: allocated texels of primitives lying on photo-textured vs flat surfaces divided by those
+  surfaces' area (pipeline/train/allocation.py); the issue asks for >= 10x, these runs reach 2.5-6.4x.
+- fixed_texture edges out the default in PSNR (+0.09 dB) with 8.6x the parameters; the default has the
+  higher SSIM."""
+
+
 def texel_density(run_dir: str, scene: str) -> dict:
     """Texels per unit area on photo / flat / smooth demo surfaces (pipeline.train.allocation)."""
     from pipeline.train.allocation import texel_density_by_kind
@@ -80,8 +91,8 @@ def write(rows, args, host, out_json) -> None:
         json.dump({"meta": meta, "rows": rows}, fh, indent=1)
     lines = [f"# Training on the demo scene ({meta['scene']})", "",
              "Configs: configs/demo*.toml (1000 iterations, paper schedule x 0.04, tau_tr scaled to the image "
-             "size). Params = 59/primitive (58 for 2dgs) + 3/texel. 2dgs_equal_params: 2dgs with max_primitives "
-             "= default params / 58. Training seconds on a 2-core machine shared with other jobs (noisy).", "",
+             "size). Params = 59/primitive (58 for 2dgs) + 3/texel. 2dgs_equal_params (when present): 2dgs "
+             "with max_primitives = default params / 58. Training seconds on a 2-core machine shared with other jobs (noisy).", "",
              "| config | test PSNR | test SSIM | points | texels | params | train s | texels/area photo : flat | backend | machine |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
@@ -89,6 +100,7 @@ def write(rows, args, host, out_json) -> None:
                      f"{r['num_primitives']} | {r['num_texels']} | {r['num_params']} | {r['train_seconds']:.0f} | "
                      f"{r['texels_per_area'].get('photo', 0):.0f} : {r['texels_per_area'].get('flat', 0):.0f} | "
                      f"{r['backend']} | {r['machine']} |")
+    lines += ["", NOTES]
     with open(out_json[:-5] + ".md", "w") as fh:
         fh.write("\n".join(lines) + "\n")
 
