@@ -1,4 +1,4 @@
-"""`render()`: input validation, backend dispatch, and the autograd bridge to the C++ kernels.
+"""`render()`: input validation and backend dispatch (the autograd bridge is pipeline.render.rasterize).
 
 Semantics: docs/renderer.md. The extension backends get camera-space primitives from
 `pipeline.render.preprocess` (PyTorch, differentiable); a torch.autograd.Function calls the compiled
@@ -13,8 +13,8 @@ import os
 import torch
 
 from pipeline.render.camera import Camera
-from pipeline.render.preprocess import to_camera_space
-from pipeline.render.types import ErrorStats, RenderOutput, SurfelInputs
+from pipeline.render.rasterize import rasterize
+from pipeline.render.types import RenderOutput, SurfelInputs
 
 BACKENDS = ("auto", "cpu", "cuda", "reference")
 # Debug aid: fresh output buffers start as NaN so a pixel the kernel never wrote shows up (tests set it).
@@ -105,61 +105,6 @@ def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | 
                      tuple(error_image.shape) == (camera.height, camera.width), m)
 
 
-# ---- autograd bridge -------------------------------------------------------------------------------------
-class _RasterizeCPU(torch.autograd.Function):
-    """Camera-space primitives -> (rgb, alpha, depth, count, contrib, err); backward by the C++ kernel."""
-
-    @staticmethod
-    def forward(ctx, mu_c, Rc, scales, opacities, colors, texel_size, textures, background,
-                tex_res, tex_offset, camera, error_image, num_threads):
-        from pipeline.render._ext import load_cpu
-
-        ext = load_cpu()
-        cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
-               int(camera.height), float(camera.near))
-        (rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err) = ext.forward_cpu(
-            mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, *cam,
-            error_image, num_threads, POISON_OUTPUTS)
-        ctx.save_for_backward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
-                              background, tile_offsets, tile_list, final_T, n_contrib)
-        ctx.cam, ctx.num_threads = cam, num_threads
-        ctx.mark_non_differentiable(count, contrib, err)
-        return rgb, alpha, depth, count, contrib, err
-
-    @staticmethod
-    def backward(ctx, v_rgb, v_alpha, v_depth, _v_count, _v_contrib, _v_err):
-        from pipeline.render._ext import load_cpu
-
-        (mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
-         tile_offsets, tile_list, final_T, n_contrib) = ctx.saved_tensors
-        H, W = final_T.shape
-        v_rgb = final_T.new_zeros(H, W, 3) if v_rgb is None else v_rgb.contiguous()
-        v_alpha = final_T.new_zeros(H, W) if v_alpha is None else v_alpha.contiguous()
-        v_depth = final_T.new_zeros(H, W) if v_depth is None else v_depth.contiguous()
-        grads = load_cpu().backward_cpu(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res,
-                                        tex_offset, background, *ctx.cam, tile_offsets, tile_list, final_T,
-                                        n_contrib, v_rgb, v_alpha, v_depth, ctx.num_threads)
-        v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background = grads
-        return (v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background,
-                None, None, None, None, None)
-
-
-def _render_cpu(s: SurfelInputs, camera: Camera, sh_degree: int, background: torch.Tensor,
-                error_image: torch.Tensor | None) -> RenderOutput:
-    prims = to_camera_space(s.means, s.quats, s.sh, camera, sh_degree)
-    k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)
-    n = s.num_primitives
-    rgb, alpha, depth, count, contrib, err = _RasterizeCPU.apply(
-        prims.mu_c.contiguous(), prims.Rc.contiguous(), s.scales.contiguous(), s.opacities.contiguous(),
-        prims.colors.contiguous(), k.contiguous(), s.textures.contiguous(), background.contiguous(),
-        s.tex_res.contiguous(), s.tex_offset.contiguous(), camera,
-        None if error_image is None else error_image.detach().contiguous(), torch.get_num_threads())
-    stats = ErrorStats(count=count, contrib=contrib, err=err) if error_image is not None else None
-    if n == 0 and stats is not None:
-        stats = ErrorStats(count=count.new_zeros(0), contrib=contrib.new_zeros(0), err=err.new_zeros(0))
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=stats)
-
-
 def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_degree: int | None = None,
            background: torch.Tensor | None = None, error_image: torch.Tensor | None = None) -> RenderOutput:
     """Render `surfels` from `camera` (see pipeline.render.render for the argument documentation)."""
@@ -185,4 +130,5 @@ def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_d
         return render_cuda(surfels, camera, degree, bg, error_image, POISON_OUTPUTS)
     if means.device.type != "cpu":
         raise ValueError(f"the cpu backend needs CPU tensors (means is on {means.device}); pass backend='auto'")
-    return _render_cpu(surfels, camera, degree, bg, error_image)
+    return rasterize(surfels, camera, degree, bg, error_image, device="cpu", knob=torch.get_num_threads(),
+                     poison=POISON_OUTPUTS)
