@@ -4,80 +4,22 @@
 
 #include <vector>
 
+#include "binding_common.h"
 #include "cpu/rasterize.h"
 
 namespace {
 
 using torch::Tensor;
 
+using ctgs_binding::check_scene;
+using ctgs_binding::Scene;
+using ctgs_binding::scene_args;
+
+const at::Device kCPU(at::kCPU);
+
 void check_tensor(const Tensor& t, const char* name, const char* shape, std::vector<int64_t> sizes,
                   at::ScalarType dtype) {
-  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor for the cpu backend, got ", t.device());
-  TORCH_CHECK(t.scalar_type() == dtype, name, " must have dtype ", dtype, ", got ", t.scalar_type());
-  TORCH_CHECK(t.dim() == int64_t(sizes.size()), name, " must have shape ", shape, ", got ", t.sizes());
-  for (size_t k = 0; k < sizes.size(); ++k)
-    TORCH_CHECK(sizes[k] < 0 || t.size(k) == sizes[k], name, " must have shape ", shape, ", got ", t.sizes());
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-}
-
-struct Scene {
-  Tensor mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background;
-  double fx, fy, cx, cy, near_plane;
-  int64_t width, height, num_threads;
-};
-
-Scene check_scene(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors, Tensor texel_size,
-                  Tensor textures, Tensor tex_res, Tensor tex_offset, Tensor background, double fx, double fy,
-                  double cx, double cy, int64_t width, int64_t height, double near_plane, int64_t num_threads) {
-  const int64_t N = mu_c.size(0);
-  const auto dt = mu_c.scalar_type();
-  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "mu_c must be float32 or float64, got ", dt);
-  check_tensor(mu_c, "mu_c", "[N, 3]", {N, 3}, dt);
-  check_tensor(Rc, "Rc", "[N, 3, 3]", {N, 3, 3}, dt);
-  check_tensor(scales, "scales", "[N, 2]", {N, 2}, dt);
-  check_tensor(opacities, "opacities", "[N]", {N}, dt);
-  check_tensor(colors, "colors", "[N, 3]", {N, 3}, dt);
-  check_tensor(texel_size, "texel_size", "[N, 2]", {N, 2}, dt);
-  check_tensor(textures, "textures", "[T, 3]", {-1, 3}, dt);
-  check_tensor(tex_res, "tex_res", "[N, 2] int32", {N, 2}, at::kInt);
-  check_tensor(tex_offset, "tex_offset", "[N] int64", {N}, at::kLong);
-  check_tensor(background, "background", "[3]", {3}, dt);
-  TORCH_CHECK(N <= INT32_MAX, "at most 2^31-1 primitives, got ", N);
-  TORCH_CHECK(width >= 1 && height >= 1, "image size must be >= 1x1, got ", width, "x", height);
-  TORCH_CHECK(fx != 0.0 && fy != 0.0, "focal lengths must be non-zero");
-  // Out-of-range texel rows would read (and, in backward, write) outside `textures`.
-  const int32_t* res = tex_res.data_ptr<int32_t>();
-  const int64_t* off = tex_offset.data_ptr<int64_t>();
-  const int64_t T = textures.size(0);
-  for (int64_t i = 0; i < N; ++i) {
-    const int64_t ru = res[2 * i], rv = res[2 * i + 1];
-    TORCH_CHECK(ru >= 0 && rv >= 0, "tex_res must be >= 0, got ", ru, "x", rv, " at primitive ", i);
-    if (ru == 0 || rv == 0) continue;
-    TORCH_CHECK(off[i] >= 0 && off[i] + ru * rv <= T, "tex_offset[", i, "] + res_u*res_v = ", off[i] + ru * rv,
-                " exceeds the texel count T = ", T);
-  }
-  return Scene{mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
-               fx, fy, cx, cy, near_plane, width, height, num_threads};
-}
-
-template <typename S>
-ctgs::cpu::SceneArgs<S> scene_args(const Scene& s) {
-  ctgs::cpu::SceneArgs<S> a;
-  a.N = int(s.mu_c.size(0));
-  a.mu_c = s.mu_c.data_ptr<S>();
-  a.Rc = s.Rc.data_ptr<S>();
-  a.scales = s.scales.data_ptr<S>();
-  a.opacities = s.opacities.data_ptr<S>();
-  a.colors = s.colors.data_ptr<S>();
-  a.texel_size = s.texel_size.data_ptr<S>();
-  a.textures = s.textures.data_ptr<S>();
-  a.T = s.textures.size(0);
-  a.tex_res = s.tex_res.data_ptr<int32_t>();
-  a.tex_offset = reinterpret_cast<const long long*>(s.tex_offset.data_ptr<int64_t>());
-  a.background = s.background.data_ptr<S>();
-  a.K = ctgs::Intrinsics<S>{S(s.fx), S(s.fy), S(s.cx), S(s.cy), S(s.near_plane), int(s.width), int(s.height)};
-  a.num_threads = int(s.num_threads > 0 ? s.num_threads : at::get_num_threads());
-  return a;
+  ctgs_binding::check_tensor(t, name, shape, std::move(sizes), dtype, kCPU);
 }
 
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
@@ -89,7 +31,8 @@ std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor op
                                 int64_t height, double near_plane, c10::optional<Tensor> error_image,
                                 int64_t num_threads, bool poison) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
-                              background, fx, fy, cx, cy, width, height, near_plane, num_threads);
+                              background, fx, fy, cx, cy, width, height, near_plane, num_threads,
+                              at::kCPU, "cpu");
   const int64_t N = mu_c.size(0), H = height, W = width;
   const bool stats = error_image.has_value();
   if (stats) check_tensor(*error_image, "error_image", "[H, W]", {H, W}, mu_c.scalar_type());
@@ -129,7 +72,8 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
                                  Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
                                  int64_t num_threads) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
-                              background, fx, fy, cx, cy, width, height, near_plane, num_threads);
+                              background, fx, fy, cx, cy, width, height, near_plane, num_threads,
+                              at::kCPU, "cpu");
   const int64_t H = height, W = width;
   const auto dt = mu_c.scalar_type();
   const int64_t num_tiles = int64_t(ctgs::tiles_x(int(W))) * ctgs::tiles_y(int(H));

@@ -6,29 +6,16 @@
 #include <vector>
 
 #include "ctgs/bounds.h"
+#include "ctgs/scene_args.h"
 #include "ctgs/surfel.h"
 
 namespace ctgs {
 namespace cpu {
 
-// The scene as the kernels see it (camera space; docs/renderer.md "Per primitive").
+// The scene as the kernels see it (camera space; docs/renderer.md "Per primitive"), shared with the
+// other backend: kernels/include/ctgs/scene_args.h.
 template <typename S>
-struct SceneArgs {
-  int N;                       // primitives
-  const S* mu_c;               // [N, 3] centres, camera space
-  const S* Rc;                 // [N, 3, 3] row-major, columns u, v, n
-  const S* scales;             // [N, 2] world units
-  const S* opacities;          // [N]
-  const S* colors;             // [N, 3] SH + 0.5
-  const S* texel_size;         // [N, 2] world units per texel
-  const S* textures;           // [T, 3]
-  long long T;                 // texels
-  const int* tex_res;          // [N, 2]
-  const long long* tex_offset; // [N]
-  const S* background;         // [3]
-  Intrinsics<S> K;
-  int num_threads;
-};
+using SceneArgs = ctgs::SceneArgs<S>;
 
 // Per-tile lists: tile k blends list[offsets[k] .. offsets[k+1]) in order (centre depth, then index).
 struct TileBins {

@@ -11,28 +11,16 @@
 #include <functional>
 
 #include "ctgs/bounds.h"
+#include "ctgs/scene_args.h"
 #include "ctgs/surfel.h"
 
 namespace ctgs {
 namespace gpu {
 
-// The scene as the kernels see it (camera space; docs/renderer.md "Per primitive"). All device pointers.
+// The scene as the kernels see it (camera space; docs/renderer.md "Per primitive"), shared with the
+// other backend: kernels/include/ctgs/scene_args.h.
 template <typename S>
-struct SceneArgs {
-  int N;                        // primitives
-  const S* mu_c;                // [N, 3] centres, camera space
-  const S* Rc;                  // [N, 3, 3] row-major, columns u, v, n
-  const S* scales;              // [N, 2] world units
-  const S* opacities;           // [N]
-  const S* colors;              // [N, 3] SH + 0.5
-  const S* texel_size;          // [N, 2] world units per texel
-  const S* textures;            // [T, 3]
-  long long T;                  // texels
-  const int* tex_res;           // [N, 2]
-  const long long* tex_offset;  // [N]
-  const S* background;          // [3] (device)
-  Intrinsics<S> K;
-};
+using SceneArgs = ctgs::SceneArgs<S>;
 
 // Device memory the core cannot allocate itself (it knows no torch): the binding hands out tensors from
 // torch's caching allocator and keeps them alive until the call returns (scratch) or beyond (tile_list).
