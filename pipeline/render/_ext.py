@@ -35,36 +35,42 @@ def _build_dir(name: str) -> Path:
     return path
 
 
+def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbose: bool, **flags) -> ModuleType:
+    """Build (or reuse) extension `name` from kernels/`sources`; every failure is one UserError that says
+    what to do (`fallback`: the backend to pass instead). `flags` go to torch.utils.cpp_extension.load."""
+    missing = [s for s in sources if not (KERNELS_DIR / s).is_file()]
+    if missing:
+        raise UserError(f"{KERNELS_DIR}: kernel sources {missing} not found (needs an editable install of "
+                        f"the repository); pass --backend {fallback}")
+    from torch.utils import cpp_extension
+
+    try:
+        return cpp_extension.load(
+            name=name,
+            sources=[str(KERNELS_DIR / s) for s in sources],
+            extra_include_paths=[str(KERNELS_DIR / "include"), str(KERNELS_DIR)],
+            build_directory=str(_build_dir(name)),
+            verbose=verbose or os.environ.get("CTGS_VERBOSE_BUILD", "") == "1",
+            **flags,
+        )
+    except (RuntimeError, OSError, ImportError) as exc:
+        last = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"building the {what} renderer extension (kernels/) failed: {last}; rerun with "
+                        f"CTGS_VERBOSE_BUILD=1 for the compiler output, or pass --backend {fallback}") from exc
+
+
 def load_cpu(verbose: bool = False) -> ModuleType:
     """The compiled CPU backend (functions forward_cpu, backward_cpu); builds it on first call."""
     global _cpu_module
     with _lock:
         if _cpu_module is not None:
             return _cpu_module
-        missing = [s for s in CPU_SOURCES if not (KERNELS_DIR / s).is_file()]
-        if missing:
-            raise UserError(f"{KERNELS_DIR}: kernel sources {missing} not found (needs an editable install of "
-                            "the repository); pass --backend reference")
         cxx = os.environ.get("CXX", "c++")
         if shutil.which(cxx) is None:
             raise UserError(f"C++ compiler `{cxx}` not found: install g++ (apt-get install g++) to build the cpu "
                             "renderer, or pass --backend reference")
-        from torch.utils import cpp_extension
-
-        try:
-            _cpu_module = cpp_extension.load(
-                name="ctgs_cpu",
-                sources=[str(KERNELS_DIR / s) for s in CPU_SOURCES],
-                extra_include_paths=[str(KERNELS_DIR / "include"), str(KERNELS_DIR)],
-                extra_cflags=CPU_CFLAGS,
-                extra_ldflags=CPU_LDFLAGS,
-                build_directory=str(_build_dir("ctgs_cpu")),
-                verbose=verbose or os.environ.get("CTGS_VERBOSE_BUILD", "") == "1",
-            )
-        except (RuntimeError, OSError, ImportError) as exc:
-            last = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-            raise UserError(f"building the cpu renderer extension (kernels/) failed: {last}; rerun with "
-                            "CTGS_VERBOSE_BUILD=1 for the compiler output, or pass --backend reference") from exc
+        _cpu_module = jit_build("ctgs_cpu", CPU_SOURCES, what="cpu", fallback="reference", verbose=verbose,
+                                extra_cflags=CPU_CFLAGS, extra_ldflags=CPU_LDFLAGS)
         return _cpu_module
 
 
