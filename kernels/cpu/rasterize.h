@@ -53,18 +53,9 @@ struct ForwardOut {
 template <typename S>
 void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins);
 
-// Gradients, same shapes as the inputs they belong to. All outputs are overwritten.
+// Gradients (kernels/include/ctgs/scene_args.h), shared with the other backend.
 template <typename S>
-struct BackwardOut {
-  S* v_mu_c;        // [N, 3]
-  S* v_Rc;          // [N, 3, 3]
-  S* v_scales;      // [N, 2]
-  S* v_opacities;   // [N]
-  S* v_colors;      // [N, 3]
-  S* v_texel_size;  // [N, 2]
-  S* v_textures;    // [T, 3]
-  S* v_background;  // [3]
-};
+using BackwardOut = ctgs::BackwardOut<S>;
 
 // v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W]: dL/d outputs. final_T, n_contrib, bins from forward.
 template <typename S>

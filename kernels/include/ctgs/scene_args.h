@@ -1,4 +1,4 @@
-// The raw-pointer view of one render's inputs, shared by the CPU (kernels/cpu) and CUDA (kernels/cuda)
+// The raw-pointer view of one render's inputs (and of its gradients), shared by the CPU (kernels/cpu) and CUDA (kernels/cuda)
 // cores. No torch here: the bindings fill it (kernels/binding_common.h).
 #pragma once
 
@@ -22,6 +22,19 @@ struct SceneArgs {
   const S* background;          // [3] (on the device of the other inputs)
   Intrinsics<S> K;
   int num_threads = 0;          // CPU only: OpenMP threads (<= 0: OpenMP's default); CUDA ignores it
+};
+
+// Gradients, same shapes as the inputs they belong to. All outputs are overwritten.
+template <typename S>
+struct BackwardOut {
+  S* v_mu_c;        // [N, 3]
+  S* v_Rc;          // [N, 3, 3]
+  S* v_scales;      // [N, 2]
+  S* v_opacities;   // [N]
+  S* v_colors;      // [N, 3]
+  S* v_texel_size;  // [N, 2]
+  S* v_textures;    // [T, 3]
+  S* v_background;  // [3]
 };
 
 }  // namespace ctgs
