@@ -25,7 +25,10 @@ from pipeline.scene.colmap_write import PinholeCamera, write_colmap_model
 from pipeline.scene.raycast import Rect, render
 
 META_NAME = "demo_meta.json"
-META_VERSION = 1
+META_VERSION = 2  # 2: SfM-like points (gradient-weighted), see sample_points
+SFM_CANDIDATES = 30  # area-uniform candidates per kept point
+SFM_GRADIENT_STEP = 0.03  # world units, ~1 pixel of the closest camera at 96 px width
+SFM_FLOOR = 0.05  # sampling weight of textureless spots, relative to the median textured gradient
 HORIZONTAL_FOV_DEG = 60.0
 ARC_DEG = 120.0  # azimuth span of the camera arc
 TARGET = np.array([0.0, 0.6, 0.6])  # world point every camera looks at
@@ -177,20 +180,39 @@ def _inside_box(p: np.ndarray, rects: list[Rect]) -> np.ndarray:
 
 
 def sample_points(rects: list[Rect], count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """`count` points uniformly by area over all surfaces, with their true colours: ([P,3], [P,3] uint8)."""
+    """`count` SfM-like points with their true colours: ([P,3], [P,3] uint8).
+
+    Real SfM only triangulates where there is image texture, so flat walls get almost no points. Points are
+    drawn from area-uniform candidates with probability ~ local colour gradient + a small floor (a few
+    points still land on flat surfaces, as SfM finds some at their borders). Uniform points made the
+    trainer start with as many primitives on flat walls as on photos, which no real scene does.
+    """
     rng = np.random.default_rng(seed)
     areas = np.array([r.area for r in rects])
-    per_rect = rng.multinomial(int(count * 1.1) + 8, areas / areas.sum())  # extra: some land under the box
-    pts, cols = [], []
+    per_rect = rng.multinomial(count * SFM_CANDIDATES, areas / areas.sum())
+    pts, cols, grads = [], [], []
     for rect, n in zip(rects, per_rect):
         lx = rng.uniform(-rect.half[0], rect.half[0], n)
         ly = rng.uniform(-rect.half[1], rect.half[1], n)
         pts.append(rect.center[None] + lx[:, None] * rect.u[None] + ly[:, None] * rect.v[None])
         cols.append(rect.shade(lx, ly))
-    p, c = np.concatenate(pts), np.concatenate(cols)
-    keep = ~_inside_box(p, rects)
-    p, c = p[keep][:count], c[keep][:count]
-    return p, np.round(np.clip(c, 0, 1) * 255).astype(np.uint8)
+        grads.append(_colour_gradient(rect, lx, ly))
+    p, c, g = np.concatenate(pts), np.concatenate(cols), np.concatenate(grads)
+    keep = ~_inside_box(p, rects)  # floor samples hidden under the box
+    p, c, g = p[keep], c[keep], g[keep]
+    textured = g[g > 0]
+    w = g + SFM_FLOOR * (np.median(textured) if textured.size else 1.0)
+    idx = rng.choice(len(p), size=min(count, len(p)), replace=False, p=w / w.sum())
+    return p[idx], np.round(np.clip(c[idx], 0, 1) * 255).astype(np.uint8)
+
+
+def _colour_gradient(rect: Rect, lx: np.ndarray, ly: np.ndarray) -> np.ndarray:
+    """[P] sum of |central differences| of the surface colour over SFM_GRADIENT_STEP world units (u and v)."""
+    def at(x, y):
+        return rect.shade(np.clip(x, -rect.half[0], rect.half[0]), np.clip(y, -rect.half[1], rect.half[1]))
+
+    h = SFM_GRADIENT_STEP
+    return (np.abs(at(lx + h, ly) - at(lx - h, ly)).sum(1) + np.abs(at(lx, ly + h) - at(lx, ly - h)).sum(1))
 
 
 def _surface_meta(rect: Rect) -> dict:
