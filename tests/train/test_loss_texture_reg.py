@@ -1,0 +1,26 @@
+"""Texture sparsity weight rescaled to the training image size (texture_reg_pixels)."""
+
+from __future__ import annotations
+
+import torch
+
+import train_helpers as th
+from pipeline.train.config import TrainConfig
+from pipeline.train.loss import training_loss
+
+
+def _reg_term(cfg: TrainConfig, m, gt: torch.Tensor) -> float:
+    """The regulariser part of the loss: total with textures minus total with lambda_texture = 0."""
+    off = TrainConfig(**{**cfg.to_dict(), "lambda_texture": 0.0})
+    return float(training_loss(gt, gt, m, th.camera(), cfg).total - training_loss(gt, gt, m, th.camera(), off).total)
+
+
+def test_texture_reg_scales_with_reference_pixels_over_image_pixels():
+    m = th.model([[0.0, 0.0, 2.0]], [[0.3, 0.3]], [0.9], [[4, 4]])
+    gt = torch.full((th.H, th.W, 3), 0.5)
+    visible_abs = float(m.textures.abs().sum())  # the one surfel is visible
+    plain = _reg_term(TrainConfig(lambda_texture=1e-3), m, gt)
+    assert abs(plain - 1e-3 * visible_abs) < 1e-6 * max(1.0, visible_abs)
+    # tuned on images 10x larger than this one: 10x the weight here
+    scaled = _reg_term(TrainConfig(lambda_texture=1e-3, texture_reg_pixels=10.0 * th.H * th.W), m, gt)
+    assert abs(scaled - 10 * plain) < 1e-4 * abs(10 * plain)
