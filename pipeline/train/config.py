@@ -39,6 +39,8 @@ class TrainConfig:
     max_init_points: int = _f(0, "farthest-point subsample SfM points above this count (0 = keep all)")
     init_opacity: float = _f(0.1, "initial opacity")
     random_rotation: bool = _f(True, "random initial rotations (else identity)")
+    init_normals: bool = _f(False, "orient initial surfels in the PCA plane of their 16 nearest SfM points "
+                            "(overrides random_rotation; the paper starts from random rotations)")
     max_sh_degree: int = _f(3, "highest SH degree")
     sh_every: int = _f(1000, "iterations between SH degree increments (paper scale)")
     background: list = _f([0.0, 0.0, 0.0], "background colour [3]")
@@ -51,6 +53,8 @@ class TrainConfig:
     lr_scale: float = _f(0.005, "lr of log scales")
     lr_rotation: float = _f(0.001, "lr of quaternions")
     lr_texture: float = _f(7e-4, "lr of raw texels (0 until texture_start)")
+    lr_texture_final: float = _f(0.0, "> 0: the texel lr decays exponentially from lr_texture at texture_start "
+                                 "to this at the last iteration (0 = constant lr_texture, the paper)")
     adam_eps: float = _f(1e-15, "Adam epsilon")
     # ---- loss ----
     lambda_ssim: float = _f(0.2, "weight of 1 - SSIM (L1 gets 1 - this)")

@@ -38,10 +38,28 @@ def knn_scale(points: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(d2, 1e-14))
 
 
+def pca_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
+    """Per point the unit normal [P, 3] of the plane through its k nearest neighbours (itself included):
+    the eigenvector of the smallest eigenvalue of their covariance. Sign arbitrary (surfels are two-sided)."""
+    from sklearn.neighbors import NearestNeighbors
+
+    pts = np.asarray(points, dtype=np.float64)
+    k = min(k, len(pts))
+    if k < 3:
+        return np.tile(np.array([0.0, 0.0, 1.0]), (len(pts), 1))
+    _, idx = NearestNeighbors(n_neighbors=k).fit(pts).kneighbors(pts)
+    nb = pts[idx] - pts[idx].mean(1, keepdims=True)  # [P, k, 3]
+    _, vecs = np.linalg.eigh(np.einsum("pki,pkj->pij", nb, nb))
+    return vecs[:, :, 0]
+
+
 def init_model(points: np.ndarray, colors: np.ndarray, *, max_points: int, opacity: float, max_sh_degree: int,
-               random_rotation: bool, texture_mode: str, fixed_res: int, seed: int) -> SurfelModel:
+               random_rotation: bool, texture_mode: str, fixed_res: int, seed: int,
+               normals: bool = False) -> SurfelModel:
     """A SurfelModel with one surfel per (subsampled) SfM point. Textures empty (allocated at texture start),
-    except the fixed_texture baseline whose fixed_res x fixed_res grids exist from the start."""
+    except the fixed_texture baseline whose fixed_res x fixed_res grids exist from the start.
+    normals: orient each surfel in the PCA plane of its 16 nearest points (random angle in the plane);
+    else random_rotation (uniform random) or identity."""
     if points is None or len(points) == 0:
         raise UserError("scene has no SfM points: run `ctgs sfm` first or check sparse/0/points3D.bin")
     if max_points and len(points) > max_points:
@@ -52,7 +70,12 @@ def init_model(points: np.ndarray, colors: np.ndarray, *, max_points: int, opaci
     n = pts.shape[0]
     scale = torch.from_numpy(knn_scale(np.asarray(points, dtype=np.float64)).astype(np.float32))
     gen = torch.Generator().manual_seed(seed)
-    if random_rotation:
+    if normals:
+        from pipeline.model.geometry import frames_from_normals, rotmat_to_quat
+
+        nrm = torch.from_numpy(pca_normals(points)).float()
+        quats = rotmat_to_quat(frames_from_normals(nrm, gen))
+    elif random_rotation:
         quats = torch.randn(n, 4, generator=gen)
         quats = quats / quats.norm(dim=1, keepdim=True)
     else:

@@ -50,11 +50,23 @@ def routine_kind(cfg: TrainConfig, it: int) -> str | None:
     return None
 
 
+def texture_lr(cfg: TrainConfig, it: int) -> float:
+    """0 before texture_start (and for 2dgs); then lr_texture, constant (paper) or, with lr_texture_final > 0,
+    decaying exponentially to lr_texture_final at the last iteration."""
+    start = texture_start(cfg)
+    if cfg.method == "2dgs" or it < start:
+        return 0.0
+    if cfg.lr_texture_final <= 0:
+        return cfg.lr_texture
+    t = min((it - start) / max(cfg.iterations - start, 1), 1.0)
+    return math.exp(math.log(cfg.lr_texture) * (1 - t) + math.log(cfg.lr_texture_final) * t)
+
+
 def learning_rates(cfg: TrainConfig, it: int, extent: float, k: int, device) -> dict:
     """Per-parameter learning rates at iteration `it`; `k` = SH coefficients per channel."""
     sh_lr = torch.full((1, k, 1), cfg.lr_sh_rest, device=device)
     sh_lr[:, 0] = cfg.lr_sh_dc
-    tex = cfg.lr_texture if (cfg.method != "2dgs" and it >= texture_start(cfg)) else 0.0
+    tex = texture_lr(cfg, it)
     return {
         "means": position_lr(cfg, it, extent), "log_scales": cfg.lr_scale, "quats": cfg.lr_rotation,
         "opacity_logits": cfg.lr_opacity, "sh": sh_lr, "textures_raw": tex,

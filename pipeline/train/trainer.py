@@ -92,7 +92,7 @@ class Trainer:
             mode = {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}[cfg.method]
             self.model = init_model(scene.points, scene.point_colors, max_points=cfg.max_init_points,
                                     opacity=cfg.init_opacity, max_sh_degree=cfg.max_sh_degree,
-                                    random_rotation=cfg.random_rotation, texture_mode=mode,
+                                    random_rotation=cfg.random_rotation, normals=cfg.init_normals, texture_mode=mode,
                                     fixed_res=cfg.fixed_texture_res, seed=cfg.seed)
             self._to_device()
             self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)

@@ -92,3 +92,15 @@ def test_tau_tr_schedule_and_calendar():
     lrs = schedule.learning_rates(c, 499, 1.0, 16, "cpu")
     assert lrs["textures_raw"] == 0.0 and schedule.learning_rates(c, 500, 1.0, 16, "cpu")["textures_raw"] == 7e-4
     assert lrs["sh"][0, 0, 0] == 2.5e-3 and lrs["sh"][0, 1, 0] == 1.25e-4
+
+
+def test_texture_lr_constant_by_default_and_exponential_decay_when_asked():
+    c = TrainConfig()
+    assert schedule.texture_lr(c, 499) == 0.0 and schedule.texture_lr(c, 500) == 7e-4 == schedule.texture_lr(c, 29999)
+    d = TrainConfig(lr_texture=7e-3, lr_texture_final=7e-4)
+    assert schedule.texture_lr(d, 499) == 0.0 and math.isclose(schedule.texture_lr(d, 500), 7e-3)
+    assert math.isclose(schedule.texture_lr(d, 30000), 7e-4, rel_tol=1e-9)
+    mid = (500 + 30000) // 2  # geometric mean half way (exponential decay)
+    assert math.isclose(schedule.texture_lr(d, mid), math.sqrt(7e-3 * 7e-4), rel_tol=1e-3)
+    assert schedule.texture_lr(TrainConfig(method="2dgs"), 5000) == 0.0
+    assert schedule.learning_rates(d, 500, 1.0, 16, "cpu")["textures_raw"] == schedule.texture_lr(d, 500)

@@ -65,3 +65,39 @@ def test_init_from_points():
     f = init_model(pts, cols, max_points=0, opacity=0.1, max_sh_degree=0, random_rotation=False,
                    texture_mode="fixed", fixed_res=16, seed=0)
     assert f.num_texels == 500 * 256 and bool((f.quats[:, 0] == 1).all())
+
+
+def test_rotation_quaternion_round_trip_and_normal_frames():
+    from pipeline.model.geometry import frames_from_normals, quat_to_rotmat, rotmat_to_quat
+
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(2000, 4, generator=g, dtype=torch.float64)
+    q = q / q.norm(dim=1, keepdim=True)
+    q = q * torch.where(q[:, :1] < 0, -1.0, 1.0)
+    q[:4] = torch.eye(4, dtype=torch.float64)  # identity and the three 180-degree turns (w = 0)
+    back = rotmat_to_quat(quat_to_rotmat(q))
+    assert torch.allclose(quat_to_rotmat(back), quat_to_rotmat(q), atol=1e-12)
+    assert torch.allclose(back[4:], q[4:], atol=1e-12)
+    n = torch.randn(500, 3, generator=g, dtype=torch.float64)
+    n[0] = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    r = frames_from_normals(n, g)
+    eye = torch.eye(3, dtype=torch.float64).expand(500, 3, 3)
+    assert torch.allclose(r.transpose(1, 2) @ r, eye, atol=1e-12) and bool((torch.linalg.det(r) > 0).all())
+    assert torch.allclose(r[:, :, 2], n / n.norm(dim=1, keepdim=True), atol=1e-12)
+
+
+def test_init_normals_lie_in_the_local_plane():
+    from pipeline.model.geometry import quat_to_rotmat
+    from pipeline.train.init import pca_normals
+
+    rng = np.random.default_rng(1)
+    # Two planes: z = 0 (normal z) and x = 3 (normal x), with 1% thickness noise.
+    a = np.c_[rng.uniform(-1, 1, (300, 2)), rng.normal(0, 0.01, 300)]
+    b = np.c_[3 + rng.normal(0, 0.01, 300), rng.uniform(-1, 1, (300, 2))]
+    pts = np.concatenate([a, b]).astype(np.float32)
+    nrm = pca_normals(pts)
+    assert np.median(np.abs(nrm[:300, 2])) > 0.99 and np.median(np.abs(nrm[300:, 0])) > 0.99
+    m = init_model(pts, np.zeros_like(pts), max_points=0, opacity=0.1, max_sh_degree=0, random_rotation=True,
+                   texture_mode="content_aware", fixed_res=16, seed=0, normals=True)
+    z = quat_to_rotmat(m.quats.detach())[:, :, 2].numpy()
+    assert np.median(np.abs(z[:300, 2])) > 0.99 and np.median(np.abs(z[300:, 0])) > 0.99
