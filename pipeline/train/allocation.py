@@ -1,7 +1,12 @@
 """Where a model spends its texels: texels per unit area on each kind of surface of the demo scene.
 
 Used by the content-aware allocation test and the benchmark table (demo_meta.json lists the planar
-surfaces, their kind photo/flat/smooth, frame and area).
+surfaces, their kind photo/flat/smooth, frame and area). Two measures:
+- `texel_density_by_kind` (the one the test uses): every allocated texel is placed where it lies in the
+  world (its centre on the primitive's tangent plane) and counted on the surface it lies on. A primitive
+  straddling the edge between a photo and a flat surface spends texels on both, and is counted so.
+- `primitive_texel_density_by_kind`: all of a primitive's texels are counted on the surface of its centre
+  (coarser; edge primitives count wholly on one side).
 """
 
 from __future__ import annotations
@@ -14,22 +19,65 @@ PLANE_TOL = 0.15
 EDGE_GROW = 0.05
 
 
-def texel_density_by_kind(model, meta: dict) -> dict[str, float]:
-    """{kind: allocated texels of the primitives on surfaces of that kind / total area of those surfaces}."""
-    means = model.means.detach().cpu().numpy().astype(np.float64)
-    tex = (model.tex_res[:, 0].long() * model.tex_res[:, 1].long()).cpu().numpy()
-    best = np.full(len(means), np.inf)
-    kind = np.full(len(means), "", dtype=object)
+def _surface_kind(points: np.ndarray, meta: dict) -> np.ndarray:
+    """[P] kind of the nearest surface within PLANE_TOL whose (grown) rectangle holds the point, else ''."""
+    best = np.full(len(points), np.inf)
+    kind = np.full(len(points), "", dtype=object)
     for s in meta["surfaces"]:
         c, n, u, v = (np.asarray(s[k], dtype=np.float64) for k in ("center", "normal", "u", "v"))
-        d = means - c
+        d = points - c
         dist = np.abs(d @ n)
         hu, hv = (h * (1 + EDGE_GROW) for h in s["half_extents"])
         sel = (np.abs(d @ u) <= hu) & (np.abs(d @ v) <= hv) & (dist < PLANE_TOL) & (dist < best)
         best[sel] = dist[sel]
         kind[sel] = s["kind"]
+    return kind
+
+
+def _per_area(counts: dict, meta: dict) -> dict[str, float]:
     out = {}
     for k in sorted({s["kind"] for s in meta["surfaces"]}):
         area = sum(s["area"] for s in meta["surfaces"] if s["kind"] == k)
-        out[k] = float(tex[kind == k].sum() / area) if area > 0 else 0.0
+        out[k] = float(counts.get(k, 0) / area) if area > 0 else 0.0
     return out
+
+
+def texel_density_by_kind(model, meta: dict) -> dict[str, float]:
+    """{kind: allocated texels lying on surfaces of that kind / total area of those surfaces}.
+
+    Texel (i, j) of primitive p lies at mean_p + ((i - (W-1)/2) u_p + (j - (H-1)/2) v_p) * texel size (the
+    renderer's uv mapping, docs/renderer.md); texels on no surface (floaters, padding in the air) count nowhere.
+    """
+    import torch
+
+    from pipeline.model.geometry import quat_to_rotmat
+
+    counts: dict = {}
+    if model.num_texels == 0:
+        return _per_area(counts, meta)
+    with torch.no_grad():
+        rot = quat_to_rotmat(model.quats.detach().double().cpu())  # [N, 3, 3]
+        ts = model.texel_size.detach().double().cpu()  # [N, 2]
+        means = model.means.detach().double().cpu()
+        res = model.tex_res.cpu()
+        for ru, rv in {tuple(r) for r in res.tolist() if r[0] * r[1] > 0}:
+            idx = torch.nonzero((res[:, 0] == ru) & (res[:, 1] == rv))[:, 0]
+            gu = (torch.arange(ru, dtype=torch.float64) - (ru - 1) / 2)  # [ru]
+            gv = (torch.arange(rv, dtype=torch.float64) - (rv - 1) / 2)  # [rv]
+            lu = gu[None, None, :] * ts[idx, 0][:, None, None]  # [G, 1, ru]
+            lv = gv[None, :, None] * ts[idx, 1][:, None, None]  # [G, rv, 1]
+            pts = (means[idx][:, None, None, :] + lu[..., None] * rot[idx][:, None, None, :, 0]
+                   + lv[..., None] * rot[idx][:, None, None, :, 1])  # [G, rv, ru, 3]
+            kind = _surface_kind(pts.reshape(-1, 3).numpy(), meta)
+            for k, c in zip(*np.unique(kind, return_counts=True)):
+                if k:
+                    counts[k] = counts.get(k, 0) + int(c)
+    return _per_area(counts, meta)
+
+
+def primitive_texel_density_by_kind(model, meta: dict) -> dict[str, float]:
+    """{kind: allocated texels of the primitives whose centre lies on surfaces of that kind / their area}."""
+    means = model.means.detach().cpu().numpy().astype(np.float64)
+    tex = (model.tex_res[:, 0].long() * model.tex_res[:, 1].long()).cpu().numpy()
+    kind = _surface_kind(means, meta)
+    return _per_area({k: int(tex[kind == k].sum()) for k in set(kind.tolist()) if k}, meta)

@@ -44,6 +44,8 @@ class TrainConfig:
     max_sh_degree: int = _f(3, "highest SH degree")
     sh_every: int = _f(1000, "iterations between SH degree increments (paper scale)")
     background: list = _f([0.0, 0.0, 0.0], "background colour [3]")
+    random_background: bool = _f(False, "training renders over a random uniform colour each step (for scenes "
+                                 "that cover every pixel; E, evaluation and exports use background)")
     # ---- optimiser ----
     lr_position_init: float = _f(1.6e-4, "position lr at the start, times scene extent")
     lr_position_final: float = _f(1.6e-6, "position lr at the end, times scene extent (exponential decay)")

@@ -148,11 +148,11 @@ class Trainer:
         self.log_lines += 1
 
     # ---- rendering -------------------------------------------------------------------------------
-    def render_fn(self, inputs, camera, error_image=None):
+    def render_fn(self, inputs, camera, error_image=None, background=None):
         from pipeline.render import render
 
         return render(inputs, camera, backend=self.cfg.backend, sh_degree=self.model.sh_degree,
-                      background=self.background, error_image=error_image)
+                      background=self.background if background is None else background, error_image=error_image)
 
     def _next_view(self) -> TrainView:
         if self.perm is None or self.perm_pos >= len(self.perm):
@@ -208,7 +208,10 @@ class Trainer:
             it = self.it
             self.model.sh_degree = schedule.sh_degree(cfg, it)
             view = self._next_view()
-            out = self.render_fn(self.model.render_inputs(), view.camera)
+            # A random background colour per step (cfg.random_background) makes transparency unpredictable,
+            # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
+            bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
+            out = self.render_fn(self.model.render_inputs(), view.camera, background=bg)
             terms = training_loss(out.rgb, view.image_t, self.model, view.camera, cfg)
             loss = terms.total
             if cfg.debug_nan_at and it == cfg.debug_nan_at:
