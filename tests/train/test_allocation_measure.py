@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from pipeline.train.allocation import primitive_texel_density_by_kind, texel_density_by_kind
+from pipeline.train.allocation import texel_density_by_kind, texel_position_density_by_kind
 from train_helpers import model
 
 # Two unit squares in the plane z = 2 (normal z, facing the helpers' identity-rotation surfels):
@@ -23,19 +23,19 @@ def test_texels_are_counted_where_they_lie():
     # One 8x8 texture on the photo square, one 2x2 on the flat square; texel 0.05 (k_min 0.025 x 2^1).
     m = model([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0]], [[0.05, 0.05]] * 2, [0.5, 0.5], [[8, 8], [2, 2]],
               k_min=[0.025, 0.025])
-    d = texel_density_by_kind(m, META)
-    assert d == {"flat": 4.0, "photo": 64.0} == primitive_texel_density_by_kind(m, META)
+    d = texel_position_density_by_kind(m, META)
+    assert d == {"flat": 4.0, "photo": 64.0} == texel_density_by_kind(m, META)
 
 
 def test_a_primitive_on_an_edge_spends_texels_on_both_sides():
     # 8x8 texels of 0.1 centred on the edge x = 0 (columns at +-0.05 .. +-0.35, clear of the 5% margin by
     # which allocation.py grows each rectangle): half the columns lie on each square.
     m = model([[0.0, 0.0, 2.0]], [[0.05, 0.05]], [0.5], [[8, 8]], k_min=[0.05])
-    assert texel_density_by_kind(m, META) == {"flat": 32.0, "photo": 32.0}
+    assert texel_position_density_by_kind(m, META) == {"flat": 32.0, "photo": 32.0}
     # Rotated 90 degrees about the normal: still split by columns of the world, not of the texture.
     q = torch.tensor([[math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]])
     m.quats.data.copy_(q)
-    assert texel_density_by_kind(m, META) == {"flat": 32.0, "photo": 32.0}
+    assert texel_position_density_by_kind(m, META) == {"flat": 32.0, "photo": 32.0}
     # Texels in the air (surfel 1 unit in front of the plane) count nowhere.
     m.means.data[:, 2] = 1.0
-    assert texel_density_by_kind(m, META) == {"flat": 0.0, "photo": 0.0}
+    assert texel_position_density_by_kind(m, META) == {"flat": 0.0, "photo": 0.0}
