@@ -44,9 +44,10 @@ def needed_res(model, cap: int) -> torch.Tensor:
 
 @torch.no_grad()
 def start_textures(model, opt, start_texels: float, min_exp: int, cap: int) -> None:
-    """Texture start: t2p_exp so the larger active extent spans ~start_texels texels (>= min_exp), then
+    """Texture start: t2p_exp so the smaller active extent spans ~start_texels texels (paper: "smallest axis is
+    8 texels wide", nearest power of two; exponent >= min_exp), then
     allocate zero-offset textures (activated 0: the image does not change)."""
-    extent = 2 * active_half_extent(model).max(1).values.clamp_min(1e-12)
+    extent = 2 * active_half_extent(model).min(1).values.clamp_min(1e-12)
     e = torch.round(torch.log2(extent / (start_texels * model.k_min)))
     model.t2p_exp = e.clamp(min=min_exp, max=60).to(torch.int32)
     realloc(model, opt, cap)

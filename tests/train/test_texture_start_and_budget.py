@@ -18,13 +18,16 @@ def test_texture_start_sets_about_8_texels_and_allocates_zero_textures():
     opt = optimiser(m)
     before = image(m)
     texels.start_textures(m, opt, start_texels=8, min_exp=1, cap=256)
-    extent = 2 * texels.active_half_extent(m).max(1).values
+    extent = 2 * texels.active_half_extent(m).min(1).values  # the paper: the SMALLEST axis is ~8 texels
     k = texels.texel_size(m)
     # Prim 0: extent ~1.2 / (8 * 0.002) = 75 -> 2^6 = 64 (nearest power of two); prim 1 hits the minimum.
-    assert m.t2p_exp.tolist()[0] == 6 and m.t2p_exp.tolist()[1] == 1
-    assert 8 / 2 ** 0.5 <= float(extent[0] / k[0]) <= 8 * 2 ** 0.5
+    # Prim 2 (scales 0.2 x 0.1): its smaller extent 0.6 / (8 * 0.002) = 37.5 -> 2^5.
+    assert m.t2p_exp.tolist() == [6, 1, 5]
+    for i in (0, 2):
+        assert 8 / 2 ** 0.5 <= float(extent[i] / k[i]) <= 8 * 2 ** 0.5
     # Allocation: active extent + 1 texel padding, power of two, zero offsets -> image unchanged.
-    assert m.tex_res[0].tolist() == [16, 16] and m.tex_res[2].tolist() == [16, 8]
+    # Prim 2: 1.2 / 0.064 = 18.75 -> 32 along u, 0.6 / 0.064 = 9.4 -> 16 along v.
+    assert m.tex_res[0].tolist() == [16, 16] and m.tex_res[2].tolist() == [32, 16]
     assert float(m.textures_raw.detach().abs().sum()) == 0.0
     assert torch.abs(image(m) - before).max() < 1e-6
 
