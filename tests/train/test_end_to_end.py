@@ -1,8 +1,6 @@
 """End to end on a small demo scene: content-aware allocation, and the paper's comparisons.
 
-Slow: three 1000-iteration trainings on the CPU backend (~15-25 min on 2 shared cores). Both claims
-currently FAIL at this scale and are marked strict xfail with the measured numbers, so the day they pass
-the suite says so.
+Slow: three 3000-iteration trainings on the CPU backend (configs/demo*.toml; ~20 min on 2 idle cores).
 """
 
 from __future__ import annotations
@@ -19,6 +17,7 @@ from pipeline.train.run import load_run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CFG = os.path.join(ROOT, "configs")
+# demo.toml trains on 1 thread: deterministic, so the numbers match benchmarks/results/train_demo_*.md.
 SETS = ("backend='cpu'",)
 # The paper's "model only what a scene requires": photo surfaces get >= 10x the texels per unit area of
 # flat ones (issue 4).
@@ -32,10 +31,11 @@ def runs(tmp_path_factory):
     out = {}
     s_default = train_main(scene, str(root / "default"), config=os.path.join(CFG, "demo.toml"), sets=SETS, quiet=True)
     out["default"] = s_default
-    # 2DGS at the same parameter budget (58 params per primitive).
-    cap = s_default["num_params"] // 58
+    # 2DGS given the default run's parameter budget (58 params per primitive, rounded up) and a densification
+    # threshold low enough to spend it: with its stock threshold 2DGS stops short of the budget.
+    cap = -(-s_default["num_params"] // 58)
     out["2dgs"] = train_main(scene, str(root / "2dgs"), config=os.path.join(CFG, "demo_2dgs.toml"),
-                             sets=SETS + (f"max_primitives={cap}",), quiet=True)
+                             sets=SETS + (f"max_primitives={cap}", "densify_grad_threshold=5e-5"), quiet=True)
     out["fixed_texture"] = train_main(scene, str(root / "fixed"), config=os.path.join(CFG, "demo_fixed_texture.toml"),
                                       sets=SETS, quiet=True)
     return scene, root, out
@@ -58,6 +58,6 @@ def test_content_aware_allocation(runs):
 def test_default_beats_2dgs_at_equal_params_and_fixed_texture(runs):
     _, _, out = runs
     d, g, f = out["default"], out["2dgs"], out["fixed_texture"]
-    assert d["num_params"] <= g["num_params"] * 1.0 + 58  # the cap allows at most one primitive of slack
+    assert d["num_params"] <= g["num_params"], (d, g)
     assert d["final_test_psnr"] > g["final_test_psnr"], (d, g)
     assert d["final_test_psnr"] > f["final_test_psnr"], (d, f)

@@ -22,7 +22,7 @@ from pipeline.errors import UserError
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DEMO = os.path.join(ROOT, "configs", "demo.toml")
 # 60 iterations: texture start at 20, a full routine at 40, checkpoints every 30 (paper-scale x 0.04).
-SETS = ("iterations=60", "checkpoint_every=750", "backend='cpu'", "max_init_points=200", "threads=1")
+SETS = ("iterations=60", "schedule_scale=0.04", "checkpoint_every=750", "backend='cpu'", "max_init_points=200", "threads=1")
 # Same seed, same ops, one thread: resumed runs match to float rounding; allow a little for atomics.
 RESUME_TOL = 1e-4
 
