@@ -23,11 +23,13 @@ from pipeline.scene.demo import make_demo_scene  # noqa: E402
 from pipeline.stages.train import train_main  # noqa: E402
 
 RUNS = [("default", "configs/demo.toml"), ("2dgs", "configs/demo_2dgs.toml"),
-        ("2dgs_more_params", "configs/demo_2dgs.toml"),
+        ("2dgs_equal_params", "configs/demo_2dgs.toml"), ("2dgs_more_params", "configs/demo_2dgs.toml"),
         ("fixed_texture", "configs/demo_fixed_texture.toml"), ("higher_tau_ds", "configs/demo_higher_tau_ds.toml"),
         ("lower_tau_tr", "configs/demo_lower_tau_tr.toml")]
-# 2dgs_more_params: 2DGS with a densification threshold low enough to end with more parameters than the
-# default (as tests/train/test_end_to_end.py runs it).
+# 2dgs_equal_params: 2DGS capped at the default run's parameter budget (params / 58, rounded up), threshold
+# 5e-5 (it stops short of the cap). 2dgs_more_params: 2DGS with a threshold low enough to end with more
+# parameters than the default (as tests/train/test_end_to_end.py runs it).
+EQUAL_PARAMS_THRESHOLD = 5e-5
 MORE_PARAMS_THRESHOLD = 3e-5
 
 
@@ -53,6 +55,10 @@ def main() -> None:
         run_dir = os.path.join(args.work, name)
         shutil.rmtree(run_dir, ignore_errors=True)
         sets = (f"seed={args.seed}",)
+        if name == "2dgs_equal_params":
+            with open(os.path.join(args.work, "default", "train_summary.json")) as fh:
+                cap = -(-json.load(fh)["num_params"] // 58)
+            sets += (f"max_primitives={cap}", f"densify_grad_threshold={EQUAL_PARAMS_THRESHOLD}")
         if name == "2dgs_more_params":
             sets += (f"densify_grad_threshold={MORE_PARAMS_THRESHOLD}",)
         s = train_main(scene, run_dir, config=cfg, sets=sets, backend=args.backend, quiet=True)
@@ -94,8 +100,9 @@ def write(rows, args, host, out_json) -> None:
     lines = [f"# Training on the demo scene ({meta['scene']}, seed {args.seed})", "",
              "Written by benchmarks/train_demo.py; findings: train_demo_findings.md. Configs: configs/demo*.toml "
              "(3000 iterations, paper schedule x 0.12, random background, texel lr 7e-3 -> 7e-4). Params = "
-             "59/primitive (58 for 2dgs) + 3/texel. 2dgs_more_params: 2dgs with densify_grad_threshold "
-             f"{MORE_PARAMS_THRESHOLD} (stock: 2e-4). texels/area photo : flat = allocated "
+             "59/primitive (58 for 2dgs) + 3/texel. 2dgs_equal_params: 2dgs with max_primitives = default params / 58 "
+             f"(rounded up) and densify_grad_threshold {EQUAL_PARAMS_THRESHOLD}; 2dgs_more_params: 2dgs with "
+             f"densify_grad_threshold {MORE_PARAMS_THRESHOLD} (stock: 2e-4). texels/area photo : flat = allocated "
              "texels per unit area on photo vs flat surfaces, by primitive centre (the test's measure, issue: >= 10x) "
              "and by texel position. Training seconds: 1 thread, two trainings at a time on the 2 cores.", "",
              "| config | test PSNR | test SSIM | points | texels | params | train s | texels/area photo : flat "
