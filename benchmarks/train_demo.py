@@ -43,12 +43,13 @@ def main() -> None:
     ap.add_argument("--work", default="/tmp/ctgs_bench")
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tag", default="", help="suffix of the result files (e.g. _160x120)")
     ap.add_argument("--table-only", action="store_true", help="only rebuild the table from the run folders")
     args = ap.parse_args()
     scene = make_demo_scene(os.path.join(args.work, "scene"), num_views=args.views, width=args.width,
                             height=args.height, points=args.points)
     host = platform.node()
-    out_json = os.path.join("benchmarks", "results", f"train_demo_{host}.json")
+    out_json = os.path.join("benchmarks", "results", f"train_demo_{host}{args.tag}.json")
     for name, cfg in RUNS:
         if args.table_only or (args.only and name not in args.only):
             continue
