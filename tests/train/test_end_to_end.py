@@ -1,6 +1,6 @@
 """End to end on a small demo scene: content-aware allocation, and the paper's comparisons.
 
-Slow: three 3000-iteration trainings on the CPU backend (configs/demo*.toml; ~20 min on 2 idle cores).
+Slow: four 3000-iteration trainings on the CPU backend (configs/demo*.toml; ~23 min on 2 idle cores).
 """
 
 from __future__ import annotations
@@ -32,6 +32,9 @@ def runs(tmp_path_factory):
     out = {}
     s_default = train_main(scene, str(root / "default"), config=os.path.join(CFG, "demo.toml"), sets=SETS, quiet=True)
     out["default"] = s_default
+    # A second seed of the default, for the allocation claim (a ratio of two texel counts; seeds move it ~1x).
+    out["default_seed1"] = train_main(scene, str(root / "default_seed1"), config=os.path.join(CFG, "demo.toml"),
+                                      sets=SETS + ("seed=1",), quiet=True)
     # 2DGS with a densification threshold low enough that it ends with MORE parameters than the default
     # (with its stock 2e-4 it stops at ~0.7M, with 5e-5 and a cap at the default's budget at ~1.06M).
     out["2dgs"] = train_main(scene, str(root / "2dgs"), config=os.path.join(CFG, "demo_2dgs.toml"),
@@ -43,13 +46,18 @@ def runs(tmp_path_factory):
 
 @pytest.mark.slow
 def test_content_aware_allocation(runs):
-    # Measured (seed 0, dev VM): photo 5531 : flat 516 texels per unit area = 10.7x (seed 1: 11.7x); thin
-    # margin, see benchmarks/results/train_demo_findings.md for what moves it.
+    # The photo : flat ratio of texels per unit area, averaged over seeds 0 and 1 of the default config.
+    # Measured (dev VM): 5531 : 516 = 10.7x (seed 0) and 5328 : 456 = 11.7x (seed 1), mean 11.2x; other
+    # configurations moved it by ~1x between seeds (benchmarks/results/train_demo_findings.md).
     scene, root, _ = runs
-    model, _ = load_run(str(root / "default"))
     meta = json.load(open(os.path.join(scene, "demo_meta.json")))
-    density = texel_density_by_kind(model, meta)
-    assert density["photo"] >= MIN_DENSITY_RATIO * density["flat"], density
+    ratios = []
+    for run in ("default", "default_seed1"):
+        model, _ = load_run(str(root / run))
+        density = texel_density_by_kind(model, meta)
+        assert density["flat"] > 0 and density["photo"] > 0, density
+        ratios.append(density["photo"] / density["flat"])
+    assert sum(ratios) / len(ratios) >= MIN_DENSITY_RATIO, ratios
 
 
 @pytest.mark.slow
