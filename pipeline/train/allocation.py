@@ -20,9 +20,8 @@ PLANE_TOL = 0.15
 EDGE_GROW = 0.05
 
 
-def _surface_kind(points: np.ndarray, meta: dict, tol=PLANE_TOL) -> np.ndarray:
-    """[P] kind of the nearest surface within tol (scalar or [P]) whose (grown) rectangle holds the point,
-    else ''."""
+def _surface_kind(points: np.ndarray, meta: dict) -> np.ndarray:
+    """[P] kind of the nearest surface within PLANE_TOL whose (grown) rectangle holds the point, else ''."""
     best = np.full(len(points), np.inf)
     kind = np.full(len(points), "", dtype=object)
     for s in meta["surfaces"]:
@@ -30,7 +29,7 @@ def _surface_kind(points: np.ndarray, meta: dict, tol=PLANE_TOL) -> np.ndarray:
         d = points - c
         dist = np.abs(d @ n)
         hu, hv = (h * (1 + EDGE_GROW) for h in s["half_extents"])
-        sel = (np.abs(d @ u) <= hu) & (np.abs(d @ v) <= hv) & (dist < tol) & (dist < best)
+        sel = (np.abs(d @ u) <= hu) & (np.abs(d @ v) <= hv) & (dist < PLANE_TOL) & (dist < best)
         best[sel] = dist[sel]
         kind[sel] = s["kind"]
     return kind
