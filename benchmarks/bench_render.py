@@ -33,8 +33,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from pipeline.render import Camera, SurfelInputs, render  # noqa: E402
-from pipeline.render._ext import load_cpu  # noqa: E402
+from ctgs.render import Camera, SurfelInputs, render  # noqa: E402
+from ctgs.render._ext import load_cpu  # noqa: E402
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=torch.float32) -> tuple[SurfelInputs, Camera]:

@@ -16,8 +16,8 @@ import types
 import torch
 import torch.nn as nn
 
-from pipeline.metrics.lpips import load_lpips
-from pipeline.metrics.vgg_weights import find_vgg16
+from ctgs.metrics.lpips import load_lpips
+from ctgs.metrics.vgg_weights import find_vgg16
 
 
 def _fake_torchvision(state: dict) -> None:

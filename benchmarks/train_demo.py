@@ -19,8 +19,8 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from pipeline.scene.demo import make_demo_scene  # noqa: E402
-from pipeline.stages.train import train_main  # noqa: E402
+from ctgs.scene.demo import make_demo_scene  # noqa: E402
+from ctgs.stages.train import train_main  # noqa: E402
 
 RUNS = [("default", "configs/demo.toml"), ("2dgs", "configs/demo_2dgs.toml"),
         ("2dgs_equal_params", "configs/demo_2dgs.toml"), ("2dgs_more_params", "configs/demo_2dgs.toml"),
@@ -78,9 +78,9 @@ def main() -> None:
 
 def texel_density(run_dir: str, scene: str) -> tuple[dict, dict]:
     """Texels per unit area on photo / flat / smooth demo surfaces, by primitive centre (the test's measure)
-    and by texel position (pipeline.train.allocation)."""
-    from pipeline.train.allocation import texel_density_by_kind, texel_position_density_by_kind
-    from pipeline.train.run import load_run
+    and by texel position (ctgs.train.allocation)."""
+    from ctgs.train.allocation import texel_density_by_kind, texel_position_density_by_kind
+    from ctgs.train.run import load_run
 
     model, _ = load_run(run_dir)
     with open(os.path.join(scene, "demo_meta.json")) as fh:

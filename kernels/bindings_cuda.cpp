@@ -1,9 +1,9 @@
 // Torch binding of the CUDA backend (module ctgs_cuda): checks every tensor (shape, dtype, device,
 // contiguity), allocates outputs and scratch from torch's caching allocator, and dispatches float/double to
 // the raw-pointer cores in kernels/cuda on the current CUDA stream. Same functions, arguments and outputs as
-// the CPU binding (kernels/bindings.cpp), so pipeline/render dispatches to either the same way.
+// the CPU binding (kernels/bindings.cpp), so ctgs/render dispatches to either the same way.
 #ifndef CTGS_WITH_CUDA
-#error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (pipeline/render/_ext_cuda.py)"
+#error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (ctgs/render/_ext_cuda.py)"
 #endif
 
 #include <c10/cuda/CUDAStream.h>

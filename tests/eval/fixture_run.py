@@ -8,7 +8,7 @@ import os
 import numpy as np
 import torch
 
-from pipeline.model.surfels import SurfelModel, jagged_offsets
+from ctgs.model.surfels import SurfelModel, jagged_offsets
 
 SH_C0 = 0.28209479177387814
 
@@ -35,8 +35,8 @@ def point_model(points: np.ndarray, colors: np.ndarray, n: int = 150, tex: int =
 
 def make_run(tmp: str, *, views: int = 9, width: int = 40, height: int = 32, n: int = 150) -> str:
     """tmp/scene (demo scene) + tmp/run (model.pt, train_summary.json); returns the run folder."""
-    from pipeline.scene import load_scene
-    from pipeline.scene.demo import make_demo_scene
+    from ctgs.scene import load_scene
+    from ctgs.scene.demo import make_demo_scene
 
     scene_dir = make_demo_scene(os.path.join(tmp, "demo", "scene"), num_views=views, width=width, height=height,
                                 points=500, supersample=1)

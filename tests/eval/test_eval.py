@@ -10,8 +10,8 @@ import pytest
 from click.testing import CliRunner
 
 from fixture_run import make_run
-from pipeline.cli import main
-from pipeline.metrics.psnr import psnr
+from ctgs.cli import main
+from ctgs.metrics.psnr import psnr
 
 # Every metrics.json must carry these keys (docs/metrics.md), with these types (None allowed where listed).
 SCHEMA = {
@@ -59,7 +59,7 @@ def test_eval_writes_schema_and_artifacts(run_dir):
     assert sorted(os.listdir(os.path.join(out, "renders"))) == sorted(os.path.splitext(r["name"])[0] + ".png" for r in rows)
     strips = m["files"]["strips"]
     assert any(s.startswith("strips/worst_") for s in strips) and any(s.startswith("strips/best_") for s in strips)
-    from pipeline.io.images import read_image
+    from ctgs.io.images import read_image
 
     s = read_image(os.path.join(out, strips[0]))
     assert s.shape[:2] == (32, 3 * 40)  # gt | render | error side by side

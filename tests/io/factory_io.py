@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from pipeline.model.surfels import SurfelModel, jagged_offsets
+from ctgs.model.surfels import SurfelModel, jagged_offsets
 
 
 def random_model(n: int = 40, sh_degree: int = 3, dtype=torch.float32, seed: int = 0,

@@ -10,11 +10,11 @@ import torch
 from click.testing import CliRunner
 
 from factory_io import random_model
-from pipeline.cli import main
-from pipeline.io.model_format import read_model, write_model
-from pipeline.metrics.psnr import psnr
-from pipeline.render.camera import Camera
-from pipeline.render.reference import render_reference
+from ctgs.cli import main
+from ctgs.io.model_format import read_model, write_model
+from ctgs.metrics.psnr import psnr
+from ctgs.render.camera import Camera
+from ctgs.render.reference import render_reference
 
 
 def _camera() -> Camera:
@@ -88,7 +88,7 @@ def test_compressed_is_not_recompressed(exported):
 
 def test_index_dtype_is_compact(exported):
     root, _ = exported
-    from pipeline.io.texture_blob import HEADER
+    from ctgs.io.texture_blob import HEADER
 
     data = open(os.path.join(_compress(root, 4), "textures.bin"), "rb").read()
     index_code = HEADER.unpack_from(data)[8]

@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from factory_io import assert_models_identical, random_model
-from pipeline.errors import UserError
-from pipeline.io.model_format import MANIFEST, PLAIN_PLY, PRIMITIVES, TEXTURES, read_model, write_model
-from pipeline.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, texture_means
-from pipeline.io.ply import read_ply
-from pipeline.io.texture_blob import HEADER
+from ctgs.errors import UserError
+from ctgs.io.model_format import MANIFEST, PLAIN_PLY, PRIMITIVES, TEXTURES, read_model, write_model
+from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, texture_means
+from ctgs.io.ply import read_ply
+from ctgs.io.texture_blob import HEADER
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -35,7 +35,7 @@ def test_large_offsets_split_into_uint32_halves():
     model = random_model(n=5)
     big = 2**33 + 7
     model.tex_offset = torch.tensor([0, 1, 2, 3, big], dtype=torch.int64)
-    from pipeline.io.model_format import primitive_columns
+    from ctgs.io.model_format import primitive_columns
 
     cols, _ = primitive_columns(model)
     off = cols["tex_offset_lo"].astype(np.int64) | (cols["tex_offset_hi"].astype(np.int64) << 32)
@@ -139,7 +139,7 @@ def test_manifest_version_mismatch_and_missing(model_dir, tmp_path):
 
 def test_failed_write_leaves_nothing(tmp_path):
     model = random_model(n=4)
-    from pipeline.io.texture_blob import TextureBlob
+    from ctgs.io.texture_blob import TextureBlob
 
     with pytest.raises(ValueError):
         write_model(model, str(tmp_path / "m"), blob=TextureBlob(np.zeros((1, 3), np.float32)))

@@ -11,8 +11,8 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from pipeline.render.camera import Camera
-from pipeline.render.types import SurfelInputs
+from ctgs.render.camera import Camera
+from ctgs.render.types import SurfelInputs
 
 # The float inputs that receive gradients (tex_res / tex_offset are integer layout).
 FLOAT_INPUTS = ("means", "quats", "scales", "opacities", "sh", "texel_size", "textures")

@@ -9,7 +9,7 @@ import pytest
 import torch
 from scenes import FLOAT_INPUTS, cast, random_scene, with_grad
 
-from pipeline.render import render
+from ctgs.render import render
 
 # float64: both sides evaluate the same formulas in a different order (kernel loops vs dense tensor ops);
 # observed worst abs error 1.5e-14 (depth) and 2.1e-14 relative to the largest gradient entry (quats).

@@ -10,8 +10,8 @@ import pytest
 import torch
 from scenes import FLOAT_INPUTS, make_surfels, pinhole, quat_axis_angle, with_grad
 
-import pipeline.render.api as api
-from pipeline.render import render
+import ctgs.render.api as api
+from ctgs.render import render
 
 MAGNITUDES = (1e-8, 1e-4, 1.0, 1e4, 1e8)
 # float64 agreement with the reference on these degenerate scenes: same formulas, different order;

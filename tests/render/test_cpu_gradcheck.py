@@ -12,7 +12,7 @@ import pytest
 import torch
 from scenes import FLOAT_INPUTS, hand_scene, make_surfels, quat_axis_angle, with_grad
 
-from pipeline.render import Camera, render
+from ctgs.render import Camera, render
 
 FD_EPS = 1e-6
 # Central differences in float64: truncation ~eps^2 |f'''| ~ 1e-12 and rounding ~1e-16/eps ~ 1e-10 per

@@ -11,10 +11,10 @@ import pytest
 import torch
 from scenes import make_surfels, pinhole
 
-import pipeline.render._ext as ext
-import pipeline.render.api as api
-from pipeline.errors import UserError
-from pipeline.render import render
+import ctgs.render._ext as ext
+import ctgs.render.api as api
+from ctgs.errors import UserError
+from ctgs.render import render
 
 
 def _scene(dtype=torch.float32):
@@ -137,7 +137,7 @@ def test_binding_checks_shapes_too():
 def test_poisoned_outputs_are_all_overwritten(monkeypatch):
     """Poisoning works (fresh buffers are NaN / -1) and the kernel overwrites every pixel of them."""
     s, cam = _scene()
-    from pipeline.render.preprocess import to_camera_space
+    from ctgs.render.preprocess import to_camera_space
 
     p = to_camera_space(s.means, s.quats, s.sh, cam, 0)
     args = (p.mu_c, p.Rc, s.scales, s.opacities, p.colors, s.texel_size[:, None].expand(-1, 2).contiguous(),
@@ -150,7 +150,7 @@ def test_poisoned_outputs_are_all_overwritten(monkeypatch):
 
 
 def test_import_does_not_build_extension():
-    code = ("import pipeline, pipeline.render, pipeline.render.api, pipeline.render._ext as e, sys; "
+    code = ("import ctgs, ctgs.render, ctgs.render.api, ctgs.render._ext as e, sys; "
             "assert e._cpu_module is None; assert 'torch.utils.cpp_extension' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from scenes import make_surfels, pinhole
 
-from pipeline.render import render
+from ctgs.render import render
 
 
 def _colour(scale: float, texel_size: float, textures, res=(16, 16)):

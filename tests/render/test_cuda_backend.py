@@ -26,9 +26,9 @@ import pytest
 import torch
 from scenes import FLOAT_INPUTS, cast, make_surfels, pinhole, quat_axis_angle, random_scene, with_grad
 
-import pipeline.render.api as api
-from pipeline.errors import UserError
-from pipeline.render import render
+import ctgs.render.api as api
+from ctgs.errors import UserError
+from ctgs.render import render
 
 HAS_CUDA = torch.cuda.is_available()
 # CTGS_CUDA_TESTS_ON_CPU=1 on a machine without a GPU runs the GPU tests with the CPU backend on both sides:
@@ -133,9 +133,9 @@ def _case(seed: int, dtype: torch.dtype, n: int = 60, width: int = 64, height: i
 def test_tile_lists_identical_to_cpu(dtype, n, width, height):
     """Same pairs, same per-tile order (centre depth, then index) as the CPU binning, bit for bit.
     "multi-batch": ~700 surfels on 3x3 tiles put more than one shared-memory batch in every tile."""
-    from pipeline.render._ext import load_cpu
-    from pipeline.render._ext_cuda import load_cuda
-    from pipeline.render.preprocess import to_camera_space
+    from ctgs.render._ext import load_cpu
+    from ctgs.render._ext_cuda import load_cuda
+    from ctgs.render.preprocess import to_camera_space
 
     s, cam = _case(3, dtype, n, width, height)
     prims = to_camera_space(s.means, s.quats, s.sh, cam, 3)

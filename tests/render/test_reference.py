@@ -11,8 +11,8 @@ import torch
 from scenes import (FLOAT_INPUTS, Case, cast, hand_scene, make_surfels, pinhole, quat_axis_angle, random_scene,
                     single_surfel, with_grad)
 
-import pipeline.render.reference as ref
-from pipeline.render.reference import render_reference
+import ctgs.render.reference as ref
+from ctgs.render.reference import render_reference
 
 # float64 analytic comparisons: only rounding of a handful of ops separates the two sides.
 ATOL_ANALYTIC = 1e-12

@@ -3,7 +3,7 @@ which the end-to-end test covers)."""
 
 from click.testing import CliRunner
 
-from pipeline.cli import main
+from ctgs.cli import main
 
 
 def test_render_missing_run_is_a_one_line_user_error(tmp_path):

@@ -6,7 +6,7 @@ import shutil
 
 import pytest
 
-from pipeline.scene.demo import make_demo_scene
+from ctgs.scene.demo import make_demo_scene
 
 from scene_fixtures import TINY
 

@@ -11,10 +11,10 @@ import pycolmap
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cli import main
-from pipeline.errors import UserError
-from pipeline.io.images import write_image
-from pipeline.scene import load_scene
+from ctgs.cli import main
+from ctgs.errors import UserError
+from ctgs.io.images import write_image
+from ctgs.scene import load_scene
 
 
 def _noise(path, w=64, h=48, seed=0):

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cli import main
-from pipeline.errors import UserError
-from pipeline.io.images import read_image
-from pipeline.scene.demo import make_demo_scene
-from pipeline.scene.raycast import Rect, render
+from ctgs.cli import main
+from ctgs.errors import UserError
+from ctgs.io.images import read_image
+from ctgs.scene.demo import make_demo_scene
+from ctgs.scene.raycast import Rect, render
 
 from scene_fixtures import TINY
 
@@ -53,7 +53,7 @@ def test_metadata_describes_surfaces_and_points_lie_on_them(tiny_demo_master):
         assert abs(u @ v) < 1e-12 and abs(np.linalg.norm(n) - 1) < 1e-12
         assert s["area"] == pytest.approx(4 * s["half_extents"][0] * s["half_extents"][1])
         assert s["kind"] != "photo" or len(s["texture_resolution"]) == 2
-    from pipeline.scene.colmap import read_colmap_model
+    from ctgs.scene.colmap import read_colmap_model
 
     model = read_colmap_model(os.path.join(tiny_demo_master, "sparse", "0"))
     assert len(model.points) == TINY["points"]
@@ -67,8 +67,8 @@ def test_metadata_describes_surfaces_and_points_lie_on_them(tiny_demo_master):
 
 
 def test_surface_of_classifies_points_by_surface(tiny_demo_master):
-    from pipeline.scene.colmap import read_colmap_model
-    from pipeline.scene.demo import load_demo_meta, surface_of
+    from ctgs.scene.colmap import read_colmap_model
+    from ctgs.scene.demo import load_demo_meta, surface_of
 
     meta = load_demo_meta(tiny_demo_master)
     points = read_colmap_model(os.path.join(tiny_demo_master, "sparse", "0")).points

@@ -1,4 +1,4 @@
-"""`ctgs fetch` and pipeline.io.download against a local HTTP server on 127.0.0.1 (no internet)."""
+"""`ctgs fetch` and ctgs.io.download against a local HTTP server on 127.0.0.1 (no internet)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,11 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cli import main
-from pipeline.errors import UserError
-from pipeline.io.download import download
-from pipeline.scene.fetch import MARKER, _safe_relative, fetch_dataset
-from pipeline.scene.manifests import load_manifest
+from ctgs.cli import main
+from ctgs.errors import UserError
+from ctgs.io.download import download
+from ctgs.scene.fetch import MARKER, _safe_relative, fetch_dataset
+from ctgs.scene.manifests import load_manifest
 
 SCENES = ("train", "truck")
 

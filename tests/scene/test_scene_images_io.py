@@ -1,4 +1,4 @@
-"""pipeline.io.images: formats, value ranges, alpha rule, corrupt files, atomic writes."""
+"""ctgs.io.images: formats, value ranges, alpha rule, corrupt files, atomic writes."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from pipeline.errors import UserError
-from pipeline.io.images import image_info, list_images, read_image, read_rgb, resize_image, write_image
+from ctgs.errors import UserError
+from ctgs.io.images import image_info, list_images, read_image, read_rgb, resize_image, write_image
 
 
 @pytest.fixture

@@ -10,10 +10,10 @@ import pycolmap
 import pytest
 import torch
 
-from pipeline.errors import UserError
-from pipeline.io.images import read_image, resize_image, write_image
-from pipeline.scene import load_scene
-from pipeline.scene.loader import is_test_index, scene_extent
+from ctgs.errors import UserError
+from ctgs.io.images import read_image, resize_image, write_image
+from ctgs.scene import load_scene
+from ctgs.scene.loader import is_test_index, scene_extent
 
 from scene_fixtures import TINY
 

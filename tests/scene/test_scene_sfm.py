@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cli import main
-from pipeline.scene import load_scene
-from pipeline.scene.colmap import read_colmap_model
-from pipeline.scene.demo import make_demo_scene
-from pipeline.scene import sfm
-from pipeline.scene.sfm import umeyama
+from ctgs.cli import main
+from ctgs.scene import load_scene
+from ctgs.scene.colmap import read_colmap_model
+from ctgs.scene.demo import make_demo_scene
+from ctgs.scene import sfm
+from ctgs.scene.sfm import umeyama
 
 VIEWS, WIDTH, HEIGHT = 24, 256, 192
 # Aligned centre error bound, as a fraction of the camera spread. Observed: ~0.1% (2 mm over 2.5 m).

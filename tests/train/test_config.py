@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from pipeline.errors import UserError
-from pipeline.train.config import TrainConfig, load_config, parse_set
+from ctgs.errors import UserError
+from ctgs.train.config import TrainConfig, load_config, parse_set
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -10,10 +10,10 @@ import os
 
 import pytest
 
-from pipeline.scene.demo import make_demo_scene
-from pipeline.stages.train import train_main
-from pipeline.train.allocation import texel_density_by_kind
-from pipeline.train.run import load_run
+from ctgs.scene.demo import make_demo_scene
+from ctgs.stages.train import train_main
+from ctgs.train.allocation import texel_density_by_kind
+from ctgs.train.run import load_run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CFG = os.path.join(ROOT, "configs")

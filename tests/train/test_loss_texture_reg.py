@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 
 import train_helpers as th
-from pipeline.train.config import TrainConfig
-from pipeline.train.loss import training_loss
+from ctgs.train.config import TrainConfig
+from ctgs.train.loss import training_loss
 
 
 def _reg_term(cfg: TrainConfig, m, gt: torch.Tensor) -> float:

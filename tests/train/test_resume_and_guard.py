@@ -11,13 +11,13 @@ import time
 import pytest
 import torch
 
-from pipeline.scene.demo import make_demo_scene
-from pipeline.stages.train import train_main
-from pipeline.train.events import Checkpoint
-from pipeline.train.run import load_run
-from pipeline.train.trainer import Trainer, TrainingDiverged
-from pipeline.stages.train import resolve_config, _load_scene
-from pipeline.errors import UserError
+from ctgs.scene.demo import make_demo_scene
+from ctgs.stages.train import train_main
+from ctgs.train.events import Checkpoint
+from ctgs.train.run import load_run
+from ctgs.train.trainer import Trainer, TrainingDiverged
+from ctgs.stages.train import resolve_config, _load_scene
+from ctgs.errors import UserError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DEMO = os.path.join(ROOT, "configs", "demo.toml")
@@ -50,7 +50,7 @@ def test_resume_after_interruption_matches(scene, reference_run, tmp_path):
     run = str(tmp_path / "interrupted")
     cfg = resolve_config(scene, run, DEMO, None, SETS, None, False, None, None)
     trainer = Trainer(cfg, _load_scene(cfg), run)
-    from pipeline.train.run import write_config
+    from ctgs.train.run import write_config
 
     write_config(run, cfg.to_dict())
     gen = trainer.run()
@@ -74,7 +74,7 @@ def test_resume_after_interruption_matches(scene, reference_run, tmp_path):
 @pytest.mark.slow
 def test_resume_after_kill_9(scene, reference_run, tmp_path):
     run = str(tmp_path / "killed")
-    args = [sys.executable, "-m", "pipeline.cli", "train", scene, "-o", run, "--config", DEMO, "-q"]
+    args = [sys.executable, "-m", "ctgs.cli", "train", scene, "-o", run, "--config", DEMO, "-q"]
     for s in SETS:
         args += ["--set", s]
     proc = subprocess.Popen(args, cwd=ROOT)
@@ -101,7 +101,7 @@ def test_nan_guard_stops_and_keeps_last_checkpoint(scene, tmp_path):
     assert state["iteration"] == 30
     assert all(torch.isfinite(v).all() for v in state["model"].values() if torch.is_tensor(v) and v.is_floating_point())
     # The CLI prints one line and exits non-zero.
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "train", scene, "-o", str(tmp_path / "nan2"),
+    r = subprocess.run([sys.executable, "-m", "ctgs.cli", "train", scene, "-o", str(tmp_path / "nan2"),
                         "--config", DEMO, "-q"] + sum([["--set", s] for s in SETS + ("debug_nan_at=5",)], []),
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 4 and "NaN/Inf in loss at iteration 5" in r.stderr and "Traceback" not in r.stderr

@@ -6,9 +6,9 @@ import math
 
 import torch
 
-from pipeline.model import jagged
-from pipeline.train import edit, texels
-from pipeline.train.split import CHILD_OPACITY_FACTOR, split
+from ctgs.model import jagged
+from ctgs.train import edit, texels
+from ctgs.train.split import CHILD_OPACITY_FACTOR, split
 
 from train_helpers import image, model, optimiser, smooth_texture
 

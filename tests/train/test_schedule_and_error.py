@@ -6,12 +6,12 @@ import math
 
 import torch
 
-from pipeline.metrics.ssim import ssim, ssim_map
-from pipeline.render.camera import Camera
-from pipeline.train import schedule
-from pipeline.train.config import TrainConfig
-from pipeline.train.error import accumulate_error, error_image, top_fraction_mask
-from pipeline.train.kmin import compute_k_min
+from ctgs.metrics.ssim import ssim, ssim_map
+from ctgs.render.camera import Camera
+from ctgs.train import schedule
+from ctgs.train.config import TrainConfig
+from ctgs.train.error import accumulate_error, error_image, top_fraction_mask
+from ctgs.train.kmin import compute_k_min
 
 
 def _cam(tz: float, f: float) -> Camera:

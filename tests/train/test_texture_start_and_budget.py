@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pipeline.train import texels
-from pipeline.train.init import farthest_point_subsample, init_model
-from pipeline.train.split import split
+from ctgs.train import texels
+from ctgs.train.init import farthest_point_subsample, init_model
+from ctgs.train.split import split
 
 from train_helpers import image, model, optimiser
 
@@ -71,7 +71,7 @@ def test_init_from_points():
 
 
 def test_rotation_quaternion_round_trip_and_normal_frames():
-    from pipeline.model.geometry import frames_from_normals, quat_to_rotmat, rotmat_to_quat
+    from ctgs.model.geometry import frames_from_normals, quat_to_rotmat, rotmat_to_quat
 
     g = torch.Generator().manual_seed(0)
     q = torch.randn(2000, 4, generator=g, dtype=torch.float64)
@@ -90,8 +90,8 @@ def test_rotation_quaternion_round_trip_and_normal_frames():
 
 
 def test_init_normals_lie_in_the_local_plane():
-    from pipeline.model.geometry import quat_to_rotmat
-    from pipeline.train.init import pca_normals
+    from ctgs.model.geometry import quat_to_rotmat
+    from ctgs.train.init import pca_normals
 
     rng = np.random.default_rng(1)
     # Two planes: z = 0 (normal z) and x = 3 (normal x), with 1% thickness noise.

@@ -6,10 +6,10 @@ import math
 
 import torch
 
-from pipeline.model.surfels import SurfelModel, jagged_offsets
-from pipeline.render import render
-from pipeline.render.camera import Camera
-from pipeline.train.adam import SurfelAdam
+from ctgs.model.surfels import SurfelModel, jagged_offsets
+from ctgs.render import render
+from ctgs.render.camera import Camera
+from ctgs.train.adam import SurfelAdam
 
 W, H, F = 64, 48, 60.0
 BACKEND = "cpu"

@@ -1,5 +1,5 @@
 // Magic numbers of the textured 2D Gaussian surfel renderer, each with its reason (docs/renderer.md).
-// Mirrored with the same names in pipeline/render/constants.py. No torch here: shared by CPU and CUDA.
+// Mirrored with the same names in ctgs/render/constants.py. No torch here: shared by CPU and CUDA.
 #pragma once
 
 #ifdef __CUDACC__

@@ -1,0 +1,80 @@
+"""`ctgs` command-line entry point.
+
+Each subcommand only parses its options and calls a stage in `ctgs.stages`; stages are imported
+lazily so `ctgs --help` stays fast and never touches torch or the compiled extension.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from ctgs import __version__
+from ctgs.errors import UserError
+
+# name -> (module, one-line help). Each module defines `command`, a click.Command.
+STAGES: dict[str, tuple[str, str]] = {
+    "sfm": ("ctgs.stages.sfm", "Structure from motion (pycolmap): images -> undistorted COLMAP scene."),
+    "train": ("ctgs.stages.train", "Train a content-aware textured 2DGS model on a scene."),
+    "export": ("ctgs.stages.export", "Export a trained run to PLY + texture blob (+ plain 3DGS PLY)."),
+    "compress": ("ctgs.stages.compress", "K-means texel compression of an exported model."),
+    "eval": ("ctgs.stages.eval", "Quality, size and speed figures of a run or model; aggregate tables."),
+    "demo-scene": ("ctgs.stages.demo_scene", "Generate the built-in synthetic demo scene (COLMAP layout)."),
+    "fetch": ("ctgs.stages.fetch", "Download and extract a benchmark dataset listed in data_manifests/."),
+    "render": ("ctgs.stages.render", "Render a scene's cameras with a model (or demo primitives)."),
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(STAGES)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in STAGES:
+            return None
+        module_name, help_text = STAGES[name]
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            return _not_built(name, help_text)
+        return module.command
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        # Help text from the table: listing commands must not import torch-heavy stage modules.
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, help_text) for name, (_, help_text) in STAGES.items()])
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except UserError as exc:
+            click.secho(f"error: {exc}", fg="red", err=True)
+            sys.exit(exc.exit_code)
+
+
+def _not_built(name: str, help_text: str) -> click.Command:
+    @click.command(name=name, help=f"{help_text} [NOT BUILT YET]",
+                   context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+    def _cmd() -> None:
+        click.secho(f"error: `ctgs {name}` is not implemented in this version yet.", fg="red", err=True)
+        sys.exit(3)
+
+    return _cmd
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="ctgs")
+def main() -> None:
+    """ctgs: photographs -> compact, fast content-aware textured 2D Gaussian Splatting.
+
+    Stages read and write on-disk artifacts and can be run independently:
+    sfm -> train -> export -> compress -> eval.
+    """
+
+
+if __name__ == "__main__":
+    main()

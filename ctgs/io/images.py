@@ -1,0 +1,217 @@
+"""Image reading and writing with OpenImageIO.
+
+Pixel values: integer files (8/16-bit PNG, JPEG, TIFF) are returned as float32 in [0, 1]
+(OIIO divides by 255 or 65535); float files (EXR, HDR) are returned as stored (linear, may exceed 1).
+
+Alpha: `read_rgb` composites RGBA over a background colour exactly as 3DGS does
+(`rgb * a + bg * (1 - a)`, with the file's unassociated alpha), black by default; `read_image`
+returns all channels untouched. Grey images are replicated to three channels by `read_rgb`.
+
+Writes are atomic: the file is written under a temporary name in the same folder and renamed, so an
+interrupted run never leaves a half-written image behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import tempfile
+from dataclasses import dataclass
+
+import numpy as np
+import OpenImageIO as oiio
+
+from ctgs.errors import UserError
+
+# Extensions `list_images` treats as images (lower case).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".hdr")
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    width: int  # pixels
+    height: int  # pixels
+    channels: int
+    format: str  # OIIO pixel type of the file, e.g. "uint8", "uint16", "half", "float"
+
+
+def _open_config() -> oiio.ImageSpec:
+    config = oiio.ImageSpec()
+    # Keep PNG/TIFF alpha unassociated (as stored), so compositing matches 3DGS/PIL exactly.
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    return config
+
+
+def _bad(path: str, what: str) -> UserError:
+    # OIIO messages span several lines; the CLI contract is one line per user error.
+    what = " ".join(what.split())
+    return UserError(f"{path}: {what}; replace or remove this file and run again")
+
+
+def image_info(path: str) -> ImageInfo:
+    """Header only (no pixel decoding): size and channel count."""
+    if not os.path.isfile(path):
+        raise UserError(f"{path}: image file not found; check the path or the image folder")
+    inp = oiio.ImageInput.open(path, _open_config())
+    if inp is None:
+        raise _bad(path, f"cannot be opened as an image ({_oiio_message()})")
+    try:
+        spec = inp.spec()
+        return ImageInfo(spec.width, spec.height, spec.nchannels, str(spec.format))
+    finally:
+        inp.close()
+
+
+def read_image(path: str) -> np.ndarray:
+    """All channels of `path` as float32 [H, W, C] (integer formats scaled to [0, 1])."""
+    if not os.path.isfile(path):
+        raise UserError(f"{path}: image file not found; check the path or the image folder")
+    inp = oiio.ImageInput.open(path, _open_config())
+    if inp is None:
+        raise _bad(path, f"cannot be opened as an image ({_oiio_message()})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        # A truncated file decodes partially: OIIO reports it through has_error / a None result.
+        if pixels is None or inp.has_error:
+            detail = _first_line(inp.geterror() or _oiio_message())
+            raise _bad(path, f"corrupt or truncated image ({detail})")
+    finally:
+        inp.close()
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:  # [H, W] for some single-channel readers
+        pixels = pixels[:, :, None]
+    if not np.isfinite(pixels).all():
+        raise _bad(path, "contains NaN or infinite pixel values")
+    return np.ascontiguousarray(pixels)
+
+
+def to_rgb(pixels: np.ndarray, background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """[H, W, C] -> [H, W, 3] float32: grey replicated, alpha composited over `background` (3DGS rule)."""
+    c = pixels.shape[2]
+    if c == 1:
+        return np.repeat(pixels, 3, axis=2)
+    if c == 2:  # grey + alpha
+        grey, alpha = pixels[:, :, :1], pixels[:, :, 1:2]
+        rgb = np.repeat(grey, 3, axis=2)
+    elif c == 3:
+        return pixels
+    else:  # RGBA (extra channels beyond the 4th are ignored)
+        rgb, alpha = pixels[:, :, :3], pixels[:, :, 3:4]
+    bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
+    return (rgb * alpha + bg * (1.0 - alpha)).astype(np.float32)
+
+
+def read_rgb(path: str, background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """`path` as float32 [H, W, 3]; RGBA composited over `background` (black by default)."""
+    return to_rgb(read_image(path), background)
+
+
+def write_image(path: str, array: np.ndarray, *, bits: int | None = None) -> None:
+    """Write [H, W, C] or [H, W] (C in 1..4) atomically.
+
+    Float input is taken as [0, 1] and clipped for integer files; uint8/uint16 input is written as is.
+    The file type follows the extension; `bits` (8 or 16) picks the integer depth for PNG/TIFF
+    (default: 16 for uint16 input, else 8). EXR is written as half floats, unclipped.
+    """
+    arr = np.asarray(array)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3 or not 1 <= arr.shape[2] <= 4:
+        raise ValueError(f"write_image: array must have shape [H, W] or [H, W, 1..4], got {arr.shape}")
+    ext = os.path.splitext(path)[1].lower()
+    if ext in (".exr", ".hdr"):
+        fmt = "half" if ext == ".exr" else "float"
+        data = arr.astype(np.float32)
+    else:
+        if bits is None:
+            bits = 16 if arr.dtype == np.uint16 else 8
+        if bits not in (8, 16):
+            raise ValueError(f"write_image: bits must be 8 or 16, got {bits}")
+        if ext in (".jpg", ".jpeg", ".bmp"):
+            bits = 8
+        fmt = "uint8" if bits == 8 else "uint16"
+        if arr.dtype == np.uint8:
+            data = arr.astype(np.float32) / 255.0
+        elif arr.dtype == np.uint16:
+            data = arr.astype(np.float32) / 65535.0
+        else:
+            data = np.clip(arr.astype(np.float32), 0.0, 1.0)
+    h, w, c = data.shape
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if c == 4 or c == 2:
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+    if ext in (".jpg", ".jpeg"):
+        spec.attribute("Compression", "jpeg:95")
+
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    # The temporary name keeps the extension: OIIO picks the file format from it.
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=ext, dir=folder)
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None or not out.open(tmp, spec):
+            raise OSError(f"{path}: OpenImageIO cannot write this file type ({_oiio_message()})")
+        ok = out.write_image(np.ascontiguousarray(data, dtype=np.float32))
+        err = out.geterror()
+        out.close()
+        if not ok:
+            raise OSError(f"{path}: write failed ({err})")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def resize_image(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Antialiased resize of float32 [H, W, C] to [height, width, C] (OIIO's default filter)."""
+    h, w, c = pixels.shape
+    src = oiio.ImageBuf(oiio.ImageSpec(w, h, c, "float"))
+    src.set_pixels(oiio.ROI(0, w, 0, h, 0, 1, 0, c), np.ascontiguousarray(pixels, dtype=np.float32))
+    dst = oiio.ImageBuf(oiio.ImageSpec(width, height, c, "float"))
+    if not oiio.ImageBufAlgo.resize(dst, src):
+        raise RuntimeError(f"resize failed: {dst.geterror()}")
+    return np.asarray(dst.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, c)
+
+
+def list_images(folder: str) -> list[str]:
+    """Image file names (not paths) directly in `folder`, sorted; hidden/temporary files skipped."""
+    return sorted(
+        name for name in os.listdir(folder)
+        if not name.startswith(".") and os.path.splitext(name)[1].lower() in IMAGE_EXTENSIONS
+        and os.path.isfile(os.path.join(folder, name))
+    )
+
+
+def _first_line(message: str) -> str:
+    """OIIO repeats one failure over several lines; the first says it best."""
+    lines = [line.strip() for line in message.splitlines() if line.strip()]
+    return (lines[0] if lines else "unknown OpenImageIO error")[:200]
+
+
+def _oiio_message() -> str:
+    return _first_line(oiio.geterror() or "")
+
+
+@contextlib.contextmanager
+def stderr_silenced():
+    """Point file descriptor 2 at /dev/null, then restore it: libpng/libjpeg print their own line for a
+    corrupt file, while our UserError already names the file. Wrap whole batches (not single reads
+    from several threads): the redirection is process-wide."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (e.g. embedded): nothing to silence
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)

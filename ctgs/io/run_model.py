@@ -1,0 +1,58 @@
+"""Read a finished training run folder (written by `ctgs train RUN_DIR`).
+
+RUN_DIR/model.pt = torch.save({"model": SurfelModel.state_dict(), "scene_dir", "images", "holdout",
+"iteration", "config"}); RUN_DIR/train_summary.json (optional here: only the training time comes from it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+
+import torch
+
+from ctgs.errors import UserError
+from ctgs.model.surfels import SurfelModel
+
+MODEL_FILE = "model.pt"
+SUMMARY_FILE = "train_summary.json"
+
+
+@dataclass
+class RunModel:
+    run_dir: str
+    model: SurfelModel
+    scene_dir: str
+    images: str  # image sub-folder of the scene the run trained on
+    holdout: int  # every holdout-th image is a test view
+    iteration: int
+    config: dict
+    summary: dict | None  # train_summary.json, None if absent
+    model_bytes: int  # size of model.pt on disk
+
+
+def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
+    path = os.path.join(run_dir, MODEL_FILE)
+    if not os.path.isdir(run_dir):
+        raise UserError(f"{run_dir}: run folder not found; train one with `ctgs train SCENE -o {run_dir}`")
+    if not os.path.isfile(path):
+        raise UserError(f"{path}: no finished model in this run folder (training did not complete); "
+                        f"run `ctgs train` to the end first")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        model = SurfelModel.from_state_dict(ckpt["model"], device=device)
+    except (KeyError, ValueError, RuntimeError, OSError, EOFError, TypeError) as exc:
+        raise UserError(f"{path}: unreadable or incomplete model ({type(exc).__name__}: {exc}); "
+                        "re-run `ctgs train`") from exc
+    if not isinstance(ckpt, dict) or "scene_dir" not in ckpt:
+        raise UserError(f"{path}: not a ctgs run model (no scene_dir); re-run `ctgs train`")
+    summary = None
+    spath = os.path.join(run_dir, SUMMARY_FILE)
+    if os.path.isfile(spath):
+        with open(spath) as f:
+            summary = json.load(f)
+    return RunModel(run_dir=os.path.abspath(run_dir), model=model, scene_dir=ckpt["scene_dir"],
+                    images=ckpt.get("images", "images"), holdout=int(ckpt.get("holdout", 8)),
+                    iteration=int(ckpt.get("iteration", -1)), config=ckpt.get("config") or {},
+                    summary=summary, model_bytes=os.path.getsize(path))

@@ -1,0 +1,174 @@
+"""Evaluate a run (or an exported/compressed model of it) on the run's test views.
+
+Order matters for the figures: the model is loaded and every test view rendered first (timed,
+synchronised, one untimed warm-up), peak memory is read right after rendering, and only then is the
+LPIPS network loaded, so neither its weights nor metric computation count as render time or memory.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import resource
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from ctgs.errors import UserError
+from ctgs.metrics.psnr import psnr
+from ctgs.metrics.report import (METRICS_SCHEMA, METRICS_VERSION, ImageMetrics, strip, write_metrics_json,
+                                     write_per_image_csv)
+
+LPIPS_CONVENTION = "LPIPS VGG v0.1, inputs in [0, 1] fed without rescaling to [-1, 1] (3DGS/2DGS convention)"
+NUM_STRIPS = 2  # worst and best views (by PSNR) that get a gt | render | error strip each
+
+
+@dataclass
+class EvalOptions:
+    out_dir: str
+    model_dir: str | None = None  # exported/compressed model folder; None = the run's model.pt
+    backend: str | None = None  # None = the run's config backend (or "auto")
+    device: str | None = None  # None = cuda if available, else cpu
+    lpips: bool = True
+    lpips_weights: str | None = None
+    dataset: str | None = None  # table grouping; None = name of the scene folder's parent
+
+
+def _render_fn(backend: str):
+    try:
+        from ctgs.render import render
+
+        import ctgs.render.api  # noqa: F401  (present once the backends land)
+        return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg).rgb
+    except ModuleNotFoundError:
+        if backend not in ("reference", "auto"):
+            raise UserError(f"backend {backend!r}: renderer API not available in this build; use --backend reference")
+        from ctgs.render.reference import render_reference
+
+        return lambda inputs, cam, deg: render_reference(inputs, cam, sh_degree=deg).rgb
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _machine(device: torch.device) -> dict:
+    info = {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
+
+
+def evaluate(run_dir: str, opts: EvalOptions) -> dict:
+    """Write metrics.json, per_image.csv, renders/*.png and strips/*.png into opts.out_dir; returns metrics."""
+    from ctgs.io.images import write_image
+    from ctgs.io.run_model import load_run
+    from ctgs.metrics.ssim import ssim
+    from ctgs.scene import load_scene
+
+    run = load_run(run_dir)
+    device = torch.device(opts.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    model, bytes_on_disk, model_source = run.model, run.model_bytes, os.path.join(run.run_dir, "model.pt")
+    manifest = None
+    if opts.model_dir:
+        from ctgs.io.model_format import read_model
+
+        model, files = read_model(opts.model_dir)
+        bytes_on_disk, model_source, manifest = files.bytes_on_disk, os.path.abspath(opts.model_dir), files.manifest
+    model = type(model).from_state_dict(model.state_dict(), device=device)
+    backend = opts.backend or str(run.config.get("backend", "auto"))
+    if backend == "auto":  # the renderer's rule: cuda when the inputs live on a GPU, else cpu
+        backend = "cuda" if device.type == "cuda" else "cpu"
+    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
+    if not scene.test:
+        raise UserError(f"{run.scene_dir}: no test views (holdout={run.holdout}); train with holdout > 0 to evaluate")
+    render = _render_fn(backend)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+
+    renders, times = [], []
+    with torch.no_grad():
+        inputs = model.render_inputs()
+        render(inputs, scene.test[0].camera.to(device), model.sh_degree)  # warm-up: JIT build, caches
+        for view in scene.test:
+            cam = view.camera.to(device)
+            _sync(device)
+            t0 = time.perf_counter()
+            rgb = render(inputs, cam, model.sh_degree)
+            _sync(device)
+            times.append(time.perf_counter() - t0)
+            renders.append(rgb.clamp(0.0, 1.0).float().cpu())
+    if device.type == "cuda":
+        peak, peak_kind = torch.cuda.max_memory_allocated(device), "cuda_max_memory_allocated"
+    else:
+        peak, peak_kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, "process_max_rss"
+
+    net, status = None, None
+    if opts.lpips:
+        from ctgs.metrics.lpips import load_lpips
+
+        net, st = load_lpips(opts.lpips_weights, device)
+        status = f"{LPIPS_CONVENTION}; VGG16 weights: {st.detail}" if st.available else st.detail
+    else:
+        status = "unavailable: skipped (--no-lpips)"
+
+    os.makedirs(os.path.join(opts.out_dir, "renders"), exist_ok=True)
+    rows: list[ImageMetrics] = []
+    gts = []
+    for view, rgb, dt in zip(scene.test, renders, times):
+        gt = torch.as_tensor(view.image, dtype=torch.float32)
+        if gt.shape != rgb.shape:
+            raise UserError(f"{view.image_path}: image is {list(gt.shape)}, render {list(rgb.shape)}; "
+                            "the scene changed since training")
+        lp = None
+        if net is not None:
+            from ctgs.metrics.lpips import lpips_hwc
+
+            lp = lpips_hwc(net, rgb.to(device), gt.to(device))
+        rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3))
+        write_image(os.path.join(opts.out_dir, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
+        gts.append(gt)
+
+    order = sorted(range(len(rows)), key=lambda i: rows[i].psnr)
+    # Distinct views: the worst NUM_STRIPS, then the best among the rest (few test views may overlap).
+    per_side = min(NUM_STRIPS, max(1, len(order) // 2))
+    worst = order[:per_side]
+    best = [i for i in order[::-1] if i not in worst][:per_side]
+    os.makedirs(os.path.join(opts.out_dir, "strips"), exist_ok=True)
+    strips = []
+    for rank, i in [("worst", i) for i in worst] + [("best", i) for i in best]:
+        name = f"{rank}_{os.path.splitext(rows[i].name)[0]}.png"
+        write_image(os.path.join(opts.out_dir, "strips", name), strip(gts[i].numpy(), renders[i].numpy()))
+        strips.append(name)
+    write_per_image_csv(os.path.join(opts.out_dir, "per_image.csv"), rows)
+
+    summary = run.summary or {}
+    mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
+    metrics = {
+        "schema": METRICS_SCHEMA, "schema_version": METRICS_VERSION,
+        "scene": os.path.basename(os.path.normpath(run.scene_dir)),
+        "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
+        "run_dir": run.run_dir, "model_source": model_source, "scene_dir": run.scene_dir,
+        "images": run.images, "holdout": run.holdout, "num_test_views": len(rows),
+        "psnr": mean("psnr"), "ssim": mean("ssim"),
+        "lpips": None if net is None else mean("lpips"), "lpips_status": status,
+        "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
+        "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
+        "model_memory_bytes": 4 * model.num_params(), "bytes_on_disk": bytes_on_disk,
+        "texture_encoding": manifest["texture_encoding"] if manifest else "raw",
+        "codebook_size": manifest.get("codebook_size") if manifest else None,
+        "compressed": bool(manifest and "compression" in manifest),
+        "fps": len(times) / sum(times), "render_ms_mean": 1e3 * sum(times) / len(times),
+        "backend": backend, "device": str(device), "resolution": [renders[0].shape[1], renders[0].shape[0]],
+        "peak_memory_bytes": peak, "peak_memory_kind": peak_kind,
+        "train_seconds": summary.get("train_seconds"), "iterations": summary.get("iterations", run.iteration),
+        "machine": _machine(device),
+        "files": {"per_image_csv": "per_image.csv", "renders": "renders/", "strips": [f"strips/{s}" for s in strips]},
+        "per_image": [asdict(r) for r in rows],
+    }
+    write_metrics_json(os.path.join(opts.out_dir, "metrics.json"), metrics)
+    return metrics

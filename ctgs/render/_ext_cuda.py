@@ -1,0 +1,49 @@
+"""Just-in-time build of the CUDA backend (kernels/cuda/*.cu + kernels/bindings_cuda.cpp, module `ctgs_cuda`).
+
+Nothing here runs at import time, and nothing is attempted without a GPU: `load_cuda()` first checks that
+PyTorch sees a CUDA device and that the CUDA toolkit (nvcc) is installed, and says what to do if not. The
+build (a few minutes: cub's radix sort is heavy to compile) goes next to the CPU one
+(`$TORCH_EXTENSIONS_DIR/ctgs_cuda` or `<repo>/build/torch_extensions/ctgs_cuda`) and torch rebuilds when a
+source or flag changes. Architectures: torch's default (the visible GPUs), or TORCH_CUDA_ARCH_LIST.
+"""
+
+from __future__ import annotations
+
+import threading
+from types import ModuleType
+
+from ctgs.errors import UserError
+from ctgs.render._ext import jit_build
+
+CUDA_SOURCES = ["bindings_cuda.cpp", "cuda/preprocess.cu", "cuda/binning.cu", "cuda/forward.cu", "cuda/backward.cu"]
+# The C++ standard is torch's own (it adds it): its headers need it, and the kernels are C++17-clean
+# (kernels/check_cuda_build.py). -fmad=false: forward and backward each recompute alpha with the shared
+# header math inside different kernels; without FMA contraction both get bit-identical values (the CPU
+# backend builds with -ffp-contract=off for the same reason), so they always agree on which pairs blend.
+CUDA_CFLAGS = ["-O3", "-DCTGS_WITH_CUDA"]
+CUDA_NVCC_FLAGS = ["-O3", "-DCTGS_WITH_CUDA", "-fmad=false", "-lineinfo"]
+
+_lock = threading.Lock()
+_cuda_module: ModuleType | None = None
+
+
+def load_cuda(verbose: bool = False) -> ModuleType:
+    """The compiled CUDA backend (functions forward_cuda, backward_cuda); builds it on first call."""
+    global _cuda_module
+    with _lock:
+        if _cuda_module is not None:
+            return _cuda_module
+        import torch
+
+        if not torch.cuda.is_available():
+            why = "this torch is a CPU-only build" if torch.version.cuda is None else "no CUDA device is visible"
+            raise UserError(f"the cuda renderer backend needs an NVIDIA GPU ({why}): pass --backend cpu "
+                            "(or reference), or install a CUDA build of torch on a machine with a GPU")
+        from torch.utils import cpp_extension
+
+        if cpp_extension.CUDA_HOME is None:
+            raise UserError("the CUDA toolkit (nvcc) was not found: install it or set CUDA_HOME to build the cuda "
+                            "renderer, or pass --backend cpu")
+        _cuda_module = jit_build("ctgs_cuda", CUDA_SOURCES, what="cuda", fallback="cpu", verbose=verbose,
+                                 extra_cflags=CUDA_CFLAGS, extra_cuda_cflags=CUDA_NVCC_FLAGS)
+        return _cuda_module

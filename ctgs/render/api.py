@@ -1,0 +1,134 @@
+"""`render()`: input validation and backend dispatch (the autograd bridge is ctgs.render.rasterize).
+
+Semantics: docs/renderer.md. The extension backends get camera-space primitives from
+`ctgs.render.preprocess` (PyTorch, differentiable); a torch.autograd.Function calls the compiled
+forward/backward, whose gradients w.r.t. mu_c, Rc, colors... autograd carries back to means, quats, sh.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import torch
+
+from ctgs.render.camera import Camera
+from ctgs.render.rasterize import rasterize
+from ctgs.render.types import RenderOutput, SurfelInputs
+
+BACKENDS = ("auto", "cpu", "cuda", "reference")
+# Debug aid: fresh output buffers start as NaN so a pixel the kernel never wrote shows up (tests set it).
+POISON_OUTPUTS = os.environ.get("CTGS_POISON_OUTPUTS", "") == "1"
+
+
+# ---- validation ------------------------------------------------------------------------------------------
+def _fail(name: str, expected: str, t: torch.Tensor) -> None:
+    raise ValueError(f"{name} must have shape {expected}, got {list(t.shape)} ({t.dtype}, {t.device})")
+
+
+def _all_finite(t: torch.Tensor) -> bool:
+    # min/max propagate NaN and expose +-inf in one pass without a [T, 3] bool temporary (textures are big).
+    with torch.no_grad():
+        lo, hi = torch.aminmax(t.detach())
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
+
+
+def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like: torch.Tensor) -> None:
+    if not isinstance(t, torch.Tensor):
+        raise ValueError(f"{name} must be a tensor of shape {expected}, got {type(t).__name__}")
+    if not shape_ok:
+        _fail(name, expected, t)
+    if t.dtype != like.dtype:
+        raise ValueError(f"{name} must have dtype {like.dtype} (the dtype of means), shape {expected}; got {t.dtype}")
+    if t.device != like.device:
+        raise ValueError(f"{name} must be on {like.device} (the device of means), shape {expected}; got {t.device}")
+    if t.numel() and not _all_finite(t):
+        raise ValueError(f"{name} (shape {expected}) contains NaN or infinite values")
+
+
+def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | None,
+                    error_image: torch.Tensor | None) -> None:
+    """Raise ValueError naming the argument and its expected shape for any malformed input."""
+    m = s.means
+    if not isinstance(m, torch.Tensor) or m.ndim != 2 or m.shape[1] != 3:
+        raise ValueError(f"means must have shape [N, 3], got {list(getattr(m, 'shape', []))}")
+    if m.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"means must be float32 or float64 with shape [N, 3], got {m.dtype}")
+    n = m.shape[0]
+    _check_float("means", m, "[N, 3]", True, m)
+    _check_float("quats", s.quats, f"[{n}, 4]", tuple(s.quats.shape) == (n, 4), m)
+    _check_float("scales", s.scales, f"[{n}, 2]", tuple(s.scales.shape) == (n, 2), m)
+    _check_float("opacities", s.opacities, f"[{n}]", tuple(s.opacities.shape) == (n,), m)
+    _check_float("sh", s.sh, f"[{n}, K, 3] with K in (1, 4, 9, 16)",
+                 s.sh.ndim == 3 and s.sh.shape[0] == n and s.sh.shape[2] == 3 and s.sh.shape[1] in (1, 4, 9, 16), m)
+    _check_float("texel_size", s.texel_size, f"[{n}] or [{n}, 2]", tuple(s.texel_size.shape) in ((n,), (n, 2)), m)
+    _check_float("textures", s.textures, "[T, 3]", s.textures.ndim == 2 and s.textures.shape[1] == 3, m)
+    for name, t, dtype, expected in (("tex_res", s.tex_res, torch.int32, f"[{n}, 2] int32"),
+                                     ("tex_offset", s.tex_offset, torch.int64, f"[{n}] int64")):
+        want = (n, 2) if name == "tex_res" else (n,)
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != want:
+            raise ValueError(f"{name} must have shape {expected}, got {list(getattr(t, 'shape', []))}")
+        if t.dtype != dtype:
+            raise ValueError(f"{name} must have dtype {dtype} (shape {expected}), got {t.dtype}")
+        if t.device != m.device:
+            raise ValueError(f"{name} must be on {m.device} (the device of means), shape {expected}; got {t.device}")
+    with torch.no_grad():
+        if n and bool((s.scales <= 0).any()):
+            raise ValueError(f"scales (shape [{n}, 2], world units) must be > 0")
+        if n and bool((s.texel_size <= 0).any()):
+            raise ValueError(f"texel_size (shape [{n}] or [{n}, 2], world units per texel) must be > 0")
+        if n and bool(((s.opacities < 0) | (s.opacities > 1)).any()):
+            raise ValueError(f"opacities (shape [{n}]) must lie in [0, 1]")
+        if n and bool((s.quats.norm(dim=-1) == 0).any()):
+            raise ValueError(f"quats (shape [{n}, 4]) must have non-zero norm")
+        if n and bool((s.tex_res < 0).any()):
+            raise ValueError(f"tex_res (shape [{n}, 2] int32) must be >= 0")
+        sizes = s.tex_res[:, 0].long() * s.tex_res[:, 1].long()
+        used = sizes > 0
+        if bool(used.any()):
+            end = s.tex_offset[used] + sizes[used]
+            if bool((s.tex_offset[used] < 0).any()) or int(end.max()) > s.textures.shape[0]:
+                raise ValueError(f"tex_offset (shape [{n}] int64) + res_u*res_v must stay within textures "
+                                 f"[T={s.textures.shape[0]}, 3]")
+    if camera.width < 1 or camera.height < 1:
+        raise ValueError(f"camera must be at least 1x1 pixels, got {camera.width}x{camera.height}")
+    if not all(math.isfinite(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy, camera.near)) or \
+            camera.fx == 0 or camera.fy == 0:
+        raise ValueError("camera fx, fy, cx, cy, near must be finite and fx, fy non-zero")
+    vm = camera.viewmat
+    if not isinstance(vm, torch.Tensor) or tuple(vm.shape) != (4, 4) or not bool(torch.isfinite(vm).all()):
+        raise ValueError("camera.viewmat must be a finite [4, 4] tensor")
+    if background is not None:
+        _check_float("background", background, "[3]", tuple(background.shape) == (3,), m)
+    if error_image is not None:
+        _check_float("error_image", error_image, f"[{camera.height}, {camera.width}]",
+                     tuple(error_image.shape) == (camera.height, camera.width), m)
+
+
+def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_degree: int | None = None,
+           background: torch.Tensor | None = None, error_image: torch.Tensor | None = None) -> RenderOutput:
+    """Render `surfels` from `camera` (see ctgs.render.render for the argument documentation)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    validate_inputs(surfels, camera, background, error_image)
+    k_coeffs = surfels.sh.shape[1]
+    max_degree = math.isqrt(k_coeffs) - 1
+    degree = max_degree if sh_degree is None else int(sh_degree)
+    if not 0 <= degree <= max_degree:
+        raise ValueError(f"sh_degree must be in [0, {max_degree}] for sh of shape [N, {k_coeffs}, 3], got {degree}")
+    if backend == "auto":
+        backend = "cuda" if surfels.means.is_cuda else "cpu"
+    if backend == "reference":
+        from ctgs.render.reference import render_reference
+
+        return render_reference(surfels, camera, sh_degree=degree, background=background, error_image=error_image)
+    means = surfels.means
+    bg = background if background is not None else means.new_zeros(3)
+    if backend == "cuda":
+        from ctgs.render.cuda_backend import render_cuda
+
+        return render_cuda(surfels, camera, degree, bg, error_image, POISON_OUTPUTS)
+    if means.device.type != "cpu":
+        raise ValueError(f"the cpu backend needs CPU tensors (means is on {means.device}); pass backend='auto'")
+    return rasterize(surfels, camera, degree, bg, error_image, device="cpu", knob=torch.get_num_threads(),
+                     poison=POISON_OUTPUTS)

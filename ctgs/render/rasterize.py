@@ -1,0 +1,83 @@
+"""The one autograd bridge between PyTorch and the compiled rasterizers (CPU and CUDA alike).
+
+Both extensions expose the same entry points (kernels/bindings.cpp, kernels/bindings_cuda.cpp):
+  forward_<dev>(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+                fx, fy, cx, cy, W, H, near, error_image, knob, poison)
+      -> rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err
+  backward_<dev>(..., background, fx, fy, cx, cy, W, H, near, tile_offsets, tile_list, final_T, n_contrib,
+                 v_rgb, v_alpha, v_depth, knob) -> v_mu_c, v_Rc, v_scales, v_opacities, v_colors,
+                 v_texel_size, v_textures, v_background
+`knob` is the OpenMP thread count on the CPU and the stream (0 = current) on CUDA.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ctgs.render.camera import Camera
+from ctgs.render.preprocess import to_camera_space
+from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
+
+
+def _load(device: str):
+    if device == "cuda":
+        from ctgs.render._ext_cuda import load_cuda
+
+        ext = load_cuda()
+        return ext.forward_cuda, ext.backward_cuda
+    from ctgs.render._ext import load_cpu
+
+    ext = load_cpu()
+    return ext.forward_cpu, ext.backward_cpu
+
+
+class _Rasterize(torch.autograd.Function):
+    """Camera-space primitives -> (rgb, alpha, depth, count, contrib, err); backward by the compiled kernel."""
+
+    @staticmethod
+    def forward(ctx, mu_c, Rc, scales, opacities, colors, texel_size, textures, background,
+                tex_res, tex_offset, camera, error_image, device, knob, poison):
+        cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
+               int(camera.height), float(camera.near))
+        forward_fn, _ = _load(device)
+        (rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err) = forward_fn(
+            mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, *cam,
+            error_image, knob, poison)
+        ctx.save_for_backward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
+                              background, tile_offsets, tile_list, final_T, n_contrib)
+        ctx.cam, ctx.device, ctx.knob = cam, device, knob
+        ctx.mark_non_differentiable(count, contrib, err)
+        return rgb, alpha, depth, count, contrib, err
+
+    @staticmethod
+    def backward(ctx, v_rgb, v_alpha, v_depth, _v_count, _v_contrib, _v_err):
+        (mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+         tile_offsets, tile_list, final_T, n_contrib) = ctx.saved_tensors
+        H, W = final_T.shape
+        v_rgb = final_T.new_zeros(H, W, 3) if v_rgb is None else v_rgb.contiguous()
+        v_alpha = final_T.new_zeros(H, W) if v_alpha is None else v_alpha.contiguous()
+        v_depth = final_T.new_zeros(H, W) if v_depth is None else v_depth.contiguous()
+        _, backward_fn = _load(ctx.device)
+        grads = backward_fn(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
+                            background, *ctx.cam, tile_offsets, tile_list, final_T, n_contrib,
+                            v_rgb, v_alpha, v_depth, ctx.knob)
+        v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background = grads
+        return (v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background,
+                None, None, None, None, None, None, None)
+
+
+def rasterize(s: SurfelInputs, camera: Camera, sh_degree: int, background: torch.Tensor,
+              error_image: torch.Tensor | None, *, device: str, knob: int, poison: bool) -> RenderOutput:
+    """Validated inputs -> RenderOutput through the compiled backend of `device` ("cpu" or "cuda")."""
+    prims = to_camera_space(s.means, s.quats, s.sh, camera, sh_degree)
+    k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)
+    rgb, alpha, depth, count, contrib, err = _Rasterize.apply(
+        prims.mu_c.contiguous(), prims.Rc.contiguous(), s.scales.contiguous(), s.opacities.contiguous(),
+        prims.colors.contiguous(), k.contiguous(), s.textures.contiguous(), background.contiguous(),
+        s.tex_res.contiguous(), s.tex_offset.contiguous(), camera,
+        None if error_image is None else error_image.detach().contiguous(), device, knob, poison)
+    if error_image is None:
+        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=None)
+    if s.num_primitives == 0:  # the kernels return placeholder buffers for N = 0
+        count, contrib, err = count.new_zeros(0), contrib.new_zeros(0), err.new_zeros(0)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err))

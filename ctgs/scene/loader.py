@@ -1,0 +1,136 @@
+"""`load_scene`: a COLMAP scene folder -> train/test views with cameras, images and SfM points.
+
+Conventions (3DGS/2DGS, so numbers are comparable):
+- views are sorted by image name; view idx is a test view iff idx % holdout == 0 (holdout 0/None: none);
+- intrinsics are rescaled to the size of the image actually read, with separate x and y ratios
+  (Tanks&Temples ships JPEGs at about half the calibration size, not exactly half on both axes);
+- `Scene.extent` = 1.1 * max distance of the camera centres from their mean (3DGS `getNerfppNorm`);
+- RGBA images are composited over black (3DGS's default background), see ctgs.io.images.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+
+from ctgs.errors import UserError
+from ctgs.io.images import IMAGE_EXTENSIONS, image_info, read_rgb, stderr_silenced
+from ctgs.render.camera import Camera
+from ctgs.scene.colmap import ColmapModel, ModelImage, find_model_dir, read_colmap_model
+from ctgs.scene.types import Scene, View
+
+# Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
+# rounding in a small image) but a larger difference means the images do not belong to this model (wrong folder, rotated or cropped images).
+MAX_ASPECT_MISMATCH = 0.02
+
+
+def is_test_index(idx: int, holdout: int | None) -> bool:
+    """3DGS split rule on the name-sorted list: every `holdout`-th view, starting at 0, is a test view."""
+    return bool(holdout) and idx % int(holdout) == 0
+
+
+def split_views(views: list[View], holdout: int | None) -> tuple[list[View], list[View]]:
+    train = [v for i, v in enumerate(views) if not is_test_index(i, holdout)]
+    test = [v for i, v in enumerate(views) if is_test_index(i, holdout)]
+    return train, test
+
+
+def scene_extent(centers: np.ndarray) -> float:
+    """1.1 * max distance of camera centres [C, 3] from their mean (world units)."""
+    if len(centers) == 0:
+        return 1.0
+    dist = np.linalg.norm(centers - centers.mean(axis=0, keepdims=True), axis=1)
+    return float(1.1 * dist.max())
+
+
+def _find_image(images_dir: str, name: str) -> str | None:
+    path = os.path.join(images_dir, name)
+    if os.path.isfile(path):
+        return path
+    # Downsampled folders sometimes change the extension (e.g. model "a.JPG", images_4/"a.png").
+    stem = os.path.splitext(path)[0]
+    for ext in IMAGE_EXTENSIONS + tuple(e.upper() for e in IMAGE_EXTENSIONS):
+        if os.path.isfile(stem + ext):
+            return stem + ext
+    return None
+
+
+def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: int, height: int) -> Camera:
+    intr = model.cameras[image.camera_id]
+    sx, sy = width / intr.width, height / intr.height
+    expected_height = intr.height * sx  # if the image kept the camera's aspect ratio
+    if abs(height - expected_height) > 1.0 + MAX_ASPECT_MISMATCH * expected_height:  # 1 px: size rounding
+        raise UserError(
+            f"{path}: image is {width}x{height} but its camera {image.camera_id} is {intr.width}x{intr.height} "
+            f"(different aspect ratio); use the image folder that belongs to this COLMAP model"
+        )
+    return Camera(
+        fx=intr.fx * sx, fy=intr.fy * sy, cx=intr.cx * sx, cy=intr.cy * sy, width=width, height=height,
+        viewmat=torch.from_numpy(image.viewmat.astype(np.float32)),
+    )
+
+
+def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, load_images: bool = True) -> Scene:
+    """Read SCENE_DIR/sparse/0 (or sparse/) and SCENE_DIR/<images>; see the module docstring."""
+    scene_dir = os.path.abspath(scene_dir)
+    if not os.path.isdir(scene_dir):
+        raise UserError(f"{scene_dir}: scene folder not found; run `ctgs sfm IMAGES_DIR -o {scene_dir}` or "
+                        f"`ctgs demo-scene {scene_dir}`")
+    images_dir = os.path.join(scene_dir, images)
+    if not os.path.isdir(images_dir):
+        found = sorted(d for d in os.listdir(scene_dir) if d.startswith("images") and
+                       os.path.isdir(os.path.join(scene_dir, d)))
+        hint = f"available: {', '.join(found)}" if found else "run `ctgs sfm` to create it"
+        raise UserError(f"{images_dir}: image folder not found; {hint}")
+
+    model = read_colmap_model(find_model_dir(scene_dir))
+    if not model.images:
+        raise UserError(f"{model.path}: the COLMAP model has no registered images; run `ctgs sfm` again")
+    if len(model.points) == 0:
+        raise UserError(f"{model.path}: the COLMAP model has zero 3D points (training initialises from them); "
+                        f"run `ctgs sfm` again or use a model with triangulated points")
+
+    paths = []
+    for image in model.images:
+        path = _find_image(images_dir, image.name)
+        if path is None:
+            raise UserError(f"{os.path.join(images_dir, image.name)}: image named in the COLMAP model is missing "
+                            f"on disk; restore it or use the matching image folder (--images)")
+        paths.append(path)
+
+    def read(i: int) -> tuple[np.ndarray | None, int, int]:
+        if load_images:
+            pixels = read_rgb(paths[i])
+            return pixels, pixels.shape[1], pixels.shape[0]
+        info = image_info(paths[i])  # header only: the camera still needs the real size
+        return None, info.width, info.height
+
+    with stderr_silenced(), ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        loaded = list(pool.map(read, range(len(paths))))
+
+    views = []
+    for image, path, (pixels, width, height) in zip(model.images, paths, loaded):
+        camera = _rescaled_camera(model, image, path, width, height)
+        views.append(View(name=image.name, camera=camera, image_path=path, image=pixels))
+    train, test = split_views(views, holdout)
+
+    centers = np.stack([-im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images])  # [C, 3]
+    return Scene(
+        root=scene_dir,
+        train=train,
+        test=test,
+        points=model.points.astype(np.float32),
+        point_colors=(model.colors.astype(np.float32) / 255.0),
+        extent=scene_extent(centers),
+        images_dir=images,
+        meta={
+            "model_dir": model.path,
+            "camera_models": sorted({c.model for c in model.cameras.values()}),
+            "num_registered": len(model.images),
+            "num_unregistered": model.num_unregistered,
+            "holdout": holdout or 0,
+        },
+    )

@@ -1,0 +1,29 @@
+"""What training and evaluation read from a scene folder."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ctgs.render.camera import Camera
+
+
+@dataclass
+class View:
+    name: str  # image file name as stored in the COLMAP model (e.g. "000.png")
+    camera: Camera  # intrinsics rescaled to the image actually read; viewmat float32 CPU
+    image_path: str  # absolute path of the image file read
+    image: np.ndarray | None = None  # [H, W, 3] float32 in [0, 1], loaded lazily or eagerly
+
+
+@dataclass
+class Scene:
+    root: str
+    train: list[View]
+    test: list[View]
+    points: np.ndarray  # [P, 3] float32 SfM points, world units
+    point_colors: np.ndarray  # [P, 3] float32 in [0, 1]
+    extent: float  # scene extent: 1.1 * max distance of camera centres from their mean (3DGS)
+    images_dir: str = "images"
+    meta: dict = field(default_factory=dict)

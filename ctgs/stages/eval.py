@@ -1,0 +1,76 @@
+"""`ctgs eval RUN_DIR [--model MODEL_DIR]` and `ctgs eval --table RUN_DIR... -o OUT`."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import click
+
+from ctgs.errors import UserError
+
+
+def _metrics_path(path: str) -> str:
+    """RUN_DIR (-> RUN_DIR/eval/metrics.json), an eval folder, or a metrics.json itself."""
+    for cand in (path, os.path.join(path, "metrics.json"), os.path.join(path, "eval", "metrics.json")):
+        if os.path.isfile(cand):
+            return cand
+    raise UserError(f"{path}: no metrics.json (looked in it, and in eval/); run `ctgs eval {path}` first")
+
+
+def _table(paths: tuple[str, ...], out: str) -> None:
+    from ctgs.metrics.report import METRICS_SCHEMA, build_table, write_text_atomic
+
+    metrics = []
+    for p in paths:
+        mp = _metrics_path(p)
+        with open(mp) as f:
+            m = json.load(f)
+        if m.get("schema") != METRICS_SCHEMA:
+            raise UserError(f"{mp}: not a ctgs metrics.json; pass run folders evaluated by `ctgs eval`")
+        metrics.append(m)
+    md, csv_text = build_table(metrics)
+    os.makedirs(out, exist_ok=True)
+    write_text_atomic(os.path.join(out, "table.md"), md)
+    write_text_atomic(os.path.join(out, "table.csv"), csv_text)
+    click.echo(md)
+
+
+@click.command(name="eval")
+@click.argument("run_dirs", nargs=-1, required=True, type=click.Path())
+@click.option("--model", "model_dir", default=None, type=click.Path(file_okay=False),
+              help="Evaluate this exported/compressed model folder instead of RUN_DIR/model.pt.")
+@click.option("-o", "--out", "out_dir", default=None, type=click.Path(file_okay=False),
+              help="Output folder (default RUN_DIR/eval, or RUN_DIR/eval-<model folder name> with --model; "
+                   "with --table: where table.md and table.csv go).")
+@click.option("--backend", default=None, type=click.Choice(["auto", "cpu", "cuda", "reference"]),
+              help="Renderer backend (default: the run's config).")
+@click.option("--device", default=None, help="torch device (default cuda when available, else cpu).")
+@click.option("--lpips/--no-lpips", default=True, show_default=True, help="Compute LPIPS (VGG v0.1).")
+@click.option("--lpips-weights", default=None, type=click.Path(dir_okay=False), envvar="CTGS_VGG16_WEIGHTS",
+              help="VGG16 weights .pth (torchvision layout); see docs/metrics.md for the lookup order.")
+@click.option("--dataset", default=None, help="Dataset name for --table grouping (default: scene's parent folder).")
+@click.option("--table", is_flag=True, help="Aggregate the metrics.json of RUN_DIRS into the paper's table.")
+def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights, dataset, table) -> None:
+    """Render the test views of RUN_DIR and write metrics.json, per_image.csv, renders/ and strips/."""
+    if table:
+        if not out_dir:
+            raise UserError("--table needs -o OUT (folder for table.md and table.csv)")
+        _table(run_dirs, out_dir)
+        return
+    if len(run_dirs) != 1:
+        raise UserError(f"eval takes one RUN_DIR (got {len(run_dirs)}); use --table to aggregate several")
+    from ctgs.metrics.evaluate import EvalOptions, evaluate
+
+    run_dir = run_dirs[0]
+    if out_dir is None:
+        suffix = "" if model_dir is None else "-" + os.path.basename(os.path.normpath(model_dir))
+        out_dir = os.path.join(run_dir, "eval" + suffix)
+    m = evaluate(run_dir, EvalOptions(out_dir=out_dir, model_dir=model_dir, backend=backend, device=device,
+                                      lpips=lpips, lpips_weights=lpips_weights, dataset=dataset))
+    lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
+    click.echo(f"{out_dir}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['points']} points, "
+               f"{m['texels']} texels, {m['params']} params, {m['bytes_on_disk'] / 1e6:.3f} MB, "
+               f"{m['fps']:.1f} FPS ({m['backend']}, {m['device']})")
+    if m["lpips"] is None:
+        click.echo(f"LPIPS {m['lpips_status']}")

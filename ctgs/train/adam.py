@@ -1,0 +1,52 @@
+"""Adam over the surfel model's tensors, with state that can follow structural edits.
+
+A hand-written Adam (same update as torch.optim.Adam, eps 1e-15 by default) because primitives are
+added, removed and re-ordered, and textures change size: the moments live here as plain tensors laid
+out exactly like the parameters, so the editing code (ctgs/train/edit.py) moves them the same way.
+"""
+
+from __future__ import annotations
+
+import torch
+
+PRIM_PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
+TEX_PARAM = "textures_raw"
+ALL_PARAMS = PRIM_PARAMS + (TEX_PARAM,)
+BETA1, BETA2 = 0.9, 0.999
+
+
+class SurfelAdam:
+    def __init__(self, model, eps: float = 1e-15):
+        self.eps = eps
+        self.exp_avg = {n: torch.zeros_like(getattr(model, n)) for n in ALL_PARAMS}
+        self.exp_avg_sq = {n: torch.zeros_like(getattr(model, n)) for n in ALL_PARAMS}
+        self.steps = {n: 0 for n in ALL_PARAMS}
+
+    @torch.no_grad()
+    def step(self, model, lrs: dict) -> None:
+        """One Adam step; lrs maps a parameter name to a float or a broadcastable tensor (SH bands)."""
+        for name in ALL_PARAMS:
+            p = getattr(model, name)
+            lr = lrs.get(name, 0.0)
+            if p.grad is None or p.numel() == 0 or (isinstance(lr, float) and lr == 0.0):
+                continue
+            g = p.grad
+            m, v = self.exp_avg[name], self.exp_avg_sq[name]
+            self.steps[name] += 1
+            t = self.steps[name]
+            m.mul_(BETA1).add_(g, alpha=1 - BETA1)
+            v.mul_(BETA2).addcmul_(g, g, value=1 - BETA2)
+            bc1 = 1 - BETA1 ** t
+            bc2 = 1 - BETA2 ** t
+            denom = (v / bc2).sqrt_().add_(self.eps)
+            p.sub_(lr * (m / bc1) / denom)
+
+    def state_dict(self) -> dict:
+        return {"eps": self.eps, "exp_avg": dict(self.exp_avg), "exp_avg_sq": dict(self.exp_avg_sq),
+                "steps": dict(self.steps)}
+
+    def load_state_dict(self, state: dict, device="cpu") -> None:
+        self.eps = state["eps"]
+        self.exp_avg = {k: v.to(device) for k, v in state["exp_avg"].items()}
+        self.exp_avg_sq = {k: v.to(device) for k, v in state["exp_avg_sq"].items()}
+        self.steps = dict(state["steps"])

@@ -1,0 +1,208 @@
+"""Training configuration: one dataclass, TOML files override defaults, `--set key=value` overrides those.
+
+Iteration counts are given at the paper's 30k-iteration scale and multiplied by `schedule_scale`, so a
+short CPU run (configs/demo.toml: 3000 iterations, scale 0.1) keeps every routine at the same relative
+point of training.
+"""
+
+from __future__ import annotations
+
+import ast
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+
+from ctgs.errors import UserError
+
+METHODS = ("content_aware", "2dgs", "fixed_texture")
+
+
+def _f(default, help_text: str):
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata={"help": help_text})
+    return field(default=default, metadata={"help": help_text})
+
+
+@dataclass
+class TrainConfig:
+    # ---- run / data ----
+    scene_dir: str = _f("", "scene folder (COLMAP layout); set by the CLI")
+    images: str = _f("images", "image sub-folder to train on (e.g. images_4)")
+    holdout: int = _f(8, "every holdout-th image (sorted by name, idx % holdout == 0) is a test view; 0 = none")
+    backend: str = _f("auto", "renderer backend: auto | cpu | cuda | reference")
+    device: str = _f("auto", "torch device: auto (cuda if available) | cpu | cuda")
+    seed: int = _f(0, "seed of every random number generator")
+    threads: int = _f(0, "CPU threads for torch and the CPU backend (0 = torch's default; 1 on a shared machine)")
+    method: str = _f("content_aware", "content_aware (the paper) | 2dgs | fixed_texture (baselines)")
+    iterations: int = _f(30000, "training iterations")
+    schedule_scale: float = _f(1.0, "multiplies every iteration count below (paper scale = 1)")
+    # ---- initialisation ----
+    max_init_points: int = _f(0, "farthest-point subsample SfM points above this count (0 = keep all)")
+    init_opacity: float = _f(0.1, "initial opacity")
+    random_rotation: bool = _f(True, "random initial rotations (else identity)")
+    init_normals: bool = _f(False, "orient initial surfels in the PCA plane of their 16 nearest SfM points "
+                            "(overrides random_rotation; the paper starts from random rotations)")
+    max_sh_degree: int = _f(3, "highest SH degree")
+    sh_every: int = _f(1000, "iterations between SH degree increments (paper scale)")
+    background: list = _f([0.0, 0.0, 0.0], "background colour [3]")
+    random_background: bool = _f(False, "training renders over a random uniform colour each step (for scenes "
+                                 "that cover every pixel; E, evaluation and exports use background)")
+    # ---- optimiser ----
+    lr_position_init: float = _f(1.6e-4, "position lr at the start, times scene extent")
+    lr_position_final: float = _f(1.6e-6, "position lr at the end, times scene extent (exponential decay)")
+    lr_sh_dc: float = _f(2.5e-3, "lr of the SH DC band")
+    lr_sh_rest: float = _f(1.25e-4, "lr of the higher SH bands")
+    lr_opacity: float = _f(0.05, "lr of opacity logits")
+    lr_scale: float = _f(0.005, "lr of log scales")
+    lr_rotation: float = _f(0.001, "lr of quaternions")
+    lr_texture: float = _f(7e-4, "lr of raw texels (0 until texture_start)")
+    lr_texture_final: float = _f(0.0, "> 0: the texel lr decays exponentially from lr_texture at texture_start "
+                                 "to this at the last iteration (0 = constant lr_texture, the paper)")
+    adam_eps: float = _f(1e-15, "Adam epsilon")
+    # ---- loss ----
+    lambda_ssim: float = _f(0.2, "weight of 1 - SSIM (L1 gets 1 - this)")
+    lambda_opacity: float = _f(0.01, "opacity regulariser weight on mean(opacity)")
+    lambda_texture: float = _f(1e-8, "texture sparsity weight on sum |texel| of visible primitives")
+    texture_reg_pixels: float = _f(0.0, "> 0: lambda_texture was tuned on images of this many pixels; it is "
+                                   "multiplied by this / (H*W) of the training image (0 = use it as is)")
+    # ---- content-aware texturing (paper sections 3.2-3.4) ----
+    texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
+    start_texels: float = _f(8.0, "texels across the active extent when textures start")
+    routine_every: int = _f(250, "iterations between routines (E, split, up/downscale, prune, k_min)")
+    routine_until: int = _f(25000, "last full routine iteration (also capped at iterations - routine_margin)")
+    routine_margin: int = _f(3000, "no full routines during the last this many iterations (paper scale)")
+    late_downscale_every: int = _f(1000, "after routine_until: downscale + light prune only, this often")
+    realloc_every: int = _f(100, "iterations between jagged texture reallocations")
+    top_fraction: float = _f(0.1, "fraction of primitives with the largest E eligible for split/upscale")
+    tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
+    tau_tr_start: float = _f(64.0, "split threshold on active texture resolution at iteration 0")
+    tau_tr_end: float = _f(32.0, "split threshold reached at tau_tr_iters")
+    tau_tr_iters: int = _f(7000, "iterations of the linear tau_tr decay (paper scale)")
+    prune_opacity: float = _f(10.0 / 255.0, "prune below this opacity during routines")
+    prune_opacity_late: float = _f(1.0 / 255.0, "prune threshold after routine_until")
+    max_primitives: int = _f(0, "primitive budget: no splits beyond it (0 = unlimited)")
+    max_texture_res: int = _f(256, "hard cap on texels per axis")
+    min_t2p_exp: int = _f(1, "smallest texel-size exponent: texel >= 2**this pixels of the closest camera")
+    # ---- baselines (2dgs, fixed_texture): 3DGS-style densification ----
+    fixed_texture_res: int = _f(16, "texels per axis of the fixed_texture baseline")
+    densify_from: int = _f(500, "first densification iteration (paper scale)")
+    densify_until: int = _f(15000, "last densification iteration (paper scale)")
+    densify_every: int = _f(100, "iterations between densifications (paper scale)")
+    densify_grad_threshold: float = _f(0.0002, "view-space positional gradient threshold (3DGS NDC units)")
+    percent_dense: float = _f(0.01, "clone if max scale <= this * extent, else split")
+    opacity_reset_every: int = _f(3000, "iterations between opacity resets (paper scale)")
+    prune_opacity_2dgs: float = _f(0.005, "baseline prune threshold")
+    # ---- logging / checkpoints ----
+    log_every: int = _f(10, "iterations between JSON-lines step records")
+    test_every: int = _f(1000, "iterations between test-view PSNR evaluations (0 = only at the end)")
+    checkpoint_every: int = _f(1000, "iterations between atomic checkpoints (0 = only at the end)")
+    debug_nan_at: int = _f(0, "testing hook: poison the loss with NaN at this iteration (0 = off)")
+
+    def scaled(self, iters: int) -> int:
+        """An iteration count at the paper scale -> this run's scale (>= 1)."""
+        return max(1, int(round(iters * self.schedule_scale)))
+
+    def validate(self) -> None:
+        if self.method not in METHODS:
+            raise UserError(f"config method={self.method!r}: use one of {', '.join(METHODS)}")
+        if self.backend not in ("auto", "cpu", "cuda", "reference"):
+            raise UserError(f"config backend={self.backend!r}: use auto, cpu, cuda or reference")
+        if self.iterations < 1:
+            raise UserError("config iterations must be >= 1")
+        if not 0 <= self.max_sh_degree <= 3:
+            raise UserError("config max_sh_degree must be in 0..3")
+        if len(self.background) != 3:
+            raise UserError("config background must be a list of 3 numbers")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def field_names() -> dict[str, object]:
+    return {f.name: f for f in fields(TrainConfig)}
+
+
+def apply_overrides(cfg: TrainConfig, values: dict, source: str) -> TrainConfig:
+    """Set `values` on `cfg`; an unknown key or a value of the wrong type is a UserError naming it."""
+    known = field_names()
+    for key, value in values.items():
+        if key not in known:
+            raise UserError(f"{source}: unknown config key {key!r} (known keys: see configs/default.toml)")
+        current = getattr(cfg, key)
+        setattr(cfg, key, _coerce(key, value, current, source))
+    return cfg
+
+
+def _coerce(key: str, value, current, source: str):
+    if isinstance(current, bool):
+        if isinstance(value, bool):
+            return value
+    elif isinstance(current, int):
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif isinstance(current, float):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif isinstance(current, str):
+        if isinstance(value, str):
+            return value
+    elif isinstance(current, list):
+        if isinstance(value, list):
+            return [float(v) for v in value]
+    raise UserError(f"{source}: config key {key!r} expects {type(current).__name__}, got {value!r}")
+
+
+def parse_set(items: list[str]) -> dict:
+    """`["lr_scale=0.01", "method=2dgs"]` -> dict; values are parsed as Python/TOML literals, else strings."""
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise UserError(f"--set {item!r}: expected key=value")
+        key, raw = item.split("=", 1)
+        raw = raw.strip()
+        low = raw.lower()
+        if low in ("true", "false"):
+            value = low == "true"
+        else:
+            try:
+                value = ast.literal_eval(raw)
+            except (ValueError, SyntaxError):
+                value = raw
+        out[key.strip()] = value
+    return out
+
+
+def load_toml(path: str) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise UserError(f"{path}: config file not found; pass an existing file (see configs/)") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: invalid TOML ({exc}); fix the file") from None
+    # `base = "default.toml"` lets an experiment name only what it changes.
+    return data
+
+
+def load_config(path: str | None = None, overrides: dict | None = None) -> TrainConfig:
+    """Defaults <- TOML file (with optional `base`, relative to the file) <- overrides."""
+    import os
+
+    cfg = TrainConfig()
+    if path:
+        chain = []
+        p = path
+        while p:
+            data = load_toml(p)
+            chain.append((p, data))
+            base = data.pop("base", None)
+            p = os.path.join(os.path.dirname(p), base) if base else None
+            if len(chain) > 8:
+                raise UserError(f"{path}: config `base` chain too deep (a cycle?)")
+        for src, data in reversed(chain):
+            apply_overrides(cfg, data, src)
+    if overrides:
+        apply_overrides(cfg, overrides, "--set")
+    cfg.validate()
+    return cfg

@@ -1,0 +1,56 @@
+"""Per-primitive error E_i over all training views (paper 3.3, METHOD_NOTES formula)."""
+
+from __future__ import annotations
+
+import torch
+
+from ctgs.metrics.ssim import ssim_map
+
+
+def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
+    """e [H, W] = (1-l) |gt - render|_meanRGB + l (1 - SSIM map)_meanRGB."""
+    l1 = (gt - render).abs().mean(-1)
+    ds = (1 - ssim_map(render, gt)).mean(-1)
+    return (1 - lambda_ssim) * l1 + lambda_ssim * ds
+
+
+def accumulate_error(stats_per_view: list[tuple[torch.Tensor, torch.Tensor, int]]) -> torch.Tensor:
+    """E [N] = sum_v (err_v/HW)(contrib_v/HW) / sum_v (contrib_v/HW); 0 where a primitive is never blended.
+
+    stats_per_view: (err_v [N], contrib_v [N], H*W) per view.
+    """
+    num = None
+    den = None
+    for err, contrib, hw in stats_per_view:
+        c = contrib.double() / hw
+        term = (err.double() / hw) * c
+        num = term if num is None else num + term
+        den = c if den is None else den + c
+    e = torch.where(den > 0, num / den.clamp_min(1e-30), torch.zeros_like(num))
+    return e.float()
+
+
+@torch.no_grad()
+def compute_E(model, views, render_fn, lambda_ssim: float = 0.2) -> torch.Tensor:
+    """E over ALL `views` (objects with .camera and .image_t [H,W,3] tensors); render_fn(inputs, cam, err)."""
+    inputs = model.render_inputs()
+    inputs = type(inputs)(**{k: (v.detach() if torch.is_tensor(v) else v) for k, v in vars(inputs).items()})
+    acc = []
+    for view in views:
+        out = render_fn(inputs, view.camera, None)
+        e = error_image(out.rgb.clamp(0, 1), view.image_t, lambda_ssim)
+        stats = render_fn(inputs, view.camera, e).stats
+        acc.append((stats.err, stats.contrib, e.numel()))
+    return accumulate_error(acc)
+
+
+def top_fraction_mask(values: torch.Tensor, fraction: float) -> torch.Tensor:
+    """[N] bool: values strictly above the (1 - fraction) quantile, and > 0 (E = 0 means never seen)."""
+    n = values.numel()
+    if n == 0 or fraction <= 0:
+        return torch.zeros(n, dtype=torch.bool, device=values.device)
+    k = int(round(n * (1 - fraction)))  # rank of the threshold (1-based: k-th smallest)
+    if k <= 0:
+        return values > 0
+    thr = torch.kthvalue(values.float().cpu(), k).values.to(values.device)
+    return (values > thr) & (values > 0)

@@ -1,0 +1,41 @@
+"""k_min: world size of one pixel of the closest training camera at each primitive centre (paper 3.2)."""
+
+from __future__ import annotations
+
+import torch
+
+from ctgs.render.camera import Camera
+
+
+@torch.no_grad()
+def compute_k_min(means: torch.Tensor, cameras: list[Camera], chunk: int = 16) -> torch.Tensor:
+    """k_min [N] world units per pixel: min over cameras whose frustum holds the centre of depth/focal.
+
+    "depth/focal" is the footprint of one pixel on a fronto-parallel plane at the centre's depth (focal
+    = geometric mean of fx, fy). Primitives no camera sees get the largest k_min of the seen ones.
+    """
+    n = means.shape[0]
+    dev, dt = means.device, means.dtype
+    best = torch.full((n,), float("inf"), device=dev, dtype=dt)
+    for s in range(0, len(cameras), chunk):
+        cams = cameras[s:s + chunk]
+        vm = torch.stack([c.viewmat.to(dev, dt) for c in cams])  # [C, 4, 4]
+        pc = torch.einsum("cij,nj->cni", vm[:, :3, :3], means) + vm[:, None, :3, 3]  # [C, N, 3]
+        fx = torch.tensor([c.fx for c in cams], device=dev, dtype=dt)[:, None]
+        fy = torch.tensor([c.fy for c in cams], device=dev, dtype=dt)[:, None]
+        cx = torch.tensor([c.cx for c in cams], device=dev, dtype=dt)[:, None]
+        cy = torch.tensor([c.cy for c in cams], device=dev, dtype=dt)[:, None]
+        w = torch.tensor([c.width for c in cams], device=dev, dtype=dt)[:, None]
+        h = torch.tensor([c.height for c in cams], device=dev, dtype=dt)[:, None]
+        near = torch.tensor([c.near for c in cams], device=dev, dtype=dt)[:, None]
+        z = pc[..., 2]
+        zs = z.clamp_min(1e-12)
+        u = fx * pc[..., 0] / zs + cx
+        v = fy * pc[..., 1] / zs + cy
+        inside = (z > near) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
+        k = z / torch.sqrt(fx * fy)
+        k = torch.where(inside, k, torch.full_like(k, float("inf")))
+        best = torch.minimum(best, k.min(0).values)
+    seen = torch.isfinite(best)
+    fallback = best[seen].max() if bool(seen.any()) else torch.tensor(1.0, device=dev, dtype=dt)
+    return torch.where(seen, best, fallback)

@@ -1,0 +1,43 @@
+"""Rich progress display of a Trainer's events (it/s, ETA, loss, PSNR, primitives, texels)."""
+
+from __future__ import annotations
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from ctgs.train.events import Checkpoint, Done, Eval, Routine, Step
+
+
+def run_with_progress(trainer, quiet: bool = False) -> dict:
+    """Drive trainer.run(); return the summary dict of the Done event."""
+    summary: dict = {}
+    if quiet:
+        for ev in trainer.run():
+            if isinstance(ev, Done):
+                summary = ev.summary
+        return summary
+    console = Console(stderr=True)
+    columns = [TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("{task.fields[speed]:>6.1f} it/s"), TimeElapsedColumn(), TextColumn("ETA"),
+               TimeRemainingColumn(), TextColumn("{task.fields[info]}")]
+    test = "-"
+    with Progress(*columns, console=console, refresh_per_second=4) as progress:
+        task = progress.add_task("train", total=trainer.cfg.iterations, completed=trainer.it, speed=0.0, info="")
+        start_it, start_s = trainer.it, trainer.train_seconds
+        for ev in trainer.run():
+            if isinstance(ev, Step):
+                dt = ev.seconds - start_s
+                speed = (ev.it - start_it) / dt if dt > 0 else 0.0
+                info = (f"loss {ev.loss:.4f}  PSNR {ev.psnr:5.2f}  test {test}  prims {ev.num_primitives}  "
+                        f"texels {ev.num_texels}")
+                progress.update(task, completed=ev.it, speed=speed, info=info)
+            elif isinstance(ev, Eval):
+                test = f"{ev.test_psnr:.2f}"
+            elif isinstance(ev, Routine) and ev.kind in ("texture_start", "full"):
+                progress.console.log(f"it {ev.it} {ev.kind}: " + ", ".join(
+                    f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in ev.stats.items()))
+            elif isinstance(ev, Checkpoint):
+                pass
+            elif isinstance(ev, Done):
+                summary = ev.summary
+    return summary

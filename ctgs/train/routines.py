@@ -1,0 +1,39 @@
+"""The texel-size adaptation and primitive management routine (paper algorithm 1) in one place."""
+
+from __future__ import annotations
+
+import torch
+
+from ctgs.train import schedule, texels
+from ctgs.train.error import compute_E, top_fraction_mask
+from ctgs.train.kmin import compute_k_min
+from ctgs.train.split import prune, split
+
+
+@torch.no_grad()
+def full_routine(model, opt, cfg, it: int, views, render_fn, cameras) -> dict:
+    """E over all training views; split (tau_tr), upscale top E (t2p_exp > min), downscale the others
+    (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log."""
+    E = compute_E(model, views, render_fn, cfg.lambda_ssim)
+    top = top_fraction_mask(E, cfg.top_fraction)
+    n0 = model.num_primitives
+    n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E)
+    up = texels.upscale(model, opt, top, cfg.min_t2p_exp)
+    down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
+    n_pruned = prune(model, opt, cfg.prune_opacity)
+    model.k_min = compute_k_min(model.means.detach(), cameras)
+    texels.realloc(model, opt, cfg.max_texture_res)
+    return {"E_mean": float(E.mean()) if E.numel() else 0.0, "E_p90": float(E.quantile(0.9)) if E.numel() else 0.0,
+            "tau_tr": schedule.tau_tr(cfg, it), "n_before": n0, "split": n_split, "upscaled": int(up.sum()),
+            "downscaled": int(down.sum()), "pruned": n_pruned}
+
+
+@torch.no_grad()
+def late_routine(model, opt, cfg, cameras) -> dict:
+    """After the main phase: downscale everything that passes, light pruning, k_min, reallocate."""
+    down, _ = texels.downscale(model, opt, torch.ones(model.num_primitives, dtype=torch.bool,
+                                                         device=model.means.device), cfg.tau_ds)
+    n_pruned = prune(model, opt, cfg.prune_opacity_late)
+    model.k_min = compute_k_min(model.means.detach(), cameras)
+    texels.realloc(model, opt, cfg.max_texture_res)
+    return {"downscaled": int(down.sum()), "pruned": n_pruned}

@@ -1,0 +1,75 @@
+"""Resolution-aware splitting (paper 3.3) and pruning."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ctgs.model.geometry import quat_to_rotmat
+from ctgs.train import edit
+from ctgs.train.texels import active_half_extent, active_resolution, texel_size
+
+CHILD_OPACITY_FACTOR = math.exp(-0.5)  # each child's opacity: parent's x exp(-1/2) (G at 1 sigma)
+
+
+@torch.no_grad()
+def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int = 0,
+          priority: torch.Tensor | None = None) -> tuple[int, torch.Tensor]:
+    """Split candidates whose active resolution on an axis exceeds tau (x axis first, then y).
+
+    Children sit at +-(1/6 of the active extent) along the axis, quantised to whole texels, with half the
+    scale on that axis and opacity x exp(-1/2); each child's texture is the parent's, shifted so texels
+    stay at the same world positions. With max_primitives > 0, splits stop at the budget (largest
+    `priority` first). Returns (number of splits, the [N'] bool candidate mask carried to children).
+    """
+    total = 0
+    for axis in (0, 1):
+        n = model.num_primitives
+        sel = candidates & (active_resolution(model)[:, axis] > tau)
+        if max_primitives > 0:
+            budget = max(0, max_primitives - n)
+            if int(sel.sum()) > budget:
+                order = torch.argsort(priority if priority is not None else torch.zeros(n, device=sel.device), descending=True)
+                ranked = order[sel[order]][:budget]
+                sel = torch.zeros_like(sel)
+                sel[ranked] = True
+        m = int(sel.sum())
+        if m == 0:
+            continue
+        total += m
+        k = texel_size(model)  # [N]
+        half = active_half_extent(model)[:, axis]  # [N]
+        s = torch.round((2 * half / 6) / k).long()  # texels
+        keep_idx = torch.nonzero(~sel).flatten()
+        par = torch.nonzero(sel).flatten()
+        idx = torch.cat([keep_idx, par, par])
+        sign = torch.cat([torch.zeros(len(keep_idx)), torch.ones(m), -torch.ones(m)]).to(model.means.device)
+        shift = torch.zeros(len(idx), 2, dtype=torch.long, device=model.means.device)
+        shift[:, axis] = (sign * s[idx]).long()
+        # A child at +d along the axis sees its texel iu at the parent's iu + s.
+        rot = quat_to_rotmat(model.quats.detach())[:, :, axis]  # [N, 3] tangent axis in world
+        d_world = (s[idx] * k[idx] * sign)[:, None] * rot[idx]
+        opac = model.opacities.detach()[idx]
+        child = sign != 0
+        edit.select(model, opt, idx, fresh=None, tex_shift=shift)
+        model.means.data[child] += d_world[child]
+        model.log_scales.data[child, axis] -= math.log(2.0)
+        o = (opac[child] * CHILD_OPACITY_FACTOR).clamp(1e-6, 1 - 1e-6)
+        model.opacity_logits.data[child] = torch.log(o / (1 - o))
+        candidates = candidates[idx]
+        if priority is not None:
+            priority = priority[idx]
+    return total, candidates
+
+
+@torch.no_grad()
+def prune(model, opt, min_opacity: float, extra: torch.Tensor | None = None) -> int:
+    """Remove primitives with opacity < min_opacity (or `extra` [N] bool); returns how many."""
+    drop = model.opacities.detach() < min_opacity
+    if extra is not None:
+        drop = drop | extra
+    if not bool(drop.any()):
+        return 0
+    edit.select(model, opt, torch.nonzero(~drop).flatten())
+    return int(drop.sum())

@@ -1,0 +1,151 @@
+"""Texel-size adaptation and jagged (re)allocation (paper sections 3.2-3.3).
+
+Texel size = k_min * 2**t2p_exp (world units). Resolutions are powers of two, capped per axis.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from ctgs.train import edit
+
+ALPHA_MIN = 1.0 / 255.0  # renderer's MIN_ALPHA: beyond this falloff a surfel is invisible
+CUTOFF_SIGMA = 3.0  # renderer's CUTOFF_RHO = 9 -> 3 sigma
+LOGIT_EPS = 1e-4  # activated texels are stored as logits; keep them finite at +-1
+
+
+def active_half_extent(model) -> torch.Tensor:
+    """[N, 2] half extent (world units) where the surfel can reach alpha >= 1/255: the official code's
+    sqrt(2 ln(255 o)) sigma, capped at 3 sigma (0 if the opacity can never reach 1/255)."""
+    o = model.opacities.detach()
+    r = torch.sqrt(2 * torch.log((o / ALPHA_MIN).clamp_min(1.0))).clamp(max=CUTOFF_SIGMA)  # [N] sigmas
+    return r[:, None] * model.scales.detach()
+
+
+def texel_size(model) -> torch.Tensor:
+    """[N] world units per texel (content-aware mode: isotropic)."""
+    return model.k_min * torch.pow(2.0, model.t2p_exp.to(model.k_min.dtype))
+
+
+def active_resolution(model) -> torch.Tensor:
+    """[N, 2] texels across the active extent on each axis (not rounded)."""
+    return 2 * active_half_extent(model) / texel_size(model)[:, None]
+
+
+def needed_res(model, cap: int) -> torch.Tensor:
+    """[N, 2] int32 allocation: active extent + 1 texel of bilinear padding, next power of two, in [2, cap]."""
+    n = torch.ceil(active_resolution(model) + 1).clamp(min=2, max=cap)
+    p = torch.pow(2.0, torch.ceil(torch.log2(n)))
+    return p.clamp(max=cap).to(torch.int32)
+
+
+@torch.no_grad()
+def start_textures(model, opt, start_texels: float, min_exp: int, cap: int) -> None:
+    """Texture start: t2p_exp so the smaller active extent spans ~start_texels texels (paper: "smallest axis is
+    8 texels wide", nearest power of two; exponent >= min_exp), then
+    allocate zero-offset textures (activated 0: the image does not change)."""
+    extent = 2 * active_half_extent(model).min(1).values.clamp_min(1e-12)
+    e = torch.round(torch.log2(extent / (start_texels * model.k_min)))
+    model.t2p_exp = e.clamp(min=min_exp, max=60).to(torch.int32)
+    realloc(model, opt, cap)
+
+
+@torch.no_grad()
+def realloc(model, opt, cap: int) -> int:
+    """Resize every texture to its needed resolution, content centred; returns the texel count."""
+    if model.texture_mode != "content_aware":
+        return model.num_texels
+    edit.relayout(model, opt, needed_res(model, cap))
+    return model.num_texels
+
+
+def _groups(res: torch.Tensor, mask: torch.Tensor):
+    """Yield (ru, rv, prims) for the masked primitives grouped by resolution."""
+    idx = torch.nonzero(mask).flatten()
+    if idx.numel() == 0:
+        return
+    keys = res[idx, 0].long() * 100000 + res[idx, 1].long()
+    for key in torch.unique(keys).tolist():
+        prims = idx[keys == key]
+        yield int(key // 100000), int(key % 100000), prims
+
+
+@torch.no_grad()
+def upscale(model, opt, mask: torch.Tensor, min_exp: int) -> torch.Tensor:
+    """Halve the texel size (t2p_exp - 1) of masked primitives with t2p_exp > min_exp; each texel becomes
+    2x2 (nearest neighbour), Adam moments too. Returns the [N] bool mask actually upscaled."""
+    sel = mask & (model.t2p_exp > min_exp) & (model.tex_res.min(1).values > 0)
+    if not bool(sel.any()):
+        return sel
+    new_res = model.tex_res.clone()
+    new_res[sel] = model.tex_res[sel] * 2
+    bufs = [model.textures_raw.detach(), opt.exp_avg["textures_raw"], opt.exp_avg_sq["textures_raw"]]
+    from ctgs.model import jagged
+
+    blocks = []
+    for ru, rv, prims in _groups(model.tex_res, sel):
+        vals = [jagged.blocks(b, model.tex_offset, prims, ru, rv).repeat_interleave(2, 1).repeat_interleave(2, 2)
+                for b in bufs]
+        blocks.append((prims, vals))
+    edit.replace_blocks(model, opt, new_res, blocks)
+    model.t2p_exp[sel] -= 1
+    return sel
+
+
+def texel_weights(model, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
+    """[G, rv, ru] Gaussian falloff of each texel centre (zero past 3 sigma) for primitives of one res."""
+    k = texel_size(model)[prims]  # [G]
+    s = model.scales.detach()[prims]  # [G, 2]
+    xu = (torch.arange(ru, device=k.device, dtype=k.dtype) - (ru - 1) / 2)[None, None, :] * k[:, None, None]
+    xv = (torch.arange(rv, device=k.device, dtype=k.dtype) - (rv - 1) / 2)[None, :, None] * k[:, None, None]
+    rho = (xu / s[:, 0, None, None]) ** 2 + (xv / s[:, 1, None, None]) ** 2
+    return torch.exp(-0.5 * rho) * (rho <= CUTOFF_SIGMA ** 2)
+
+
+@torch.no_grad()
+def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Double the texel size of candidates whose texture survives a x2 bicubic antialiased down/up round trip.
+
+    E_d = Gaussian-weighted mean over texels of |mean_RGB(recon - orig)| (activated values). Accepted
+    (E_d < tau_ds, resolution > 2 on both axes) keep the downsampled texture, t2p_exp + 1; their Adam
+    moments are 2x2 averaged. Returns (accepted [N] bool, E_d [N] with NaN where not evaluated).
+    """
+    from ctgs.model import jagged
+
+    n = model.num_primitives
+    e_d = torch.full((n,), float("nan"), device=model.means.device)
+    sel = candidates & (model.tex_res.min(1).values > 2)
+    accepted = torch.zeros(n, dtype=torch.bool, device=model.means.device)
+    if not bool(sel.any()):
+        return accepted, e_d
+    new_res = model.tex_res.clone()
+    blocks = []
+    for ru, rv, prims in _groups(model.tex_res, sel):
+        raw = jagged.blocks(model.textures_raw.detach(), model.tex_offset, prims, ru, rv)  # [G, rv, ru, 3]
+        act = (2 * torch.sigmoid(raw) - 1).permute(0, 3, 1, 2)  # [G, 3, rv, ru]
+        down = F.interpolate(act, size=(rv // 2, ru // 2), mode="bicubic", antialias=True, align_corners=False)
+        up = F.interpolate(down, size=(rv, ru), mode="bicubic", align_corners=False)
+        diff = (up - act).mean(1).abs()  # [G, rv, ru]
+        w = texel_weights(model, prims, ru, rv)
+        ed = (diff * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1e-12)
+        e_d[prims] = ed
+        ok = ed < tau_ds
+        if not bool(ok.any()):
+            continue
+        p = prims[ok]
+        d = down[ok].clamp(-1 + LOGIT_EPS, 1 - LOGIT_EPS)
+        new_raw = torch.logit((d + 1) / 2).permute(0, 2, 3, 1)  # [G', rv/2, ru/2, 3]
+        moms = []
+        for name in ("exp_avg", "exp_avg_sq"):
+            mb = jagged.blocks(getattr(opt, name)["textures_raw"], model.tex_offset, p, ru, rv).permute(0, 3, 1, 2)
+            moms.append(F.avg_pool2d(mb, 2).permute(0, 2, 3, 1))
+        new_res[p] = torch.tensor([ru // 2, rv // 2], dtype=torch.int32, device=new_res.device)
+        blocks.append((p, [new_raw, moms[0], moms[1]]))
+        accepted[p] = True
+    if blocks:
+        edit.replace_blocks(model, opt, new_res, blocks)
+        model.t2p_exp[accepted] += 1
+    return accepted, e_d
