@@ -97,7 +97,7 @@ $(DEMO_DIR)/scene/sparse: | $(STAMP)
 	$(CTGS) demo-scene $(DEMO_DIR)/scene $(DEMO_SCENE_OPTS)
 
 $(DEMO_DIR)/run/model.pt: | $(DEMO_DIR)/scene/sparse
-	$(CTGS) train $(DEMO_DIR)/scene -o $(DEMO_DIR)/run --config configs/demo.toml --backend $(BACKEND) \
+	$(CTGS) train $(DEMO_DIR)/scene -o $(DEMO_DIR)/run --preset fast --set threads=1 --backend $(BACKEND) \
 		$(if $(ITERATIONS),--iterations $(ITERATIONS)) $$(test -d $(DEMO_DIR)/run/checkpoints && echo --resume)
 
 $(DEMO_DIR)/run/eval/metrics.json: $(DEMO_DIR)/run/model/manifest.json | $(LPIPS_WEIGHTS)

@@ -39,11 +39,7 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg) ->
         vis = visible_mask(model.means, camera)
         sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
         texel_vis = torch.repeat_interleave(vis, sizes)  # [T]
-        # The data term is a mean over pixels, so its gradient per texel shrinks as 1/(H*W) while the
-        # sparsity term's does not: texture_reg_pixels keeps the paper's balance on smaller images.
-        lam = cfg.lambda_texture
-        if cfg.texture_reg_pixels > 0:
-            lam = lam * cfg.texture_reg_pixels / (gt.shape[0] * gt.shape[1])
-        total = total + lam * (model.textures.abs().sum(1) * texel_vis).sum()
+        # cfg.lambda_texture is already resolved for the image size (ctgs/train/rules.py: x 1e6 / (H*W)).
+        total = total + cfg.lambda_texture * (model.textures.abs().sum(1) * texel_vis).sum()
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)
     return LossTerms(total=total, l1=float(l1.detach()), ssim=float(s.detach()), psnr=float(-10 * torch.log10(mse)))

@@ -36,7 +36,8 @@ def write_config(run_dir: str, cfg_dict: dict) -> None:
 def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     cfg, model = trainer.cfg, trainer.model
     atomic_torch_save({"model": model.state_dict(), "scene_dir": cfg.scene_dir, "images": cfg.images,
-                       "holdout": cfg.holdout, "iteration": trainer.it, "config": cfg.to_dict()},
+                       "holdout": cfg.holdout, "iteration": trainer.it, "config": trainer.user_cfg.to_dict(),
+                       "resolved_config": cfg.to_dict()},
                       os.path.join(trainer.run_dir, "model.pt"))
     backend = cfg.backend
     if backend == "auto":
@@ -46,7 +47,12 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     summary = {"iterations": trainer.it, "train_seconds": round(trainer.train_seconds, 2), "backend": backend,
                "device": str(trainer.device), "machine": machine_name(), "method": cfg.method,
                "num_primitives": model.num_primitives, "num_texels": model.num_texels,
-               "num_params": model.num_params(), "final_test_psnr": test_psnr, "final_test_ssim": test_ssim}
+               "num_params": model.num_params(), "final_test_psnr": test_psnr, "final_test_ssim": test_ssim,
+               "preset": trainer.user_cfg.preset, "wall_seconds": round(trainer.wall_seconds(), 2),
+               "image_pixels": trainer.pixels, "observed_values": trainer.observed_values(),
+               "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1)}
+    if trainer.planner is not None:
+        summary.update(trainer.planner.summary())
     _atomic_write_text(os.path.join(trainer.run_dir, "train_summary.json"), json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -30,16 +30,16 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("e2e")
     scene = make_demo_scene(str(root / "scene"), num_views=24, width=96, height=72, points=1500)
     out = {}
-    s_default = train_main(scene, str(root / "default"), config=os.path.join(CFG, "demo.toml"), sets=SETS, quiet=True)
+    s_default = train_main(scene, str(root / "default"), preset="fast", sets=SETS, quiet=True)
     out["default"] = s_default
     # A second seed of the default, for the allocation claim (a ratio of two texel counts; seeds move it ~1x).
-    out["default_seed1"] = train_main(scene, str(root / "default_seed1"), config=os.path.join(CFG, "demo.toml"),
+    out["default_seed1"] = train_main(scene, str(root / "default_seed1"), preset="fast",
                                       sets=SETS + ("seed=1",), quiet=True)
     # 2DGS with a densification threshold low enough that it ends with MORE parameters than the default
     # (with its stock 2e-4 it stops at ~0.7M, with 5e-5 and a cap at the default's budget at ~1.06M).
-    out["2dgs"] = train_main(scene, str(root / "2dgs"), config=os.path.join(CFG, "demo_2dgs.toml"),
+    out["2dgs"] = train_main(scene, str(root / "2dgs"), preset="fast", config="2dgs",
                              sets=SETS + (f"densify_grad_threshold={TWO_DGS_THRESHOLD}",), quiet=True)
-    out["fixed_texture"] = train_main(scene, str(root / "fixed"), config=os.path.join(CFG, "demo_fixed_texture.toml"),
+    out["fixed_texture"] = train_main(scene, str(root / "fixed"), preset="fast", config="fixed_texture",
                                       sets=SETS, quiet=True)
     return scene, root, out
 

@@ -20,7 +20,7 @@ from ctgs.stages.train import resolve_config, _load_scene
 from ctgs.errors import UserError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-DEMO = os.path.join(ROOT, "configs", "demo.toml")
+
 # 60 iterations: texture start at 20, a full routine at 40, checkpoints every 30 (paper-scale x 0.04).
 SETS = ("iterations=60", "schedule_scale=0.04", "checkpoint_every=750", "backend='cpu'", "max_init_points=200", "threads=1")
 # Same seed, same ops, one thread: resumed runs match to float rounding; allow a little for atomics.
@@ -36,7 +36,7 @@ def scene(tmp_path_factory):
 @pytest.fixture(scope="module")
 def reference_run(scene, tmp_path_factory):
     run = str(tmp_path_factory.mktemp("runs") / "full")
-    train_main(scene, run, config=DEMO, sets=SETS, quiet=True)
+    train_main(scene, run, preset="fast", sets=SETS, quiet=True)
     return run
 
 
@@ -48,7 +48,7 @@ def _same_models(a, b):
 
 def test_resume_after_interruption_matches(scene, reference_run, tmp_path):
     run = str(tmp_path / "interrupted")
-    cfg = resolve_config(scene, run, DEMO, None, SETS, None, False, None, None)
+    cfg = resolve_config(scene, run, None, None, SETS, None, False, None, None, preset="fast")
     trainer = Trainer(cfg, _load_scene(cfg), run)
     from ctgs.train.run import write_config
 
@@ -74,7 +74,7 @@ def test_resume_after_interruption_matches(scene, reference_run, tmp_path):
 @pytest.mark.slow
 def test_resume_after_kill_9(scene, reference_run, tmp_path):
     run = str(tmp_path / "killed")
-    args = [sys.executable, "-m", "ctgs.cli", "train", scene, "-o", run, "--config", DEMO, "-q"]
+    args = [sys.executable, "-m", "ctgs.cli", "train", scene, "-o", run, "--preset", "fast", "-q"]
     for s in SETS:
         args += ["--set", s]
     proc = subprocess.Popen(args, cwd=ROOT)
@@ -93,7 +93,7 @@ def test_resume_after_kill_9(scene, reference_run, tmp_path):
 def test_nan_guard_stops_and_keeps_last_checkpoint(scene, tmp_path):
     run = str(tmp_path / "nan")
     with pytest.raises(TrainingDiverged, match=r"NaN/Inf in loss at iteration 35.*iteration 30"):
-        train_main(scene, run, config=DEMO, sets=SETS + ("debug_nan_at=35",), quiet=True)
+        train_main(scene, run, preset="fast", sets=SETS + ("debug_nan_at=35",), quiet=True)
     assert not os.path.exists(os.path.join(run, "model.pt"))
     with pytest.raises(UserError, match="no model.pt"):
         load_run(run)
@@ -102,11 +102,11 @@ def test_nan_guard_stops_and_keeps_last_checkpoint(scene, tmp_path):
     assert all(torch.isfinite(v).all() for v in state["model"].values() if torch.is_tensor(v) and v.is_floating_point())
     # The CLI prints one line and exits non-zero.
     r = subprocess.run([sys.executable, "-m", "ctgs.cli", "train", scene, "-o", str(tmp_path / "nan2"),
-                        "--config", DEMO, "-q"] + sum([["--set", s] for s in SETS + ("debug_nan_at=5",)], []),
+                        "--preset", "fast", "-q"] + sum([["--set", s] for s in SETS + ("debug_nan_at=5",)], []),
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 4 and "NaN/Inf in loss at iteration 5" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_parameter_inf_is_caught(scene, tmp_path):
     with pytest.raises(TrainingDiverged, match="parameter opacity_logits"):
-        train_main(scene, str(tmp_path / "inf"), config=DEMO, sets=SETS + ("lr_opacity=1e39",), quiet=True)
+        train_main(scene, str(tmp_path / "inf"), preset="fast", sets=SETS + ("lr_opacity=1e39",), quiet=True)

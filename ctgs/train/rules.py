@@ -1,0 +1,102 @@
+"""Scene-relative settings: every value written in pixels, texels or iterations is resolved from the
+training images' size and the run's length, so one recipe fits any scene size and any run length.
+
+Configs hold every value at the paper's scale: images of about PAPER_PIXELS (1 Mpx, Mip-NeRF 360 images_4,
+Deep Blending) and PAPER_ITERATIONS (30k). At that scale every rule below is the identity, so the paper's
+recipe is reproduced exactly; elsewhere:
+
+- iterations (texture start, routine cadence and window, tau_tr decay, SH bands, reallocation,
+  densification, logging): x iterations / 30000 - a schedule is a fraction of the run (ctgs/train/schedule.py),
+  which is also what lets `--time-budget` re-plan the run length while it runs;
+- texels across a primitive (tau_tr_start, tau_tr_end, max_texture_res): x sqrt(pixels / 1e6). A texel is
+  at least 2**min_t2p_exp pixels of the closest camera, so a primitive of a given world size spans
+  sqrt(pixels)-proportionally many texels: with this rule the same scene makes the same split decisions at
+  any image size (the paper's 32 texels of >= 2 px are 6.4% of a 1000-px-wide image, and so they are at 200 px);
+- lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
+  over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
+- settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
+  texel values (tau_ds), learning rates (x scene extent for positions), the 2DGS baseline's densification
+  threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
+  image size), start_texels (texels across the primitive itself).
+
+`scale_rules = false` (the `paper` preset) keeps the pixel rules off and uses every value as written: the
+authors' recipe exactly, whatever the image size. The iteration rule always applies (at 30k it is exact).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from ctgs.train.config import TrainConfig
+
+PAPER_PIXELS = 1.0e6  # "about 1 Mpx": M360 images_4 1237x822 (1.02 Mpx), Deep Blending 1332x876 (1.17 Mpx)
+PAPER_ITERATIONS = 30000
+
+# Keys holding an iteration count at the paper's scale (ctgs/train/schedule.py scales them).
+ITERATION_KEYS = ("texture_start", "sh_every", "routine_every", "routine_until", "routine_margin",
+                  "late_downscale_every", "realloc_every", "tau_tr_iters", "densify_from", "densify_until",
+                  "densify_every", "opacity_reset_every", "test_every", "checkpoint_every")
+# Keys counting texels across a primitive: x sqrt(pixels / PAPER_PIXELS).
+TEXEL_KEYS = ("tau_tr_start", "tau_tr_end", "max_texture_res")
+# Smallest texture cap the rules may produce (texels per axis): a split needs a few texels on each side.
+MIN_TEXTURE_CAP = 8
+
+
+@dataclass(frozen=True)
+class Scale:
+    """How this run relates to the paper's scale."""
+
+    pixels: float  # training image size, H*W (median over training views)
+    linear: float  # sqrt(pixels / PAPER_PIXELS), 1 when the pixel rules are off
+    area: float  # pixels / PAPER_PIXELS, 1 when the pixel rules are off
+
+
+def scale_of(cfg: TrainConfig, pixels: float) -> Scale:
+    if not cfg.scale_rules:
+        return Scale(pixels=pixels, linear=1.0, area=1.0)
+    area = pixels / PAPER_PIXELS
+    return Scale(pixels=pixels, linear=math.sqrt(area), area=area)
+
+
+def _pow2_at_least(x: float, floor: int) -> int:
+    return max(floor, 2 ** math.ceil(math.log2(max(x, 1.0))))
+
+
+def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
+    """A copy of `cfg` whose pixel- and texel-based values are resolved for images of `pixels` (H*W).
+
+    Iteration counts stay at the paper's scale: the schedule scales them by the planned run length
+    (which `--time-budget` may change while training).
+    """
+    s = scale_of(cfg, pixels)
+    if not cfg.scale_rules:
+        return replace(cfg)
+    return replace(
+        cfg,
+        tau_tr_start=cfg.tau_tr_start * s.linear,
+        tau_tr_end=cfg.tau_tr_end * s.linear,
+        max_texture_res=min(cfg.max_texture_res, _pow2_at_least(cfg.max_texture_res * s.linear, MIN_TEXTURE_CAP)),
+        lambda_texture=cfg.lambda_texture / s.area,
+    )
+
+
+def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: dict[str, int]) -> list[dict]:
+    """Rows (setting, rule, value per named image size / run length) for docs and benchmarks.
+
+    sizes: {"label": (width, height)}; iterations: {"label": iterations}.
+    """
+    from ctgs.train import schedule
+
+    rows = []
+    for key, rule in (("tau_tr_start", "x sqrt(HW / 1e6)"), ("tau_tr_end", "x sqrt(HW / 1e6)"),
+                      ("max_texture_res", "x sqrt(HW / 1e6), next power of two, >= 8"),
+                      ("lambda_texture", "x 1e6 / HW")):
+        vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
+        rows.append({"setting": key, "unit": "texels" if key != "lambda_texture" else "per texel",
+                     "rule": rule, "paper": getattr(cfg, key), "values": vals})
+    for key in ITERATION_KEYS:
+        vals = {label: schedule.at(replace(cfg, iterations=n), getattr(cfg, key)) for label, n in iterations.items()}
+        rows.append({"setting": key, "unit": "iterations", "rule": "x iterations / 30000",
+                     "paper": getattr(cfg, key), "values": vals})
+    return rows
