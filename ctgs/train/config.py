@@ -89,6 +89,10 @@ class TrainConfig:
     prune_opacity_late: float = _f(1.0 / 255.0, "prune threshold after routine_until")
     max_primitives: int = _f(0, "primitive budget: no splits beyond it (0 = unlimited)")
     max_texture_res: int = _f(256, "hard cap on texels per axis")
+    texture_alloc: str = _f("pow2", "texture allocation rounding: pow2 (authors' code) | mult4 (a multiple of 4: "
+                            "fewer padding texels, every downscaled size still even)")
+    texture_sigma: float = _f(3.0, "textures cover at most +-this many standard deviations (the renderer's cutoff "
+                              "is 3; beyond the texture a surfel shows its SH colour)")
     min_t2p_exp: int = _f(1, "smallest texel-size exponent: texel >= 2**this pixels of the closest camera")
     # ---- baselines (2dgs, fixed_texture): 3DGS-style densification ----
     fixed_texture_res: int = _f(16, "texels per axis of the fixed_texture baseline")
@@ -113,6 +117,8 @@ class TrainConfig:
             raise UserError(f"config backend={self.backend!r}: use auto, cpu, cuda or reference")
         if self.device not in ("auto", "cpu", "cuda"):
             raise UserError(f"config device={self.device!r}: use auto, cpu or cuda")
+        if self.texture_alloc not in ("pow2", "mult4"):
+            raise UserError(f"config texture_alloc={self.texture_alloc!r}: use pow2 or mult4")
         if len(self.background) != 3:
             raise UserError("config background must be a list of 3 numbers")
         for key, ok, what in _RANGES:
@@ -159,7 +165,8 @@ _RANGES = [
     ("prune_opacity", _prob, "in [0, 1)"), ("prune_opacity_late", _prob, "in [0, 1)"),
     ("max_primitives", _ge(0), ">= 0 (0 = unlimited)"),
     ("max_texture_res", lambda v: v >= 2 and (v & (v - 1)) == 0, "a power of two >= 2"),
-    ("min_t2p_exp", lambda v: 0 <= v <= 30, "in 0..30"), ("fixed_texture_res", _ge(1), ">= 1"),
+    ("min_t2p_exp", lambda v: 0 <= v <= 30, "in 0..30"),
+    ("texture_sigma", lambda v: 0 < v <= 3, "in (0, 3] standard deviations"), ("fixed_texture_res", _ge(1), ">= 1"),
     ("densify_from", _ge(0), ">= 0"), ("densify_until", _ge(0), ">= 0"), ("densify_every", _gt(0), "> 0"),
     ("densify_grad_threshold", _gt(0), "> 0"), ("percent_dense", _gt(0), "> 0"),
     ("opacity_reset_every", _gt(0), "> 0"), ("prune_opacity_2dgs", _prob, "in [0, 1)"),

@@ -337,7 +337,8 @@ class Trainer:
             if not self.textures_started and it >= schedule.texture_start(cfg):
                 self.textures_started = True
                 model.k_min = compute_k_min(model.means.detach(), self.cameras)
-                texels.start_textures(model, opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res)
+                texels.start_textures(model, opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
+                                      cfg.texture_alloc, cfg.texture_sigma)
                 yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean())})
             kind = schedule.routine_kind(cfg, it)
             if kind == "full":
@@ -346,7 +347,7 @@ class Trainer:
             elif kind == "late":
                 yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras))
             elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it):
-                texels.realloc(model, opt, cfg.max_texture_res)
+                texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
             return
         # Baselines: 3DGS adaptive density control.
         if schedule.densify_active(cfg, it):
