@@ -48,13 +48,14 @@ def test_allocation_measures_texel_size_and_params_per_area():
     m.t2p_exp = torch.tensor([1, 1, 2, 4], dtype=torch.int32)
     r = allocation_measures(m, META)
     assert r["photo"]["primitives"] == 3 and r["flat"]["primitives"] == 1
-    assert math.isclose(r["photo"]["texel_size_prim"], 0.05, rel_tol=1e-6) and math.isclose(r["flat"]["texel_size_prim"], 0.4, rel_tol=1e-6)
+    assert math.isclose(r["photo"]["texel_size_prim"], 0.05, rel_tol=1e-6)
+    assert math.isclose(r["flat"]["texel_size_prim"], 0.4, rel_tol=1e-6)
     # Per texel: the 8x8 textures (128 of 144 texels) dominate the photo median.
     assert math.isclose(r["photo"]["texel_size_texel"], 0.05, rel_tol=1e-6)
     assert math.isclose(r["ratios"]["texel_size_prim_flat_over_photo"], 8.0, rel_tol=1e-6)
     assert math.isclose(r["photo"]["params_per_area"], 3 * 59 + 3 * 144, rel_tol=1e-6)
     assert math.isclose(r["flat"]["params_per_area"], 59 + 3 * 4, rel_tol=1e-6)
-    assert math.isclose(r["ratios"]["params_per_area_photo_over_flat"], (3 * 59 + 3 * 144, rel_tol=1e-6) / (59 + 12))
+    assert math.isclose(r["ratios"]["params_per_area_photo_over_flat"], (3 * 59 + 3 * 144) / (59 + 12), rel_tol=1e-6)
     # A model without textures: sizes are undefined, parameters per area still count (58 per primitive).
     m.texture_mode = "none"
     r = allocation_measures(m, META)
