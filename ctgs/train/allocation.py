@@ -87,7 +87,8 @@ def texel_density_by_kind(model, meta: dict) -> dict[str, float]:
     return _per_area({k: int(tex[kind == k].sum()) for k in set(kind.tolist()) if k}, meta)
 
 
-# The paper's parameter count: 59 per primitive (58 of 2DGS + the texel-size exponent) + 3 per texel.
+# The paper's parameter count: 59 per primitive (58 of 2DGS + the texel-size exponent) + 3 per texel
+# (SurfelModel.num_params: fewer per primitive at a lower SH degree).
 PARAMS_PER_PRIMITIVE = 59
 PARAMS_PER_TEXEL = 3
 
@@ -116,6 +117,8 @@ def allocation_measures(model, meta: dict) -> dict:
     if textured:
         ts = model.texel_size.detach().cpu().numpy().astype(np.float64)  # [N, 2]
         size = np.sqrt(ts[:, 0] * ts[:, 1])  # isotropic for content-aware; geometric mean for fixed grids
+    n = model.num_primitives
+    per_prim = (model.num_params() - PARAMS_PER_TEXEL * model.num_texels) / n if n else float(PARAMS_PER_PRIMITIVE)
     out: dict = {}
     for k in sorted({s["kind"] for s in meta["surfaces"]}):
         area = sum(s["area"] for s in meta["surfaces"] if s["kind"] == k)
@@ -124,7 +127,6 @@ def allocation_measures(model, meta: dict) -> dict:
         has = sel & (tex > 0) if textured else np.zeros_like(sel)
         rec["texel_size_prim"] = float(np.median(size[has])) if has.any() else float("nan")
         rec["texel_size_texel"] = _weighted_median(size[has], tex[has]) if has.any() else float("nan")
-        per_prim = PARAMS_PER_PRIMITIVE if model.texture_mode != "none" else PARAMS_PER_PRIMITIVE - 1
         params = per_prim * rec["primitives"] + PARAMS_PER_TEXEL * rec["texels"]
         rec["params_per_area"] = params / area if area > 0 else float("nan")
         rec["texels_per_area"] = rec["texels"] / area if area > 0 else float("nan")

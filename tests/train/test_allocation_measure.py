@@ -53,10 +53,11 @@ def test_allocation_measures_texel_size_and_params_per_area():
     # Per texel: the 8x8 textures (128 of 144 texels) dominate the photo median.
     assert math.isclose(r["photo"]["texel_size_texel"], 0.05, rel_tol=1e-6)
     assert math.isclose(r["ratios"]["texel_size_prim_flat_over_photo"], 8.0, rel_tol=1e-6)
-    assert math.isclose(r["photo"]["params_per_area"], 3 * 59 + 3 * 144, rel_tol=1e-6)
-    assert math.isclose(r["flat"]["params_per_area"], 59 + 3 * 4, rel_tol=1e-6)
-    assert math.isclose(r["ratios"]["params_per_area_photo_over_flat"], (3 * 59 + 3 * 144) / (59 + 12), rel_tol=1e-6)
-    # A model without textures: sizes are undefined, parameters per area still count (58 per primitive).
+    # These helper surfels carry SH degree 0: 3 + 2 + 4 + 1 + 3 + 1 = 14 parameters each (59 at degree 3).
+    assert math.isclose(r["photo"]["params_per_area"], 3 * 14 + 3 * 144, rel_tol=1e-6)
+    assert math.isclose(r["flat"]["params_per_area"], 14 + 3 * 4, rel_tol=1e-6)
+    assert math.isclose(r["ratios"]["params_per_area_photo_over_flat"], (3 * 14 + 3 * 144) / (14 + 12), rel_tol=1e-6)
+    # A model without textures: sizes are undefined, parameters per area still count (no texel exponent).
     m.texture_mode = "none"
     r = allocation_measures(m, META)
-    assert math.isnan(r["photo"]["texel_size_prim"]) and math.isclose(r["flat"]["params_per_area"], 58 + 12, rel_tol=1e-6)
+    assert math.isnan(r["photo"]["texel_size_prim"]) and math.isclose(r["flat"]["params_per_area"], 13 + 12, rel_tol=1e-6)
