@@ -6,6 +6,8 @@ import os
 
 import click
 
+from ctgs.errors import UserError
+
 
 @click.command(name="export")
 @click.argument("run_dir", type=click.Path(file_okay=False))
@@ -13,16 +15,27 @@ import click
               help="Model folder to write (default RUN_DIR/model); replaced atomically.")
 @click.option("--plain-ply/--no-plain-ply", default=True, show_default=True,
               help="Also write plain_3dgs.ply, an untextured approximation for existing 3DGS viewers.")
-def command(run_dir: str, out_dir: str | None, plain_ply: bool) -> None:
+@click.option("--model", "model_dir", default=None, type=click.Path(file_okay=False),
+              help="Export this model folder (e.g. from `ctgs compress`, decoded) instead of RUN_DIR/model.pt.")
+def command(run_dir: str, out_dir: str | None, plain_ply: bool, model_dir: str | None) -> None:
     """Write RUN_DIR's model as primitives.ply + textures.bin + manifest.json (+ plain_3dgs.ply)."""
     from ctgs.io.model_format import write_model
     from ctgs.io.run_model import load_run
 
+    if model_dir is not None and (out_dir is None or os.path.abspath(out_dir) == os.path.abspath(model_dir)):
+        raise UserError(f"--model {model_dir}: pass -o OUT, a folder other than the model's (the default "
+                        f"{os.path.join(run_dir, 'model')} may hold the original export)")
     run = load_run(run_dir)
     out_dir = out_dir or os.path.join(run_dir, "model")
     source = {"run_dir": run.run_dir, "scene_dir": run.scene_dir, "images": run.images,
               "holdout": run.holdout, "iteration": run.iteration}
-    manifest = write_model(run.model, out_dir, plain_ply=plain_ply, extra={"source": source})
+    model = run.model
+    if model_dir is not None:
+        from ctgs.io.model_format import read_model
+
+        model = read_model(model_dir)[0]
+        source["model_dir"] = os.path.abspath(model_dir)
+    manifest = write_model(model, out_dir, plain_ply=plain_ply, extra={"source": source})
     size = sum(v for k, v in manifest["file_bytes"].items() if k != manifest["plain_ply"])
     click.echo(f"{out_dir}: {manifest['num_primitives']} primitives, {manifest['num_texels']} texels, "
                f"{size / 1e6:.3f} MB (+ plain PLY: {plain_ply})")

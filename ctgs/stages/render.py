@@ -15,8 +15,10 @@ import click
               show_default=True, help="Renderer backend; `reference` is the slow pure-PyTorch one.")
 @click.option("--views", type=click.Choice(["test", "train", "all"]), default="test", show_default=True,
               help="Which of the scene's views to render (test = every holdout-th image).")
-def command(run_dir: str, out_dir: str, backend: str, views: str) -> None:
-    """Render RUN_DIR/model.pt from the cameras of the scene it was trained on."""
+@click.option("--model", "model_dir", default=None, type=click.Path(file_okay=False),
+              help="Render this exported/compressed model folder instead of RUN_DIR/model.pt.")
+def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str | None) -> None:
+    """Render RUN_DIR/model.pt (or --model) from the cameras of the scene it was trained on."""
     import torch
 
     from ctgs.io.images import write_image
@@ -30,6 +32,10 @@ def command(run_dir: str, out_dir: str, backend: str, views: str) -> None:
     chosen = {"test": scene.test, "train": scene.train, "all": scene.train + scene.test}[views]
     os.makedirs(out_dir, exist_ok=True)
     model = run.model
+    if model_dir is not None:
+        from ctgs.io.model_format import read_model
+
+        model = read_model(model_dir, device=device)[0]
     with torch.no_grad():
         inputs = model.render_inputs()
         for view in chosen:
