@@ -111,13 +111,21 @@ def _kmeans_k(codec: str) -> int | None:
     return int(k) if head == "kmeans" and k.isdigit() and int(k) >= 1 else None
 
 
-# The --target presets: measured points of the size-quality curve (benchmarks/results/compress_*.md).
+# The --target presets: measured points of the size-quality curve (benchmarks/results/compress_curve.md),
+# chosen on the demo's training views. Per-attribute costs there (train PSNR, on top of scalar texels):
+# every f16 and sh_rest q8 <= 0.0002 dB; means q16 0.001, scales q16 0.000 / q8 0.003, quats q8 0.012,
+# opacity q8 0.000, sh_dc q8 0.004 dB; scalar K=256 / 64 / 32 texels 0.002 / 0.025 / 0.100 dB.
+# K-means SH (0.24 dB at K=4096 for 12% fewer bytes than q8) and vector texel codebooks (0.07 dB at
+# K=65536 and larger than scalar; 0.8 dB at 4096) lose more per byte saved, so no preset uses them.
 TARGETS: dict[str, Spec] = {
-    "lossless-ish": Spec(texels="scalar", sh_rest="f16", sh_dc="f16"),
-    "balanced": Spec(texels="scalar", means="q16", scales="q16", quats="q8", opacity="q8", sh_dc="f16",
+    # float16 where it costs nothing measurable; positions and texel sizes stay float32.
+    "lossless-ish": Spec(texels="scalar", scales="f16", quats="f16", opacity="f16", sh_dc="f16", sh_rest="f16"),
+    # the default: every attribute quantised, the paper's 256-level scalar texel codebook.
+    "balanced": Spec(texels="scalar", means="q16", scales="q16", quats="q8", opacity="q8", sh_dc="q8",
                      sh_rest="q8", k_min="f16"),
-    "small": Spec(texels="vector", codebook_size=4096, means="q16", scales="q8", quats="q8", opacity="q8",
-                  sh_dc="q8", sh_rest="kmeans:4096", k_min="f16"),
+    # 32 texel levels and 8-bit scales on top of balanced.
+    "small": Spec(texels="scalar", codebook_size=32, means="q16", scales="q8", quats="q8", opacity="q8",
+                  sh_dc="q8", sh_rest="q8", k_min="f16"),
 }
 DEFAULT_TARGET = "balanced"
 

@@ -173,14 +173,15 @@ def test_targets_order_by_size(exported):
     root, model = exported
     sizes = {t: read_model(_cli(root, f"t_{t}", "--target", t))[1].bytes_on_disk for t in TARGETS}
     raw = read_model(str(root / "model"))[1].bytes_on_disk
-    # (small vs balanced is a property of real textures, measured in benchmarks/results/compress_*.md: on
-    # this model's random texels a vector codebook cannot beat the scalar one.)
-    assert sizes["balanced"] < sizes["lossless-ish"] < raw and sizes["small"] < raw
+    assert sizes["small"] < sizes["balanced"] < sizes["lossless-ish"] < raw
 
 
 def test_coders_decode_to_the_same_model(exported):
     root, _ = exported
-    models = {c: read_model(_cli(root, f"c_{c}", "--coder", c)) for c in ("xz", "zlib", "none")}
+    # float16 attributes leave the coder redundancy to find even in this model's random values (its 8-bit
+    # codes are near incompressible noise, where xz's own header outweighs what it saves).
+    models = {c: read_model(_cli(root, f"c_{c}", "--target", "lossless-ish", "--coder", c))
+              for c in ("xz", "zlib", "none")}
     for c in ("zlib", "none"):
         for name, t in models["xz"][0].state_dict().items():
             assert (torch.equal(t, models[c][0].state_dict()[name]) if isinstance(t, torch.Tensor)
