@@ -19,6 +19,7 @@ def _load_scene(cfg):
 
 
 def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed):
+    from ctgs.resources import resolve_config as config_path
     from ctgs.train.config import load_config, parse_set
 
     overrides = parse_set(list(sets))
@@ -29,7 +30,7 @@ def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume,
     if resume and config is None and os.path.exists(saved):
         cfg = load_config(saved, overrides)  # the run's own resolved config
     else:
-        cfg = load_config(config, overrides)
+        cfg = load_config(config and config_path(config), overrides)  # a shipped name (`demo`) or a file
     cfg.scene_dir = os.path.abspath(scene_dir)
     return cfg
 
@@ -54,7 +55,8 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
 @click.command(name="train")
 @click.argument("scene_dir", type=click.Path(file_okay=False))
 @click.option("-o", "--output", "run_dir", required=True, type=click.Path(file_okay=False), help="Run folder.")
-@click.option("--config", type=click.Path(dir_okay=False), default=None, help="TOML config (configs/*.toml).")
+@click.option("--config", type=click.Path(dir_okay=False), default=None,
+              help="TOML config file, or the name of a shipped one (default, demo, 2dgs, ...).")
 @click.option("--iterations", type=int, default=None, help="Override the number of iterations.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")
 @click.option("--images", default=None, help="Image sub-folder (images, images_2, images_4, ...).")
