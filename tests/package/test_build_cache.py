@@ -5,6 +5,7 @@ None of these tests compiles anything: torch's builder is replaced by a stand-in
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -153,3 +154,12 @@ def _tiny_run(tmp_path: Path) -> str:
     torch.save({"model": point_model(scene.points, scene.point_colors, n=10).state_dict(), "scene_dir": scene_dir,
                 "images": "images", "holdout": 2, "iteration": 1, "config": {}}, run / "model.pt")
     return str(run)
+
+
+def test_ninja_from_the_pip_package_when_not_on_path(monkeypatch, tmp_path):
+    """`venv/bin/ctgs` run without activating the venv: torch's build still finds the pip-installed ninja."""
+    ninja = pytest.importorskip("ninja")
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert shutil.which("ninja") is None
+    ext._ensure_ninja("reference")
+    assert shutil.which("ninja") and os.environ["PATH"].startswith(ninja.BIN_DIR)
