@@ -123,6 +123,7 @@ def main() -> None:
     ap.add_argument("run_dir")
     ap.add_argument("--work", default=None, help="Folder for the exports (default RUN_DIR/formats).")
     ap.add_argument("--tag", default="demo192")
+    ap.add_argument("--setup", default="", help="How RUN_DIR was made (commands), recorded with the results.")
     args = ap.parse_args()
     work = args.work or os.path.join(args.run_dir, "formats")
     os.makedirs(work, exist_ok=True)
@@ -168,7 +169,7 @@ def main() -> None:
         "benchmark": "export_formats", "date": datetime.date.today().isoformat(),
         "command": " ".join([os.path.relpath(sys.executable), *sys.argv]),
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__},
-        "run_dir": os.path.abspath(args.run_dir), "scene_dir": run.scene_dir, "images": run.images,
+        "setup": args.setup, "run_dir": os.path.abspath(args.run_dir), "scene_dir": run.scene_dir, "images": run.images,
         "test_views": [v.name for v in views], "resolution": [views[0].camera.width, views[0].camera.height],
         "num_primitives": exact.num_primitives, "num_texels": exact.num_texels,
         "export_seconds": export_s, "rows": rows, "seconds": time.time() - t0,
@@ -186,11 +187,14 @@ def markdown(r: dict) -> str:
              f"Run `{r['run_dir']}` ({r['num_primitives']} surfels, {r['num_texels']} texels), "
              f"{len(r['test_views'])} test views at {r['resolution'][0]}x{r['resolution'][1]}. "
              f"Machine: {r['machine']['platform']}, {r['machine']['cpu_count']} CPUs, torch {r['machine']['torch']}.",
-             f"Command: `{r['command']}` ({r['seconds']:.0f} s).", "",
-             "PSNR vs exact: the format's render against the exact model's render (what the file keeps of the "
-             "model); test PSNR: against the test photos.", "",
-             "| format | bytes | MB | test PSNR (dB) | PSNR vs exact (dB) | validator | rendered by |",
-             "| --- | ---: | ---: | ---: | ---: | --- | --- |"]
+             f"Command: `{r['command']}` ({r['seconds']:.0f} s)."]
+    if r.get("setup"):
+        lines.append(f"Run made with: {r['setup']}")
+    lines += ["",
+              "PSNR vs exact: the format's render against the exact model's render (what the file keeps of the "
+              "model); test PSNR: against the test photos.", "",
+              "| format | bytes | MB | test PSNR (dB) | PSNR vs exact (dB) | validator | rendered by |",
+              "| --- | ---: | ---: | ---: | ---: | --- | --- |"]
     for row in r["rows"]:
         b = "" if row["bytes"] is None else f"{row['bytes']}"
         mb = "" if row["bytes"] is None else f"{row['bytes'] / 1e6:.3f}"
