@@ -8,7 +8,7 @@ CTGS := $(VENV)/bin/ctgs
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: setup test test-fast demo all table lpips-weights cuda-check bench bench-claims bench-trade clean
+.PHONY: setup test test-fast demo all table lpips-weights cuda-check bench bench-claims bench-trade clean wheel-check
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -32,6 +32,11 @@ cuda-check: $(STAMP)
 	@if command -v nvcc >/dev/null 2>&1; then \
 		$(PY) kernels/check_cuda_build.py; \
 	else echo "cuda-check: nvcc not found, skipping CUDA compile check"; fi
+
+# The package as a user gets it (CI): build the wheel, install it into a fresh venv outside the checkout,
+# run demo-scene -> train -> export -> compress -> eval there (.ci/wheel_check; a few minutes).
+wheel-check: $(STAMP)
+	PY=$(PY) TORCH_SPEC="$(TORCH_SPEC)" .ci/wheel_check
 
 # ---- pipeline: fetch -> train -> export -> compress -> eval, one chain of FILE targets per scene ------
 # A re-run redoes only what is missing; `make -j4 all SCENES="bicycle garden"` runs scenes in parallel.

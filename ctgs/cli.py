@@ -18,7 +18,7 @@ from ctgs.errors import UserError
 STAGES: dict[str, tuple[str, str]] = {
     "sfm": ("ctgs.stages.sfm", "Structure from motion (pycolmap): images -> undistorted COLMAP scene."),
     "train": ("ctgs.stages.train", "Train a content-aware textured 2DGS model on a scene."),
-    "export": ("ctgs.stages.export", "Export a trained run to PLY + texture blob (+ plain 3DGS PLY)."),
+    "export": ("ctgs.stages.export", "Export a trained run: ctgs model folder, 3DGS PLY, .splat or .glb."),
     "compress": ("ctgs.stages.compress", "K-means texel compression of an exported model."),
     "eval": ("ctgs.stages.eval", "Quality, size and speed figures of a run or model; aggregate tables."),
     "demo-scene": ("ctgs.stages.demo_scene", "Generate the built-in synthetic demo scene (COLMAP layout)."),

@@ -1,9 +1,10 @@
 """Make helper: `python -m ctgs.io.scene_vars SCENE` prints `DATASET IMAGES HOLDOUT` for a scene.
 
-The Makefile's per-scene rules read the dataset, image folder and holdout from data_manifests/ through
-this, so the facts live in one place. The manifest layout is walked generically (any TOML/JSON file in
-data_manifests/; a scene entry keyed by the scene name, or a list entry with `name = SCENE`; `images` /
-`holdout` looked up on the scene entry first, then on the dataset), so it keeps working as manifests grow.
+The Makefile's per-scene rules read the dataset, image folder and holdout from the shipped manifests
+(data_manifests/, found through ctgs.resources) through this, so the facts live in one place. The manifest
+layout is walked generically (any TOML/JSON file in data_manifests/; a scene entry keyed by the scene name,
+or a list entry with `name = SCENE`; `images` / `holdout` looked up on the scene entry first, then on the
+dataset), so it keeps working as manifests grow.
 Unknown scenes print `unknown images 8` (the 3DGS defaults) with a warning on stderr.
 """
 
@@ -14,8 +15,8 @@ import os
 import sys
 import tomllib
 
-MANIFEST_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                            "data_manifests")
+from ctgs.resources import manifests_dir
+
 IMAGE_KEYS = ("images", "image_folder", "images_dir")
 
 
@@ -56,7 +57,8 @@ def _get(entry: dict, root: dict, keys: tuple[str, ...], default):
     return default
 
 
-def scene_vars(scene: str, manifest_dir: str = MANIFEST_DIR) -> tuple[str, str, int]:
+def scene_vars(scene: str, manifest_dir: str | None = None) -> tuple[str, str, int]:
+    manifest_dir = manifest_dir or str(manifests_dir())  # the shipped manifests (ctgs.resources)
     names = sorted(os.listdir(manifest_dir)) if os.path.isdir(manifest_dir) else []
     for name in names:
         root = _load(os.path.join(manifest_dir, name))

@@ -261,24 +261,11 @@ def load_toml(path: str) -> dict:
 PRESETS = ("preview", "fast", "balanced", "paper")
 
 
-def configs_dir() -> str:
-    """The shipped configs/ folder (presets, experiments, baselines)."""
-    import os
-
-    return os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "configs")
-
-
 def config_path(name_or_path: str) -> str:
-    """A path stays a path; a bare name (`default`, `2dgs`, `fast`) is configs/<name>.toml."""
-    import os
+    """A path stays a path; a bare name (`default`, `2dgs`, `fast`) is the shipped configs/<name>.toml."""
+    from ctgs.resources import resolve_config
 
-    if os.sep in name_or_path or name_or_path.endswith(".toml") or os.path.exists(name_or_path):
-        return name_or_path
-    path = os.path.join(configs_dir(), name_or_path + ".toml")
-    if not os.path.exists(path):
-        names = sorted(f[:-5] for f in os.listdir(configs_dir()) if f.endswith(".toml"))
-        raise UserError(f"--config {name_or_path}: no such config; use a file path or one of {', '.join(names)}")
-    return path
+    return resolve_config(name_or_path)
 
 
 def _apply_file(cfg: TrainConfig, path: str) -> None:
