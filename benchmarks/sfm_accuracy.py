@@ -31,6 +31,7 @@ import json
 import os
 import platform
 import re
+import shlex
 import socket
 import subprocess
 import sys
@@ -218,8 +219,8 @@ def evaluate(args) -> dict:
     seconds = dict(report.seconds) if report else {}
     out = {
         "machine": machine_info(),
-        "command": " ".join([os.path.relpath(sys.executable, REPO) if sys.executable.startswith(REPO)
-                             else sys.executable, *sys.argv]),
+        "command": shlex.join([os.path.relpath(sys.executable, REPO) if sys.executable.startswith(REPO)
+                               else sys.executable, *sys.argv]),
         "scene_dir": os.path.abspath(args.scene_dir), "gt_dir": os.path.abspath(args.gt_dir),
         "sfm_command": args.sfm_command, "notes": args.note,
         "given": report.given if report else len(gt), "gt_files": len(gt), "registered": len(model.images),
