@@ -20,6 +20,9 @@ recipe is reproduced exactly; elsewhere:
   32 texels (benchmarks/results/train_findings.md);
 - lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
+- the initial primitive count (init_points_per_pixel, off in the paper): at most this many SfM points per
+  pixel of a training image (farthest-point subsample): on small images dense SfM points are far narrower
+  than a pixel;
 - settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
   texel values (tau_ds), learning rates (x scene extent for positions), the 2DGS baseline's densification
   threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
@@ -82,6 +85,12 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
         max_texture_res=min(cfg.max_texture_res, _pow2_at_least(cfg.max_texture_res * s.linear, MIN_TEXTURE_CAP)),
         lambda_texture=cfg.lambda_texture / s.area,
     )
+
+
+def init_point_cap(cfg: TrainConfig, pixels: float) -> int:
+    """Initial primitives: max_init_points, and at most init_points_per_pixel per training-image pixel (0 = all)."""
+    caps = [c for c in (cfg.max_init_points, int(round(cfg.init_points_per_pixel * pixels))) if c > 0]
+    return min(caps) if caps else 0
 
 
 def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: dict[str, int]) -> list[dict]:

@@ -100,7 +100,7 @@ class Trainer:
         np.random.seed(cfg.seed % 2**32)
         if state is None:
             mode = {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}[cfg.method]
-            self.model = init_model(scene.points, scene.point_colors, max_points=cfg.max_init_points,
+            self.model = init_model(scene.points, scene.point_colors, max_points=rules.init_point_cap(cfg, self.pixels),
                                     opacity=cfg.init_opacity, max_sh_degree=cfg.max_sh_degree,
                                     random_rotation=cfg.random_rotation, normals=cfg.init_normals, texture_mode=mode,
                                     fixed_res=cfg.fixed_texture_res, seed=cfg.seed)
