@@ -20,9 +20,11 @@ recipe is reproduced exactly; elsewhere:
   32 texels (benchmarks/results/train_findings.md);
 - lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
-- the initial primitive count (init_points_per_pixel, off in the paper): at most this many SfM points per
-  pixel of a training image (farthest-point subsample): on small images dense SfM points are far narrower
-  than a pixel;
+- the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a
+  training image, at initialisation (farthest-point subsample of the SfM points) and through splits
+  (max_primitives). SfM points are found at the photos' full resolution: on downsampled images they are
+  far denser than a pixel (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's
+  Mip-NeRF 360 models hold 0.1-0.3 primitives per pixel);
 - settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
   texel values (tau_ds), learning rates (x scene extent for positions), the 2DGS baseline's densification
   threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
@@ -78,8 +80,11 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
     (which `--time-budget` may change while training).
     """
     s = scale_of(cfg, pixels)
+    cap = int(round(cfg.primitives_per_pixel * pixels)) if cfg.primitives_per_pixel > 0 else 0
+    caps = [c for c in (cfg.max_primitives, cap) if c > 0]
+    cfg = replace(cfg, max_primitives=min(caps) if caps else 0)
     if not cfg.scale_rules:
-        return replace(cfg)
+        return cfg
     return replace(
         cfg,
         max_texture_res=min(cfg.max_texture_res, _pow2_at_least(cfg.max_texture_res * s.linear, MIN_TEXTURE_CAP)),
@@ -88,8 +93,8 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
 
 
 def init_point_cap(cfg: TrainConfig, pixels: float) -> int:
-    """Initial primitives: max_init_points, and at most init_points_per_pixel per training-image pixel (0 = all)."""
-    caps = [c for c in (cfg.max_init_points, int(round(cfg.init_points_per_pixel * pixels))) if c > 0]
+    """Initial primitives: max_init_points, and at most primitives_per_pixel per training-image pixel (0 = all)."""
+    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels))) if c > 0]
     return min(caps) if caps else 0
 
 
