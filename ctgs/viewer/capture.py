@@ -39,9 +39,11 @@ class ViewerPage:
     def fit_viewport(self, width: int, height: int) -> None:
         self.browser.set_viewport(PANEL_CSS_PX + width, max(height, 600))
 
-    def capture(self, camera: int, textures: bool = True) -> np.ndarray:
-        """Recorded camera `camera` at its image size -> [H, W, 3] float32 RGB screenshot of the canvas."""
-        rect = self.browser.evaluate(f"window.viewer.show({{camera: {camera}, textures: {json.dumps(textures)}}})")
+    def capture(self, camera: int, textures: bool = True, size: tuple[int, int] | None = None) -> np.ndarray:
+        """Recorded camera `camera` at its image size (or resized to size = (W, H)) -> [H, W, 3] float32
+        RGB screenshot of the canvas."""
+        opts = {"camera": camera, "textures": textures, "size": list(size) if size else None}
+        rect = self.browser.evaluate(f"window.viewer.show({json.dumps(opts)})")
         w, h = rect["imageWidth"], rect["imageHeight"]
         if round(rect["width"]) != w or round(rect["height"]) != h:
             raise BrowserError(f"canvas is {rect['width']}x{rect['height']} CSS px, image {w}x{h}: "
@@ -52,7 +54,9 @@ class ViewerPage:
             raise BrowserError(f"screenshot is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
         return img
 
-    def benchmark(self, camera: int, frames: int, textures: bool = True, timeout: float = 1800.0) -> dict:
-        return self.browser.evaluate(
-            f"window.viewer.benchmark({{camera: {camera}, frames: {frames}, textures: {json.dumps(textures)}}})",
-            timeout=timeout)
+    def benchmark(self, camera: int, frames: int, textures: bool = True, size: tuple[int, int] | None = None,
+                  tight: bool = True, timeout: float = 3600.0) -> dict:
+        """Frame times of an orbit from recorded camera `camera` (see viewer.js benchmark())."""
+        opts = {"camera": camera, "frames": frames, "textures": textures, "size": list(size) if size else None,
+                "tight": tight}
+        return self.browser.evaluate(f"window.viewer.benchmark({json.dumps(opts)})", timeout=timeout)

@@ -173,6 +173,25 @@ class Browser:
             params["clip"] = {**clip, "scale": 1}
         return base64.b64decode(self.page("Page.captureScreenshot", **params)["data"])
 
+    def page_errors(self) -> list[str]:
+        """Uncaught JavaScript exceptions seen so far (since the last goto)."""
+        return [ev["params"]["exceptionDetails"].get("exception", {}).get("description")
+                or ev["params"]["exceptionDetails"].get("text", "")
+                for ev in self._events if ev["method"] == "Runtime.exceptionThrown"]
+
+    def mouse_drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 5, button: str = "left") -> None:
+        """Press at (x0, y0), move in `steps` steps to (x1, y1), release (CSS pixels)."""
+        self.page("Input.dispatchMouseEvent", type="mousePressed", x=x0, y=y0, button=button, clickCount=1)
+        for k in range(1, steps + 1):
+            x, y = x0 + (x1 - x0) * k / steps, y0 + (y1 - y0) * k / steps
+            self.page("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y, button=button)
+        self.page("Input.dispatchMouseEvent", type="mouseReleased", x=x1, y=y1, button=button, clickCount=1)
+
+    def key(self, key: str, kind: str) -> None:
+        """kind: "keyDown" or "keyUp" of a printable key such as "w"."""
+        self.page("Input.dispatchKeyEvent", type=kind, key=key, text=key if kind == "keyDown" else "",
+                  code=f"Key{key.upper()}" if key.isalpha() else "")
+
     def console_messages(self) -> list[str]:
         return [" ".join(str(a.get("value", a.get("description", ""))) for a in ev["params"].get("args", []))
                 for ev in self._events if ev["method"] == "Runtime.consoleAPICalled"]

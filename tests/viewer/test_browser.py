@@ -137,3 +137,32 @@ def test_screenshot_is_the_canvas_not_the_page(page, demo):
     ref = read_rgb(os.path.join(demo["on"], os.path.splitext(cam["name"])[0] + ".png"))
     for edge in (np.s_[0, :], np.s_[-1, :], np.s_[:, 0], np.s_[:, -1]):
         assert np.abs(shot[edge] - ref[edge]).mean() < 0.02
+
+
+def test_controls_move_the_camera_and_a_camera_jump_restores_the_view(page, demo):
+    browser = page.browser
+    i, cam = _test_cameras(demo["bundle"])[0]
+    page.fit_viewport(cam["width"], cam["height"])
+    page.capture(i)
+    pose = lambda: browser.evaluate("JSON.stringify(window.viewer.pose)")  # noqa: E731
+    rect = browser.evaluate("(() => { const r = document.getElementById('canvas').getBoundingClientRect(); "
+                            "return [r.x, r.y, r.width, r.height]; })()")
+    cx, cy = rect[0] + rect[2] / 2, rect[1] + rect[3] / 2
+    start = pose()
+    browser.mouse_drag(cx, cy, cx + 20, cy + 5)  # orbit
+    orbited = pose()
+    assert orbited != start and browser.evaluate("window.viewer.camIndex") == -1
+    browser.key("f", "keyDown")  # fly mode
+    browser.key("f", "keyUp")
+    assert browser.evaluate("window.viewer.controls.mode") == "fly"
+    browser.key("w", "keyDown")
+    browser.evaluate("new Promise(r => setTimeout(r, 300))")  # held for a few animation frames
+    browser.key("w", "keyUp")
+    assert pose() != orbited
+    browser.key("f", "keyDown")
+    browser.key("f", "keyUp")
+    # back on the recorded camera: the same image as before any motion
+    shot = page.capture(i)
+    ref = read_rgb(os.path.join(demo["on"], os.path.splitext(cam["name"])[0] + ".png"))
+    assert psnr(shot, ref) >= MIN_VIEW_PSNR
+    assert not browser.page_errors(), browser.page_errors()

@@ -36,7 +36,8 @@ function nearest(gl, target) {
 }
 
 export class Renderer {
-  constructor(canvas) {
+  // accum: "auto" (RGBA32F where float blending is supported), or force "RGBA16F" (half the bandwidth).
+  constructor(canvas, accum = "auto") {
     const gl = canvas.getContext("webgl2", {antialias: false, alpha: false, depth: false, stencil: false,
       premultipliedAlpha: false, preserveDrawingBuffer: true, powerPreference: "high-performance"});
     if (!gl) throw new Error("WebGL2 is not available in this browser (enable hardware acceleration, " +
@@ -50,12 +51,13 @@ export class Renderer {
     const cbf = gl.getExtension("EXT_color_buffer_float");
     const fblend = gl.getExtension("EXT_float_blend");
     const cbh = gl.getExtension("EXT_color_buffer_half_float");
-    if (cbf && fblend) this.accumFormat = {internal: gl.RGBA32F, type: gl.FLOAT, name: "RGBA32F"};
+    if (cbf && fblend && accum !== "RGBA16F") this.accumFormat = {internal: gl.RGBA32F, type: gl.FLOAT, name: "RGBA32F"};
     else if (cbf || cbh) this.accumFormat = {internal: gl.RGBA16F, type: gl.HALF_FLOAT, name: "RGBA16F"};
     else this.accumFormat = {internal: gl.RGBA8, type: gl.UNSIGNED_BYTE, name: "RGBA8"};
     this.timerExt = gl.getExtension("EXT_disjoint_timer_query_webgl2");
     this.count = 0;
     this.accum = null;
+    this.tightQuads = true;  // coverage quads: projected 3-sigma rectangle grown by the fallback radius
   }
 
   init(bundle, arrays, pages, shaders) {
@@ -188,6 +190,7 @@ export class Renderer {
     gl.uniform1i(u.u_sh_texels, this.shTexels);
     gl.uniform1i(u.u_sh_degree, this.shDegree);
     gl.uniform1i(u.u_textures, textures ? 1 : 0);
+    gl.uniform1i(u.u_tight, this.tightQuads ? 1 : 0);
     const bind = (unit, target, tex, loc) => {
       gl.activeTexture(gl.TEXTURE0 + unit);
       gl.bindTexture(target, tex);

@@ -23,6 +23,7 @@ uniform vec3 u_campos;        // camera centre, world
 uniform vec4 u_intr;          // fx, fy, cx, cy (pixels)
 uniform vec2 u_size;          // W, H (pixels)
 uniform float u_near;
+uniform bool u_tight;         // false: always bounds.h's pixel box (kept to measure what the tight quad saves)
 
 layout(location = 0) in uint a_index;  // surfel to draw (instanced, back to front)
 
@@ -106,31 +107,49 @@ void main() {
   float fx = u_intr.x, fy = u_intr.y, cx = u_intr.z, cy = u_intr.w;
   vec2 m = vec2(fx * mu.x / mu.z + cx, fy * mu.y / mu.z + cy);
 
-  // bounds.h surfel_pixel_rect
+  // Coverage, conservative w.r.t. the fragment test (rho <= CUTOFF_RHO): the projected 3-sigma
+  // rectangle (a convex quad: the plane's corners are all in front) grown by the fallback disc's radius
+  // plus one pixel, i.e. each edge pushed out by `grow`; the projected centre lies inside the rectangle, so
+  // the disc around it is covered too. Where that offset quad would be needle-like (near edge-on
+  // surfels), or a corner is behind the near plane, bounds.h's pixel box is used instead.
   float r2 = sqrt(CUTOFF_RHO / FILTER_INV_SQUARE);
+  float grow = r2 + 1.0;  // pixels
   vec2 lo = m - r2, hi = m + r2;
   bool whole = false;
   vec3 a = 3.0 * g2.x * U, b = 3.0 * g2.y * V;
+  vec2 P[4];  // projected corners, index bit 0: +-u, bit 1: +-v
   for (int k = 0; k < 4; ++k) {
     float su = (k & 1) != 0 ? 1.0 : -1.0, sv = (k & 2) != 0 ? 1.0 : -1.0;
     vec3 c = mu + su * a + sv * b;
     if (!(c.z >= u_near)) { whole = true; break; }
-    vec2 p = vec2(fx * c.x / c.z + cx, fy * c.y / c.z + cy);
-    lo = min(lo, p);
-    hi = max(hi, p);
+    P[k] = vec2(fx * c.x / c.z + cx, fy * c.y / c.z + cy);
+    lo = min(lo, P[k]);
+    hi = max(hi, P[k]);
   }
-  vec2 p0, p1;  // covered pixel range in continuous image coordinates (pixel edges)
-  if (whole) {
-    p0 = vec2(0.0);
-    p1 = u_size;
-  } else {
-    if (hi.x < 0.0 || hi.y < 0.0 || lo.x > u_size.x || lo.y > u_size.y) { cull(); return; }
-    p0 = max(floor(lo) - 1.0, vec2(0.0));
-    p1 = min(ceil(hi) + 2.0, u_size);  // pixel_span's inclusive ceil + 1, plus 1 for the right edge
+  if (!whole && (hi.x < 0.0 || hi.y < 0.0 || lo.x > u_size.x || lo.y > u_size.y)) { cull(); return; }
+  // Offset corner k = P[k] + grow (n1 + n2) / (1 + n1.n2), n1, n2 the outward unit normals of its edges.
+  vec2 grown[4];
+  bool tight = u_tight && !whole;
+  for (int k = 0; k < 4 && tight; ++k) {
+    vec2 e1 = P[k ^ 1] - P[k], e2 = P[k ^ 2] - P[k];
+    float l1 = length(e1), l2 = length(e2);
+    if (!(l1 > 1e-3 && l2 > 1e-3)) { tight = false; break; }
+    vec2 n1 = vec2(e1.y, -e1.x) / l1, n2 = vec2(e2.y, -e2.x) / l2;
+    n1 = dot(n1, e2) > 0.0 ? -n1 : n1;  // away from the other edge
+    n2 = dot(n2, e1) > 0.0 ? -n2 : n2;
+    float den = 1.0 + dot(n1, n2);  // 1 - cos(interior angle)
+    if (!(den > 0.1)) { tight = false; break; }  // interior angle under ~25 degrees
+    grown[k] = P[k] + grow * (n1 + n2) / den;
   }
-  int vid = gl_VertexID;  // triangle strip: (0,0) (1,0) (0,1) (1,1)
-  vec2 corner = vec2(float(vid & 1), float(vid >> 1));
-  vec2 pix = mix(p0, p1, corner);
+  int vid = gl_VertexID;  // triangle strip: (0,0) (1,0) (0,1) (1,1), i.e. corners -u-v, +u-v, -u+v, +u+v
+  vec2 pix;
+  if (tight) {
+    pix = grown[vid];
+  } else {  // bounds.h surfel_pixel_rect: pixel range in continuous image coordinates (pixel edges)
+    vec2 p0 = whole ? vec2(0.0) : max(floor(lo) - 1.0, vec2(0.0));
+    vec2 p1 = whole ? u_size : min(ceil(hi) + 2.0, u_size);  // pixel_span's inclusive ceil + 1, + 1 for the edge
+    pix = mix(p0, p1, vec2(float(vid & 1), float(vid >> 1)));
+  }
   gl_Position = vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0);
 
   vec3 d = mean - u_campos;

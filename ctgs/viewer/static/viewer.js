@@ -43,7 +43,7 @@ class Viewer {
   async start() {
     const bundleBase = this.params.get("bundle") || "bundle";
     const canvas = $("canvas");
-    this.renderer = new Renderer(canvas);
+    this.renderer = new Renderer(canvas, this.params.get("accum") || "auto");
     const status = (s) => { $("status").textContent = s; };
     const [loaded, ...sources] = await Promise.all([
       loadBundle(bundleBase, status), ...Object.values(SHADERS).map(fetchText)]);
@@ -188,7 +188,7 @@ class Viewer {
     this.last = now;
     this.controls.update(dt);
     this.pollFences(now);
-    if (!this.dirty) return;
+    if (!this.dirty || this.holdLoop) return;
     const cam = this.currentCam();
     const key = this.key(cam);
     if (key !== this.sortedKey) this.requestSort(cam);
@@ -223,15 +223,20 @@ class Viewer {
       webgl2: true};
   }
 
-  // Render recorded camera i exactly (its image size and intrinsics), wait until the GPU is done, and
-  // return the canvas rectangle in CSS pixels for a screenshot.
-  async show({camera, textures = true}) {
+  // Render recorded camera i exactly (its image size and intrinsics; or resized to size = [W, H], the
+  // intrinsics scaled with it), wait until the GPU is done, and return the canvas rectangle in CSS
+  // pixels for a screenshot.
+  async show({camera, textures = true, size = null}) {
     await this.ready;
     this.textures = textures;
     $("textures").checked = textures;
     this.fit = true;
     $("fit").checked = true;
     this.setCamera(camera);
+    if (size) {
+      const c = this.refCam, sx = size[0] / c.width, sy = size[1] / c.height;
+      this.refCam = {...c, fx: c.fx * sx, fy: c.fy * sy, cx: c.cx * sx, cy: c.cy * sy, width: size[0], height: size[1]};
+    }
     await this.waitSorted(this.key(this.currentCam()));
     const cam = this.drawNow();
     this.renderer.finish();
@@ -241,24 +246,34 @@ class Viewer {
       count: this.renderer.count};
   }
 
-  // Orbit `frames` steps about the target from recorded camera i; per frame: the worker's sort time and
-  // the draw time (issue to GPU completion, forced by a one-pixel read back), both in ms.
-  async benchmark({camera = 0, frames = 20, textures = true}) {
-    await this.show({camera, textures});
+  // Orbit `frames` steps (a quarter turn in all) about the target from recorded camera i; per frame:
+  // the worker's sort time and the draw time (issue to GPU completion, forced by a one-pixel read
+  // back), both in ms.
+  // tight = false draws bounds.h's pixel boxes instead of the tight quads (same image, more fragments).
+  async benchmark({camera = 0, frames = 20, textures = true, size = null, tight = true}) {
+    this.renderer.tightQuads = tight;
+    await this.show({camera, textures, size});
     const drawMs = [], sortMs = [];
-    for (let f = 0; f < frames; ++f) {
-      this.controls.mode = "orbit";
-      this.controls.rotate(2 * Math.PI / frames / 0.005 * 0.25, 0);  // a quarter turn over the run
-      const s = await this.waitSorted(this.key(this.currentCam()));
-      sortMs.push(s);
-      const t0 = performance.now();
-      this.drawNow();
-      this.renderer.finish();
-      drawMs.push(performance.now() - t0);
+    const mode = this.controls.mode;
+    this.controls.mode = "orbit";
+    this.holdLoop = true;  // no animation-frame draws in between: they would be timed with ours
+    try {
+      for (let f = 0; f < frames; ++f) {
+        this.controls.rotate(0.5 * Math.PI / frames / 0.005, 0);  // rotate() turns 0.005 rad per pixel
+        sortMs.push(await this.waitSorted(this.key(this.currentCam())));
+        const t0 = performance.now();
+        this.drawNow();
+        this.renderer.finish();
+        drawMs.push(performance.now() - t0);
+      }
+    } finally {
+      this.renderer.tightQuads = true;
+      this.controls.mode = mode;
+      this.holdLoop = false;
+      this.dirty = true;
     }
-    this.dirty = true;
-    return {drawMs, sortMs, width: this.currentCam().width, height: this.currentCam().height,
-      count: this.renderer.count};
+    const cam = this.currentCam();
+    return {drawMs, sortMs, width: cam.width, height: cam.height, count: this.renderer.count};
   }
 
   // ---- UI ----------------------------------------------------------------------------------------------
