@@ -249,10 +249,24 @@ def browser_psnr(page: ViewerPage, cams: list[tuple[int, dict]], ref_dir: str, t
     return out
 
 
-def frame_times(page: ViewerPage, camera: int, size: tuple[int, int] | None, frames: int) -> dict:
+def tight_vs_box(page: ViewerPage, cams: list[tuple[int, dict]]) -> dict:
+    """Per view, the largest difference (8-bit levels) between the tight coverage quads and bounds.h's
+    conservative pixel boxes: 0 means the tight quads lose nothing."""
+    out = {}
+    for i, c in cams:
+        page.fit_viewport(c["width"], c["height"])
+        tight = page.capture(i)
+        page.browser.evaluate("window.viewer.renderer.tightQuads = false")
+        boxes = page.capture(i)
+        page.browser.evaluate("window.viewer.renderer.tightQuads = true")
+        out[c["name"]] = float(np.abs(tight - boxes).max() * 255)
+    return out
+
+
+def frame_times(page: ViewerPage, camera: int, size: tuple[int, int] | None, frames: int, tight: bool = True) -> dict:
     if size:
         page.fit_viewport(*size)
-    res = page.benchmark(camera, frames, size=size)
+    res = page.benchmark(camera, frames, size=size, tight=tight)
     draw, sort = np.array(res["drawMs"]), np.array(res["sortMs"])
     return {"width": res["width"], "height": res["height"], "frames": frames, "drawn_surfels": res["count"],
             "draw_ms_median": float(np.median(draw)), "draw_ms_min": float(draw.min()),
@@ -261,12 +275,11 @@ def frame_times(page: ViewerPage, camera: int, size: tuple[int, int] | None, fra
 
 
 def screenshot(page: ViewerPage, camera: int, path: str) -> None:
-    """The whole page (panel and image) with the canvas filling SCREENSHOT_VIEW, free-camera mode."""
+    """The whole page (panel and image) with the canvas filling SCREENSHOT_VIEW (free-camera size)."""
     b = page.browser
     b.set_viewport(PANEL_CSS_PX + SCREENSHOT_VIEW[0], SCREENSHOT_VIEW[1])
-    b.evaluate(f"(async () => {{ await window.viewer.show({{camera: {camera}}}); "
-               "document.getElementById('fit').click(); "  # fit off: the canvas fills the view
-               "await new Promise(r => setTimeout(r, 1500)); return true; }})()", timeout=600)
+    b.evaluate(f"window.viewer.show({{camera: {camera}, fit: false}})", timeout=600)
+    b.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")  # readout repainted
     with open(path, "wb") as f:
         f.write(b.screenshot())
 
@@ -289,6 +302,14 @@ def main() -> None:
     info = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "command": " ".join(sys.argv),
             "machine": machine(), "gl": "GPU (ANGLE/Vulkan)" if args.gpu else "software (SwiftShader)"}
     t0 = time.time()
+    host = platform.node()
+    base = os.path.join(RESULTS, f"viewer_{host}{args.tag}")
+
+    def stage(name: str) -> None:  # progress, and the figures so far (a crash keeps them)
+        info.setdefault("stage_seconds", {})[name] = round(time.time() - t0, 1)
+        print(f"[{time.time() - t0:7.1f} s] {name}", flush=True)
+        with open(base + ".partial.json", "w") as f:
+            json.dump(info, f, indent=1)
 
     run = demo_run(args.work, args.run)
     r = load_run(run)
@@ -306,11 +327,13 @@ def main() -> None:
     shutil.rmtree(off_dir, ignore_errors=True)
     cpu_renders(run, on_dir, True)
     cpu_renders(run, off_dir, False)
+    stage("cpu renders")
     test = [(i, c) for i, c in enumerate(cams) if c["split"] == "test"]
     info["decomposition"] = decomposition(run, bundles, [c for _, c in test])
     info["textures_on_vs_off"] = {c["name"]: psnr(read_rgb(os.path.join(on_dir, os.path.splitext(c["name"])[0] + ".png")),
                                                   read_rgb(os.path.join(off_dir, os.path.splitext(c["name"])[0] + ".png")))
                                   for _, c in test}
+    stage("decomposition")
     with Browser(gpu=args.gpu, timeout=600) as browser:
         for bits in (8, 16):
             with ViewerServer(bundles[bits]) as srv:
@@ -319,14 +342,17 @@ def main() -> None:
                 info[f"psnr_{bits}bit_on"] = browser_psnr(page, test, on_dir, True)
                 info[f"psnr_{bits}bit_off"] = browser_psnr(page, test, off_dir, False)
                 if bits == 8:
+                    info["tight_vs_box_max_diff_255"] = tight_vs_box(page, test)
                     info["frames_demo_image_size"] = frame_times(page, test[0][0], None, args.frames)
                     info["frames_demo_resized"] = frame_times(page, test[0][0], size, args.frames)
                     screenshot(page, test[0][0], os.path.join(args.work, "screenshot.png"))
+            stage(f"browser, {bits}-bit bundle")
         if not args.skip_big:
             model, big_cams = big_model(args.big_surfels)
             big_dir = os.path.join(args.work, "web_big")
             b = write_web_bundle(model, big_dir, big_cams, texel_bits=8)
             del model
+            stage("big bundle written")
             info["big_bundle_8bit"] = {k: b[k] for k in ("num_surfels", "num_texels", "bytes_per_surfel",
                                                          "bytes_per_texel")}
             info["big_bundle_8bit"].update(atlas_fill=b["atlas"]["fill"], pages=len(b["atlas"]["pages"]),
@@ -335,11 +361,20 @@ def main() -> None:
                 t = time.time()
                 page = ViewerPage(browser, srv.url)
                 info["big_load_s"] = time.time() - t
-                info["frames_big"] = frame_times(page, 0, None, args.big_frames)
+                # tight quads vs bounds.h pixel boxes, interleaved (same image, fewer fragments)
+                tight, box = [], []
+                for _ in range(2):
+                    tight.append(frame_times(page, 0, None, args.big_frames))
+                    box.append(frame_times(page, 0, None, args.big_frames, tight=False))
+                info["frames_big"], info["frames_big_box"] = tight[0], box[0]
+                info["big_tight_vs_box_draw_ratio"] = [b["draw_ms_median"] / t["draw_ms_median"]
+                                                       for t, b in zip(tight, box)]
+                info["frames_big_repeat"] = tight[1]
+                stage("big model frame times")
     info["machine"]["loadavg_end"] = os.getloadavg()
     info["seconds"] = time.time() - t0
-    host = platform.node()
-    base = os.path.join(RESULTS, f"viewer_{host}{args.tag}")
+    if os.path.exists(base + ".partial.json"):
+        os.remove(base + ".partial.json")
     with open(base + ".json", "w") as f:
         json.dump(info, f, indent=1)
     shot = os.path.join(RESULTS, f"viewer_demo_screenshot{args.tag}.png")
@@ -381,6 +416,8 @@ def markdown(info: dict) -> str:
             ("demo", info["demo_bundle_8bit"], info["frames_demo_resized"])]
     if "frames_big" in info:
         rows.append(("synthetic ~200k", info["big_bundle_8bit"], info["frames_big"]))
+        rows.append(("synthetic ~200k (repeat)", info["big_bundle_8bit"], info["frames_big_repeat"]))
+        rows.append(("synthetic ~200k, pixel-box quads", info["big_bundle_8bit"], info["frames_big_box"]))
     for name, b, fr in rows:
         lines.append(f"| {name} | {b['num_surfels']:,} | {b['num_texels']:,} | {fr['width']}x{fr['height']} | "
                      f"{fr['frames']} | {fr['draw_ms_median']:.1f} ({fr['draw_ms_min']:.1f}-{fr['draw_ms_max']:.1f}) | "
@@ -393,6 +430,14 @@ def markdown(info: dict) -> str:
             fmt = "float16" if "16" in key else "snorm8"
             lines.append(f"| {name} | {fmt} | {b['bytes_per_surfel']:.1f} | {b['bytes_per_texel']:.2f} | "
                          f"{b['atlas_fill']:.3f} | {b['pages']} |")
+    if "tight_vs_box_max_diff_255" in info:
+        diffs = ", ".join(f"{k} {v:.0f}" for k, v in info["tight_vs_box_max_diff_255"].items())
+        lines += ["", f"Tight coverage quads vs bounds.h's pixel boxes on the demo test views, largest pixel "
+                      f"difference in 8-bit levels: {diffs}."]
+    if "big_tight_vs_box_draw_ratio" in info:
+        ratios = ", ".join(f"{r:.2f}" for r in info["big_tight_vs_box_draw_ratio"])
+        lines += ["", f"Tight quads vs bounds.h pixel boxes on the ~200k model, draw time ratio box / tight, two "
+                      f"interleaved rounds: {ratios} (the images are identical)."]
     if "big_load_s" in info:
         lines += ["", f"Loading the ~200k bundle (download from 127.0.0.1, uploads, shader compilation, first "
                       f"sort and draw) took {info['big_load_s']:.1f} s."]

@@ -139,6 +139,20 @@ def test_screenshot_is_the_canvas_not_the_page(page, demo):
         assert np.abs(shot[edge] - ref[edge]).mean() < 0.02
 
 
+def test_tight_quads_draw_exactly_the_image_of_bounds_h_pixel_boxes(page, demo):
+    # The tight coverage quads (and the near-plane clipped boxes) must lose no fragment that the
+    # conservative pixel boxes of the CPU tiler would draw: identical screenshots.
+    for i, cam in _test_cameras(demo["bundle"]):
+        page.fit_viewport(cam["width"], cam["height"])
+        tight = page.capture(i)
+        page.browser.evaluate("window.viewer.renderer.tightQuads = false")
+        try:
+            boxes = page.capture(i)
+        finally:
+            page.browser.evaluate("window.viewer.renderer.tightQuads = true")
+        assert np.array_equal(tight, boxes), f"{cam['name']}: max diff {np.abs(tight - boxes).max() * 255:.0f}/255"
+
+
 def test_controls_move_the_camera_and_a_camera_jump_restores_the_view(page, demo):
     browser = page.browser
     i, cam = _test_cameras(demo["bundle"])[0]

@@ -110,3 +110,25 @@ def test_view_port_in_use_is_a_user_error(bundle_dir):
         port = s.getsockname()[1]
         result = CliRunner().invoke(main, ["view", bundle_dir, "--no-browser", "--port", str(port)])
     assert result.exit_code == 2 and "cannot listen" in result.output and "--port" in result.output
+
+
+def test_export_format_web_writes_model_and_bundle_with_the_scene_cameras(tmp_path):
+    import torch
+
+    from ctgs.scene.demo import make_demo_scene
+
+    scene = make_demo_scene(str(tmp_path / "scene"), num_views=9, width=40, height=32, points=200, supersample=1)
+    run = tmp_path / "run"
+    run.mkdir()
+    model = textured_model(n=15)
+    torch.save({"model": model.state_dict(), "scene_dir": scene, "images": "images", "holdout": 8,
+                "iteration": 1, "config": {}}, str(run / "model.pt"))
+    result = CliRunner().invoke(main, ["export", str(run), "--format", "web", "--texel-bits", "16"])
+    assert result.exit_code == 0, result.output
+    bundle = json.load(open(run / "model" / "web" / "bundle.json"))
+    assert (run / "model" / "manifest.json").is_file()
+    assert bundle["num_surfels"] == 15 and bundle["atlas"]["texel_format"] == "float16"
+    assert [c["split"] for c in bundle["cameras"]].count("test") == 2 and len(bundle["cameras"]) == 9
+    assert {(c["width"], c["height"]) for c in bundle["cameras"]} == {(40, 32)}
+    result = CliRunner().invoke(main, ["export", str(run), "-o", str(tmp_path / "plain")])
+    assert result.exit_code == 0 and not (tmp_path / "plain" / "web").exists()

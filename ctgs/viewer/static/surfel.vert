@@ -23,7 +23,7 @@ uniform vec3 u_campos;        // camera centre, world
 uniform vec4 u_intr;          // fx, fy, cx, cy (pixels)
 uniform vec2 u_size;          // W, H (pixels)
 uniform float u_near;
-uniform bool u_tight;         // false: always bounds.h's pixel box (kept to measure what the tight quad saves)
+uniform bool u_tight;         // false: bounds.h's pixel boxes throughout (to measure what the tight quads save)
 
 layout(location = 0) in uint a_index;  // surfel to draw (instanced, back to front)
 
@@ -111,25 +111,50 @@ void main() {
   // rectangle (a convex quad: the plane's corners are all in front) grown by the fallback disc's radius
   // plus one pixel, i.e. each edge pushed out by `grow`; the projected centre lies inside the rectangle, so
   // the disc around it is covered too. Where that offset quad would be needle-like (near edge-on
-  // surfels), or a corner is behind the near plane, bounds.h's pixel box is used instead.
+  // surfels), the pixel box of bounds.h; where the rectangle crosses the near plane, the pixel box of
+  // the part in front (a hit with t >= near inside 3 sigma lies there; bounds.h takes the whole image).
   float r2 = sqrt(CUTOFF_RHO / FILTER_INV_SQUARE);
   float grow = r2 + 1.0;  // pixels
   vec2 lo = m - r2, hi = m + r2;
-  bool whole = false;
   vec3 a = 3.0 * g2.x * U, b = 3.0 * g2.y * V;
-  vec2 P[4];  // projected corners, index bit 0: +-u, bit 1: +-v
+  vec3 C[4];  // 3-sigma corners, camera space, index bit 0: +-u, bit 1: +-v
+  bool front = true, finite = true;
   for (int k = 0; k < 4; ++k) {
-    float su = (k & 1) != 0 ? 1.0 : -1.0, sv = (k & 2) != 0 ? 1.0 : -1.0;
-    vec3 c = mu + su * a + sv * b;
-    if (!(c.z >= u_near)) { whole = true; break; }
-    P[k] = vec2(fx * c.x / c.z + cx, fy * c.y / c.z + cy);
-    lo = min(lo, P[k]);
-    hi = max(hi, P[k]);
+    C[k] = mu + ((k & 1) != 0 ? a : -a) + ((k & 2) != 0 ? b : -b);
+    front = front && C[k].z >= u_near;
+    finite = finite && !any(isnan(C[k])) && !any(isinf(C[k]));
+  }
+  bool whole = !finite || (!front && !u_tight);  // u_tight false: exactly bounds.h
+  vec2 P[4];  // projected corners (when all are in front)
+  if (front && finite) {
+    for (int k = 0; k < 4; ++k) {
+      P[k] = vec2(fx * C[k].x / C[k].z + cx, fy * C[k].y / C[k].z + cy);
+      lo = min(lo, P[k]);
+      hi = max(hi, P[k]);
+    }
+  } else if (finite) {  // clip the rectangle (ring -u-v, +u-v, +u+v, -u+v) to z >= near
+    const int ring[4] = int[4](0, 1, 3, 2);
+    for (int e = 0; e < 4; ++e) {
+      vec3 p = C[ring[e]], q = C[ring[(e + 1) & 3]];
+      bool pin = p.z >= u_near, qin = q.z >= u_near;
+      if (pin) {
+        vec2 s = vec2(fx * p.x / p.z + cx, fy * p.y / p.z + cy);
+        lo = min(lo, s);
+        hi = max(hi, s);
+      }
+      if (pin != qin) {
+        vec3 x = mix(p, q, (u_near - p.z) / (q.z - p.z));
+        x.z = max(x.z, u_near);
+        vec2 s = vec2(fx * x.x / x.z + cx, fy * x.y / x.z + cy);
+        lo = min(lo, s);
+        hi = max(hi, s);
+      }
+    }
   }
   if (!whole && (hi.x < 0.0 || hi.y < 0.0 || lo.x > u_size.x || lo.y > u_size.y)) { cull(); return; }
   // Offset corner k = P[k] + grow (n1 + n2) / (1 + n1.n2), n1, n2 the outward unit normals of its edges.
   vec2 grown[4];
-  bool tight = u_tight && !whole;
+  bool tight = u_tight && front && finite;
   for (int k = 0; k < 4 && tight; ++k) {
     vec2 e1 = P[k ^ 1] - P[k], e2 = P[k ^ 2] - P[k];
     float l1 = length(e1), l2 = length(e2);

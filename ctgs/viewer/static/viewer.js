@@ -223,23 +223,35 @@ class Viewer {
       webgl2: true};
   }
 
-  // Render recorded camera i exactly (its image size and intrinsics; or resized to size = [W, H], the
-  // intrinsics scaled with it), wait until the GPU is done, and return the canvas rectangle in CSS
-  // pixels for a screenshot.
-  async show({camera, textures = true, size = null}) {
+  // Render recorded camera i exactly (fit: its image size and intrinsics, or resized to size = [W, H]
+  // with the intrinsics scaled; fit = false: the view's size), wait until the GPU is done, and return
+  // the canvas rectangle in CSS pixels for a screenshot.
+  async show({camera, textures = true, size = null, fit = true}) {
     await this.ready;
+    const held = this.holdLoop;
+    this.holdLoop = true;  // no animation-frame draw meanwhile: it would queue ahead of ours
+    try {
+      return await this.showHeld({camera, textures, size, fit});
+    } finally {
+      this.holdLoop = held;
+    }
+  }
+
+  async showHeld({camera, textures, size, fit}) {
     this.textures = textures;
     $("textures").checked = textures;
-    this.fit = true;
-    $("fit").checked = true;
+    this.fit = fit;
+    $("fit").checked = fit;
     this.setCamera(camera);
     if (size) {
       const c = this.refCam, sx = size[0] / c.width, sy = size[1] / c.height;
       this.refCam = {...c, fx: c.fx * sx, fy: c.fy * sy, cx: c.cx * sx, cy: c.cy * sy, width: size[0], height: size[1]};
     }
     await this.waitSorted(this.key(this.currentCam()));
+    const t0 = performance.now();
     const cam = this.drawNow();
     this.renderer.finish();
+    this.readout.frame = performance.now() - t0;
     this.dirty = false;
     const r = $("canvas").getBoundingClientRect();
     return {x: r.x, y: r.y, width: r.width, height: r.height, imageWidth: cam.width, imageHeight: cam.height,
