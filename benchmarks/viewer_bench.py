@@ -46,7 +46,8 @@ DEMO_SCENE = dict(num_views=24, width=96, height=72, points=1500)
 # Mip-NeRF 360 (46.6M texels / 218K points): the big model draws each surfel's count uniformly from
 # [30, 400] (mean 215).
 BIG_TEXELS = (30, 400)
-SCREENSHOT_VIEW = (640, 480)  # CSS pixels of the image area in the committed screenshot
+SCREENSHOT_VIEW = (640, 480)
+COVERAGE_SIZE = (320, 240)  # demo image size for the coverage-quad timing (96x72 is too small to tell)  # CSS pixels of the image area in the committed screenshot
 
 
 def psnr(a, b) -> float:
@@ -263,6 +264,18 @@ def tight_vs_box(page: ViewerPage, cams: list[tuple[int, dict]]) -> dict:
     return out
 
 
+def coverage_ratio(page: ViewerPage, camera: int, size, rounds: int, frames: int) -> dict:
+    """Draw time with bounds.h's pixel boxes / with the tight quads, `rounds` interleaved runs of
+    `frames` frames each (side by side, so machine load affects both alike); the images are identical."""
+    tight, box = [], []
+    for _ in range(rounds):
+        tight.append(frame_times(page, camera, size, frames)["draw_ms_median"])
+        box.append(frame_times(page, camera, size, frames, tight=False)["draw_ms_median"])
+    return {"size": list(size) if size else None, "tight_ms": tight, "box_ms": box,
+            "ratio_per_round": [b / t for t, b in zip(tight, box)],
+            "ratio_of_medians": float(np.median(box) / np.median(tight))}
+
+
 def frame_times(page: ViewerPage, camera: int, size: tuple[int, int] | None, frames: int, tight: bool = True) -> dict:
     if size:
         page.fit_viewport(*size)
@@ -345,6 +358,7 @@ def main() -> None:
                     info["tight_vs_box_max_diff_255"] = tight_vs_box(page, test)
                     info["frames_demo_image_size"] = frame_times(page, test[0][0], None, args.frames)
                     info["frames_demo_resized"] = frame_times(page, test[0][0], size, args.frames)
+                    info["demo_tight_vs_box"] = coverage_ratio(page, test[0][0], COVERAGE_SIZE, 3, 3)
                     screenshot(page, test[0][0], os.path.join(args.work, "screenshot.png"))
             stage(f"browser, {bits}-bit bundle")
         if not args.skip_big:
@@ -361,15 +375,8 @@ def main() -> None:
                 t = time.time()
                 page = ViewerPage(browser, srv.url)
                 info["big_load_s"] = time.time() - t
-                # tight quads vs bounds.h pixel boxes, interleaved (same image, fewer fragments)
-                tight, box = [], []
-                for _ in range(2):
-                    tight.append(frame_times(page, 0, None, args.big_frames))
-                    box.append(frame_times(page, 0, None, args.big_frames, tight=False))
-                info["frames_big"], info["frames_big_box"] = tight[0], box[0]
-                info["big_tight_vs_box_draw_ratio"] = [b["draw_ms_median"] / t["draw_ms_median"]
-                                                       for t, b in zip(tight, box)]
-                info["frames_big_repeat"] = tight[1]
+                info["frames_big"] = frame_times(page, 0, None, args.big_frames)
+                info["big_tight_vs_box"] = coverage_ratio(page, 0, None, 2, args.big_frames)
                 stage("big model frame times")
     info["machine"]["loadavg_end"] = os.getloadavg()
     info["seconds"] = time.time() - t0
@@ -416,8 +423,6 @@ def markdown(info: dict) -> str:
             ("demo", info["demo_bundle_8bit"], info["frames_demo_resized"])]
     if "frames_big" in info:
         rows.append(("synthetic ~200k", info["big_bundle_8bit"], info["frames_big"]))
-        rows.append(("synthetic ~200k (repeat)", info["big_bundle_8bit"], info["frames_big_repeat"]))
-        rows.append(("synthetic ~200k, pixel-box quads", info["big_bundle_8bit"], info["frames_big_box"]))
     for name, b, fr in rows:
         lines.append(f"| {name} | {b['num_surfels']:,} | {b['num_texels']:,} | {fr['width']}x{fr['height']} | "
                      f"{fr['frames']} | {fr['draw_ms_median']:.1f} ({fr['draw_ms_min']:.1f}-{fr['draw_ms_max']:.1f}) | "
@@ -434,10 +439,14 @@ def markdown(info: dict) -> str:
         diffs = ", ".join(f"{k} {v:.0f}" for k, v in info["tight_vs_box_max_diff_255"].items())
         lines += ["", f"Tight coverage quads vs bounds.h's pixel boxes on the demo test views, largest pixel "
                       f"difference in 8-bit levels: {diffs}."]
-    if "big_tight_vs_box_draw_ratio" in info:
-        ratios = ", ".join(f"{r:.2f}" for r in info["big_tight_vs_box_draw_ratio"])
-        lines += ["", f"Tight quads vs bounds.h pixel boxes on the ~200k model, draw time ratio box / tight, two "
-                      f"interleaved rounds: {ratios} (the images are identical)."]
+    for label, key in (("demo", "demo_tight_vs_box"), ("synthetic ~200k", "big_tight_vs_box")):
+        if key in info:
+            c = info[key]
+            where = f"{c['size'][0]}x{c['size'][1]}" if c["size"] else "its camera's size"
+            lines += ["", f"Coverage quads, {label} at {where}: draw time with bounds.h's pixel boxes / with the tight "
+                          f"quads, interleaved rounds: {', '.join(f'{r:.2f}' for r in c['ratio_per_round'])} "
+                          f"(ratio of medians {c['ratio_of_medians']:.2f}; tight ms {[round(t) for t in c['tight_ms']]}, "
+                          f"box ms {[round(b) for b in c['box_ms']]})."]
     if "big_load_s" in info:
         lines += ["", f"Loading the ~200k bundle (download from 127.0.0.1, uploads, shader compilation, first "
                       f"sort and draw) took {info['big_load_s']:.1f} s."]

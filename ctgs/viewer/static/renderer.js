@@ -54,7 +54,6 @@ export class Renderer {
     if (cbf && fblend && accum !== "RGBA16F") this.accumFormat = {internal: gl.RGBA32F, type: gl.FLOAT, name: "RGBA32F"};
     else if (cbf || cbh) this.accumFormat = {internal: gl.RGBA16F, type: gl.HALF_FLOAT, name: "RGBA16F"};
     else this.accumFormat = {internal: gl.RGBA8, type: gl.UNSIGNED_BYTE, name: "RGBA8"};
-    this.timerExt = gl.getExtension("EXT_disjoint_timer_query_webgl2");
     this.count = 0;
     this.accum = null;
     this.tightQuads = true;  // coverage quads: projected 3-sigma rectangle grown by the fallback radius

@@ -28,7 +28,7 @@ class Viewer {
     this.sortInFlight = null;  // {id, key}
     this.sortedKey = null;
     this.sortWaiters = [];
-    this.readout = {frame: null, gpu: null, sort: null};
+    this.readout = {frame: null, sort: null};  // ms
     this.pendingFences = [];
     this.ready = this.start().catch((err) => { this.fail(err); throw err; });
   }
