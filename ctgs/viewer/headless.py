@@ -196,6 +196,26 @@ class Browser:
         return [" ".join(str(a.get("value", a.get("description", ""))) for a in ev["params"].get("args", []))
                 for ev in self._events if ev["method"] == "Runtime.consoleAPICalled"]
 
+    def cpu_seconds(self) -> float:
+        """CPU time (user + system) used so far by this browser's processes still alive (Linux /proc).
+
+        With software GL the GPU process's CPU time is the rendering work itself: unlike wall time, it
+        hardly depends on what else the machine runs, so it compares settings fairly on a busy machine.
+        """
+        ticks = os.sysconf("SC_CLK_TCK")
+        total = 0
+        for entry in os.listdir("/proc"):
+            if not entry.isdigit():
+                continue
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[3]) == self.proc.pid:  # session id (the browser leads its own session)
+                total += int(fields[11]) + int(fields[12])  # utime, stime
+        return total / ticks
+
     def log_tail(self, n: int = 2000) -> str:
         try:
             self._log.flush()
