@@ -6,7 +6,7 @@ Usage: .venv/bin/python benchmarks/viewer_bench.py [--run RUN_DIR] [--work /tmp/
        [--frames 20] [--big-surfels 200000] [--size 1280x720] [--skip-big]
 
 Without --run it trains the demo model of `make demo` (96x72 demo scene, 24 views, 1500 points,
-configs/demo.toml, 3000 iterations, seed 0; ~7 min on one thread). The ~200k-surfel model is synthetic
+preset `fast`: 3000 iterations, seed 0; ~7 min on one idle thread). The ~200k-surfel model is synthetic
 (`big_model`): object-centric like the paper's Mip-NeRF 360 captures, texel counts like the paper's.
 Software GL only (SwiftShader) unless --gpu (Chromium with ANGLE on Vulkan; label the results).
 """
@@ -82,8 +82,8 @@ def demo_run(work: str, run: str | None) -> str:
     scene = make_demo_scene(os.path.join(work, "scene"), **DEMO_SCENE)
     run = os.path.join(work, "run")
     if not os.path.isfile(os.path.join(run, "model.pt")):
-        subprocess.run([sys.executable, "-m", "ctgs", "train", scene, "-o", run, "--config",
-                        os.path.join(REPO, "configs", "demo.toml"), "--seed", "0", "-q"], check=True)
+        subprocess.run([sys.executable, "-m", "ctgs", "train", scene, "-o", run, "--preset", "fast", "--set",
+                        "threads=1", "--seed", "0", "-q"], check=True)
     return run
 
 
@@ -269,6 +269,7 @@ def coverage_ratio(page: ViewerPage, camera: int, size, rounds: int, frames: int
     browser CPU time per frame (software GL: the rendering itself; fair on a busy machine, unlike wall
     time), `rounds` interleaved runs of `frames` frames each."""
     tight, box = [], []
+    frame_times(page, camera, size, 1)  # warm-up: buffers for the new size, shader variants
     for _ in range(rounds):
         tight.append(frame_times(page, camera, size, frames)["cpu_ms_per_frame"])
         box.append(frame_times(page, camera, size, frames, tight=False)["cpu_ms_per_frame"])
@@ -404,7 +405,7 @@ def markdown(info: dict) -> str:
              f"({m['cpu']}, {m['cores']} cores, load average {m['loadavg_start'][0]:.1f} at start, "
              f"{m['loadavg_end'][0]:.1f} at end), {m['chromium']}, WebGL2 renderer: {info['gl_renderer']}, "
              f"accumulation buffer {info['accumulation']}.", "",
-             "Demo model: `make demo`'s (96x72 demo scene, 24 views, every 8th a test view, configs/demo.toml, "
+             "Demo model: `make demo`'s (96x72 demo scene, 24 views, every 8th a test view, preset `fast`, "
              "3000 iterations, seed 0). Images are compared as the 8-bit PNGs both sides produce.", "",
              "## Browser vs `ctgs render`, per test view (PSNR, dB)", "",
              "| view | 8-bit texels, textures on | 8-bit, textures off | 16-bit texels, textures on | 16-bit, off "

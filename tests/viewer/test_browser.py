@@ -1,6 +1,6 @@
 """The viewer in a real browser (headless Chromium, software WebGL2) against `ctgs render`, pixel by pixel.
 
-A tiny demo model is trained here (300 iterations of configs/demo.toml on a 96x72 demo scene, ~30 s),
+A tiny demo model is trained here (300 iterations of the `fast` preset on a 96x72 demo scene, ~30 s),
 exported with `ctgs export --format web`, rendered with `ctgs render`, opened in the viewer, and every
 test camera is compared at its image size, with textures on and off.
 """
@@ -8,7 +8,6 @@ test camera is compared at its image size, with textures on and off.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,7 +26,6 @@ pytestmark = pytest.mark.skipif(
     find_chromium() is None,
     reason="no Chromium to drive (Debian: apt-get install -y chromium, which .ci/run does; or set CTGS_CHROMIUM)")
 
-REPO = Path(__file__).resolve().parents[2]
 # The issue's goal for browser vs `ctgs render`, per view, textures on and off.
 MIN_VIEW_PSNR = 35.0
 # Textures on vs off must differ by more than a render mismatch could hide: the toggle test is only
@@ -52,8 +50,8 @@ def demo(tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("viewer_demo")
     scene, run, out = str(root / "scene"), str(root / "run"), str(root / "render")
     _cli("demo-scene", scene, *DEMO_SCENE)
-    _cli("train", scene, "-o", run, "--config", str(REPO / "configs" / "demo.toml"), "--iterations",
-         DEMO_ITERATIONS, "-q", "--set", "threads=1")
+    _cli("train", scene, "-o", run, "--preset", "fast", "--iterations", DEMO_ITERATIONS, "-q",
+         "--set", "threads=1")
     _cli("export", run, "--format", "web")
     _cli("render", run, "-o", out)
     # Textures off: the same renderer with every texture dropped, through the same PNG path.

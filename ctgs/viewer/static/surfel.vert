@@ -111,8 +111,9 @@ void main() {
   // rectangle (a convex quad: the plane's corners are all in front) grown by the fallback disc's radius
   // plus one pixel, i.e. each edge pushed out by `grow`; the projected centre lies inside the rectangle, so
   // the disc around it is covered too. Where that offset quad would be needle-like (near edge-on
-  // surfels), the pixel box of bounds.h; where the rectangle crosses the near plane, the pixel box of
-  // the part in front (a hit with t >= near inside 3 sigma lies there; bounds.h takes the whole image).
+  // surfels) or larger than it (small surfels), the pixel box of bounds.h; where the rectangle crosses
+  // the near plane, the pixel box of the part in front (a hit with t >= near inside 3 sigma lies there;
+  // bounds.h takes the whole image).
   float r2 = sqrt(CUTOFF_RHO / FILTER_INV_SQUARE);
   float grow = r2 + 1.0;  // pixels
   vec2 lo = m - r2, hi = m + r2;
@@ -165,6 +166,12 @@ void main() {
     float den = 1.0 + dot(n1, n2);  // 1 - cos(interior angle)
     if (!(den > 0.1)) { tight = false; break; }  // interior angle under ~25 degrees
     grown[k] = P[k] + grow * (n1 + n2) / den;
+  }
+  if (tight) {  // whichever covers fewer pixels: small surfels' margins make the offset quad the larger
+    vec2 d1 = grown[3] - grown[0], d2 = grown[2] - grown[1];  // the diagonals (ring 0, 1, 3, 2)
+    float quad = 0.5 * abs(d1.x * d2.y - d1.y * d2.x);
+    vec2 box = ceil(hi) + 2.0 - (floor(lo) - 1.0);
+    tight = quad < box.x * box.y;
   }
   int vid = gl_VertexID;  // triangle strip: (0,0) (1,0) (0,1) (1,1), i.e. corners -u-v, +u-v, -u+v, +u+v
   vec2 pix;
