@@ -55,6 +55,22 @@ def psnr(a, b) -> float:
     return math.inf if mse == 0 else -10 * math.log10(mse)
 
 
+def db(v) -> str:
+    """A PSNR for the tables: identical images (inf, stored as "inf" in the JSON) say so."""
+    return "identical" if v in ("inf", math.inf) else f"{v:.2f}"
+
+
+def json_safe(x):
+    """inf -> "inf" (JSON has no infinity)."""
+    if isinstance(x, float) and math.isinf(x):
+        return "inf"
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    return x
+
+
 def quantise(rgb: torch.Tensor) -> np.ndarray:
     """Float image -> what a PNG written by `ctgs render` reads back as (8 bits, round to nearest)."""
     return np.round(rgb.clamp(0, 1).double().cpu().numpy() * 255) / 255
@@ -329,7 +345,7 @@ def main() -> None:
         info.setdefault("stage_seconds", {})[name] = round(time.time() - t0, 1)
         print(f"[{time.time() - t0:7.1f} s] {name}", flush=True)
         with open(base + ".partial.json", "w") as f:
-            json.dump(info, f, indent=1)
+            json.dump(json_safe(info), f, indent=1)
 
     run = demo_run(args.work, args.run)
     r = load_run(run)
@@ -390,7 +406,7 @@ def main() -> None:
     if os.path.exists(base + ".partial.json"):
         os.remove(base + ".partial.json")
     with open(base + ".json", "w") as f:
-        json.dump(info, f, indent=1)
+        json.dump(json_safe(info), f, indent=1)
     shot = os.path.join(RESULTS, f"viewer_demo_screenshot{args.tag}.png")
     shutil.copyfile(os.path.join(args.work, "screenshot.png"), shot)
     with open(base + ".md", "w") as f:
@@ -411,9 +427,9 @@ def markdown(info: dict) -> str:
              "| view | 8-bit texels, textures on | 8-bit, textures off | 16-bit texels, textures on | 16-bit, off "
              "| (ctgs render: textures on vs off) |", "| --- | --- | --- | --- | --- | --- |"]
     for name in info["psnr_8bit_on"]:
-        lines.append(f"| {name} | {info['psnr_8bit_on'][name]:.2f} | {info['psnr_8bit_off'][name]:.2f} | "
-                     f"{info['psnr_16bit_on'][name]:.2f} | {info['psnr_16bit_off'][name]:.2f} | "
-                     f"{info['textures_on_vs_off'][name]:.2f} |")
+        lines.append(f"| {name} | {db(info['psnr_8bit_on'][name])} | {db(info['psnr_8bit_off'][name])} | "
+                     f"{db(info['psnr_16bit_on'][name])} | {db(info['psnr_16bit_off'][name])} | "
+                     f"{db(info['textures_on_vs_off'][name])} |")
     lines += ["", "## Where the difference comes from (CPU-side, PSNR vs the `ctgs render` image, dB)", "",
               "texel precision: the CPU renderer on the bundle's stored texels; blend-all: the reference renderer "
               "without the T < 1e-4 early stop (what the browser's rasteriser does; same depth order), beside the "
@@ -421,8 +437,8 @@ def markdown(info: dict) -> str:
               "| view | 8-bit texels | 16-bit texels | reference, blend-all | reference, with stop |",
               "| --- | --- | --- | --- | --- |"]
     for name, row in info["decomposition"].items():
-        lines.append(f"| {name} | {row['texels_8bit']:.2f} | {row['texels_16bit']:.2f} | "
-                     f"{row['reference_blend_all']:.2f} | {row['reference_with_stop']:.2f} |")
+        lines.append(f"| {name} | {db(row['texels_8bit'])} | {db(row['texels_16bit'])} | "
+                     f"{db(row['reference_blend_all'])} | {db(row['reference_with_stop'])} |")
     lines += ["", "## Frame times (an orbit of N frames)", "",
               "draw: wall clock from issuing a frame to GPU completion (forced by a one-pixel read back), median "
               "and range; with software GL it grows with the machine's load (see the load averages above). "
@@ -469,4 +485,12 @@ def markdown(info: dict) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:2] == ["--table-only"]:  # rebuild the .md from a results JSON: --table-only FILE.json
+        with open(sys.argv[2]) as fh:
+            info = json_safe(json.load(fh))
+        with open(sys.argv[2], "w") as fh:
+            json.dump(info, fh, indent=1)
+        with open(sys.argv[2][:-len(".json")] + ".md", "w") as fh:
+            fh.write(markdown(info))
+    else:
+        main()
