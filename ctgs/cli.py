@@ -24,6 +24,7 @@ STAGES: dict[str, tuple[str, str]] = {
     "demo-scene": ("ctgs.stages.demo_scene", "Generate the built-in synthetic demo scene (COLMAP layout)."),
     "fetch": ("ctgs.stages.fetch", "Download and extract a benchmark dataset listed in data_manifests/."),
     "render": ("ctgs.stages.render", "Render a scene's cameras with a model (or demo primitives)."),
+    "view": ("ctgs.stages.view", "Web viewer (WebGL2) of a model on 127.0.0.1, textures included."),
 }
 
 

@@ -2,7 +2,8 @@
 
 Formats (docs/model_format.md): `ctgs` (default, lossless: primitives.ply + textures.bin + manifest.json,
 plus plain_3dgs.ply), `ply` (3DGS PLY for Gaussian viewers), `splat` (32 bytes per splat, web viewers),
-`glb` (textured quads for Blender and three.js). Adding a format is one entry in FORMATS.
+`glb` (textured quads for Blender and three.js), `web` (the ctgs folder plus the bundle `ctgs view`
+serves, in its web/ subfolder). Adding a format is one entry in FORMATS.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ class Export:
     out: str
     source: dict
     plain_ply: bool
+    texel_bits: int = 8  # web: bits per texel channel in the atlas
 
 
 def _ctgs(e: Export) -> str:
@@ -53,6 +55,18 @@ def _glb(e: Export) -> str:
     return f"{e.model.num_primitives} textured quads, {write_glb(e.model, e.out) / 1e6:.3f} MB"
 
 
+def _web(e: Export) -> str:
+    from ctgs.io.web_bundle import WEB_SUBDIR, scene_cameras, write_web_bundle
+
+    summary = _ctgs(e)
+    scene = e.source.get("scene_dir")
+    cameras = scene_cameras(scene, e.source.get("images", "images"), int(e.source.get("holdout", 8))) \
+        if scene and os.path.isdir(scene) else []
+    web = write_web_bundle(e.model, os.path.join(e.out, WEB_SUBDIR), cameras, texel_bits=e.texel_bits)
+    return (f"{summary}; {WEB_SUBDIR}/: web bundle, {web['bytes_per_surfel']:.0f} B/surfel, "
+            f"{web['bytes_per_texel']:.2f} B/texel, {len(cameras)} cameras (`ctgs view {e.out}`)")
+
+
 @dataclass(frozen=True)
 class Format:
     write: Callable[[Export], str]  # writes e.out, returns a one-line summary
@@ -66,6 +80,7 @@ FORMATS: dict[str, Format] = {
     "splat": Format(_splat, ".splat", ".splat, 32 bytes per splat, for web viewers (DC colour, 8-bit opacity "
                                       "and rotation)"),
     "glb": Format(_glb, ".glb", "glTF binary, one textured quad per surfel (Blender, three.js)"),
+    "web": Format(_web, "", "the ctgs folder plus web/, the bundle `ctgs view` serves (WebGL2, textures kept)"),
 }
 
 
@@ -100,15 +115,18 @@ def default_out(source: str, fmt: str) -> str:
               help="; ".join(f"{name}: {f.help}" for name, f in FORMATS.items()) + ".")
 @click.option("--plain-ply/--no-plain-ply", default=True, show_default=True,
               help="With --format ctgs: also write plain_3dgs.ply into the folder.")
-def command(source: str, out: str | None, fmt: str, plain_ply: bool) -> None:
+@click.option("--texel-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
+              help="With --format web: bits per texel channel in the atlas (8: signed bytes, 16: half floats).")
+def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits: str) -> None:
     """Write RUN_DIR's model (or a model folder's, e.g. a compressed one) in the chosen format."""
     model, info = load_source(source)
     out = out or default_out(source, fmt)
-    if fmt != "ctgs" and os.path.isdir(out):
+    if FORMATS[fmt].suffix and os.path.isdir(out):  # formats with a suffix write one file
         from ctgs.errors import UserError
 
         raise UserError(f"{out}: is a folder; --format {fmt} writes one file, pass a file name with -o")
     parent = os.path.dirname(os.path.abspath(out))
     os.makedirs(parent, exist_ok=True)
-    summary = FORMATS[fmt].write(Export(model=model, out=out, source=info, plain_ply=plain_ply))
+    summary = FORMATS[fmt].write(Export(model=model, out=out, source=info, plain_ply=plain_ply,
+                                        texel_bits=int(texel_bits)))
     click.echo(f"{out}: {summary}")
