@@ -13,7 +13,7 @@ import pytest
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.train.allocation import texel_density_by_kind
-from ctgs.train.run import load_run
+from ctgs.io.run_model import load_run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CFG = os.path.join(ROOT, "configs")
@@ -53,7 +53,7 @@ def test_content_aware_allocation(runs):
     meta = json.load(open(os.path.join(scene, "demo_meta.json")))
     ratios = []
     for run in ("default", "default_seed1"):
-        model, _ = load_run(str(root / run))
+        model = load_run(str(root / run)).model
         density = texel_density_by_kind(model, meta)
         assert density["flat"] > 0 and density["photo"] > 0, density
         ratios.append(density["photo"] / density["flat"])

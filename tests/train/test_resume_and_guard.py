@@ -14,7 +14,7 @@ import torch
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.train.events import Checkpoint
-from ctgs.train.run import load_run
+from ctgs.io.run_model import load_run
 from ctgs.train.trainer import Trainer, TrainingDiverged
 from ctgs.stages.train import resolve_config, _load_scene
 from ctgs.errors import UserError
@@ -62,10 +62,9 @@ def test_resume_after_interruption_matches(scene, reference_run, tmp_path):
     gen.close()
     assert not os.path.exists(os.path.join(run, "model.pt"))
     train_main(scene, run, resume=True, quiet=True)
-    a, info = load_run(run)
-    b, _ = load_run(reference_run)
-    assert info["iteration"] == 60
-    _same_models(a, b)
+    a, b = load_run(run), load_run(reference_run)
+    assert a.iteration == 60
+    _same_models(a.model, b.model)
     lines = open(os.path.join(run, "log.jsonl")).read().splitlines()
     ref = open(os.path.join(reference_run, "log.jsonl")).read().splitlines()
     assert len(lines) == len(ref)
@@ -87,7 +86,7 @@ def test_resume_after_kill_9(scene, reference_run, tmp_path):
     assert os.path.exists(ckpt) and not os.path.exists(os.path.join(run, "model.pt"))
     r = subprocess.run(args + ["--resume"], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    _same_models(load_run(run)[0], load_run(reference_run)[0])
+    _same_models(load_run(run).model, load_run(reference_run).model)
 
 
 def test_nan_guard_stops_and_keeps_last_checkpoint(scene, tmp_path):
@@ -95,7 +94,7 @@ def test_nan_guard_stops_and_keeps_last_checkpoint(scene, tmp_path):
     with pytest.raises(TrainingDiverged, match=r"NaN/Inf in loss at iteration 35.*iteration 30"):
         train_main(scene, run, preset="fast", sets=SETS + ("debug_nan_at=35",), quiet=True)
     assert not os.path.exists(os.path.join(run, "model.pt"))
-    with pytest.raises(UserError, match="no model.pt"):
+    with pytest.raises(UserError, match="no finished model"):
         load_run(run)
     state = torch.load(os.path.join(run, "checkpoints", "last.pt"), weights_only=False)
     assert state["iteration"] == 30
