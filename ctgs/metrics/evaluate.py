@@ -37,17 +37,9 @@ class EvalOptions:
 
 
 def _render_fn(backend: str):
-    try:
-        from ctgs.render import render
+    from ctgs.render import render
 
-        import ctgs.render.api  # noqa: F401  (present once the backends land)
-        return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg).rgb
-    except ModuleNotFoundError:
-        if backend not in ("reference", "auto"):
-            raise UserError(f"backend {backend!r}: renderer API not available in this build; use --backend reference")
-        from ctgs.render.reference import render_reference
-
-        return lambda inputs, cam, deg: render_reference(inputs, cam, sh_degree=deg).rgb
+    return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg).rgb
 
 
 def _sync(device: torch.device) -> None:
