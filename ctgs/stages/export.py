@@ -9,7 +9,7 @@ import click
 
 @click.command(name="export")
 @click.argument("run_dir", type=click.Path(file_okay=False))
-@click.option("-o", "--out", "out_dir", default=None, type=click.Path(file_okay=False),
+@click.option("-o", "--output", "out_dir", default=None, type=click.Path(file_okay=False),
               help="Model folder to write (default RUN_DIR/model); replaced atomically.")
 @click.option("--plain-ply/--no-plain-ply", default=True, show_default=True,
               help="Also write plain_3dgs.ply, an untextured approximation for existing 3DGS viewers.")

@@ -9,7 +9,7 @@ import click
 
 @click.command(name="render")
 @click.argument("run_dir", type=click.Path(file_okay=False))
-@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+@click.option("-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Folder for the rendered PNGs (created; files named after the views).")
 @click.option("--backend", type=click.Choice(["auto", "cpu", "cuda", "reference"]), default="auto",
               show_default=True, help="Renderer backend; `reference` is the slow pure-PyTorch one.")
