@@ -13,8 +13,10 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+
+from ctgs.errors import UserError
 
 TMP_TAG = ".tmp-"  # every temporary name is ".<final name>.tmp-<random>": hidden, and says what it was for
 # mkstemp/mkdtemp create private (0600/0700) entries; the results are ordinary output files and folders.
@@ -71,6 +73,19 @@ def torch_save(obj, path: str, *, fsync: bool = True) -> None:
 
     with atomic_path(path, fsync=fsync) as tmp, open(tmp, "wb") as fh:
         torch.save(obj, fh)
+
+
+def ensure_replaceable(out_dir: str, looks_ours: Callable[[list[str]], bool], what: str) -> None:
+    """UserError unless `out_dir` is absent, an empty folder, or a folder whose entry names `looks_ours`
+    accepts. Replacing a folder deletes it: only ever an earlier output of the same kind (never, say, the
+    run folder passed as -o by mistake)."""
+    if not os.path.lexists(out_dir):
+        return
+    if os.path.isdir(out_dir) and not os.path.islink(out_dir):
+        names = os.listdir(out_dir)
+        if not names or looks_ours(names):
+            return
+    raise UserError(f"{out_dir}: exists and is not {what}; choose another output folder (-o) or remove it")
 
 
 @contextmanager

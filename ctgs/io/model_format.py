@@ -86,10 +86,7 @@ def write_model(model: SurfelModel, out_dir: str, *, blob: TextureBlob | None = 
     plain_ply: also write the 3DGS-style approximation (ctgs.io.plain_ply).
     """
     model.validate()
-    if os.path.exists(out_dir) and not (os.path.isdir(out_dir) and (
-            not os.listdir(out_dir) or os.path.isfile(os.path.join(out_dir, MANIFEST)))):
-        # Replacing means deleting: only ever delete an earlier model folder (never, say, the run folder).
-        raise UserError(f"{out_dir}: exists and is not a ctgs model folder; choose another output folder")
+    atomic.ensure_replaceable(out_dir, lambda names: MANIFEST in names, "a ctgs model folder")
     if blob is None:
         blob = TextureBlob(_np(model.textures_raw))
     if blob.num_texels != model.num_texels:
