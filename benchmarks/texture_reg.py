@@ -8,8 +8,8 @@
 
 Usage: .venv/bin/python benchmarks/texture_reg.py [--variants centre rasterized transmittance] [--seeds 0 1]
        [--width 192 --height 144 --views 24 --points 3000] [--work /tmp/ctgs_texreg] [--table-only]
-configs/demo.toml, CPU backend, 1 thread per training; invocations with disjoint --variants/--seeds may run
-in parallel (the table is rebuilt from every run folder under --work).
+Preset `fast` (the CPU recipe), CPU backend, 1 thread per training; invocations with disjoint --variants /
+--seeds may run in parallel (the table is rebuilt from every run folder under --work).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 VARIANTS = ("centre", "rasterized", "transmittance")
-CONFIG = "configs/demo.toml"
+PRESET = "fast"
 
 
 def centre_mask(model, camera):
@@ -52,9 +52,11 @@ def run_one(scene: str, run_dir: str, variant: str, seed: int, backend: str, set
     from ctgs.train.trainer import Trainer
 
     shutil.rmtree(run_dir, ignore_errors=True)
-    cfg = resolve_config(scene, run_dir, CONFIG, None, (f"seed={seed}", "threads=1", *sets), None, False, backend, None)
-    cfg.texture_reg_transmittance = variant == "transmittance"  # read by ctgs.train.loss with getattr
+    cfg = resolve_config(scene, run_dir, None, None, (f"seed={seed}", "threads=1", *sets), None, False, backend, None,
+                         preset=PRESET)
     trainer = Trainer(cfg, _load_scene(cfg), run_dir)
+    # Not a config key yet: set on the config the trainer resolved (ctgs.train.loss reads it with getattr).
+    trainer.cfg.texture_reg_transmittance = variant == "transmittance"
     write_config(run_dir, cfg.to_dict())
     kept = loss.rasterized_mask
     if variant == "centre":
@@ -98,6 +100,14 @@ def main() -> None:
     write_table(args)
 
 
+def _commit() -> str:
+    import subprocess
+
+    r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                       cwd=os.path.dirname(os.path.abspath(__file__)))
+    return r.stdout.strip() or "unknown"
+
+
 def write_table(args) -> None:
     rows = []
     for name in sorted(os.listdir(args.work)):
@@ -108,7 +118,7 @@ def write_table(args) -> None:
     rows.sort(key=lambda r: (r["seed"], VARIANTS.index(r["variant"])))
     host = platform.node()
     meta = {"scene": f"demo scene {args.width}x{args.height}, {args.views} views (every 8th test), {args.points} "
-                     "SfM points", "config": CONFIG, "backend": args.backend, "threads": 1, "host": host,
+                     "SfM points", "preset": PRESET, "commit": _commit(), "backend": args.backend, "threads": 1, "host": host,
             "machine": f"{platform.machine()}, {os.cpu_count()} cpus", "date": datetime.date.today().isoformat(), "extra_sets": args.sets,
             "command": "benchmarks/texture_reg.py " + " ".join(sys.argv[1:])}
     out = os.path.join("benchmarks", "results", f"texture_reg_{host}")
@@ -116,7 +126,8 @@ def write_table(args) -> None:
     with open(out + ".json", "w") as fh:
         json.dump({"meta": meta, "rows": rows}, fh, indent=1)
     lines = [f"# Texture regulariser forms ({meta['scene']})", "",
-             f"Written by benchmarks/texture_reg.py on {meta['date']} ({host}, {meta['machine']}); {CONFIG}, backend "
+             f"Written by benchmarks/texture_reg.py on {meta['date']} ({host}, {meta['machine']}, commit {meta['commit']}); "
+             f"preset {PRESET}, backend "
              f"{args.backend}, 1 thread per training, two trainings at a time. centre = texels of primitives whose "
              "centre projects into the image (before issue 17); rasterized = primitives the rasterizer keeps (the "
              "authors' release, now the default); transmittance = rasterized, L1 weighted by 1 - mean transmittance "
