@@ -128,7 +128,7 @@ def write_table(args) -> None:
     lines = [f"# Texture regulariser forms ({meta['scene']})", "",
              f"Written by benchmarks/texture_reg.py on {meta['date']} ({host}, {meta['machine']}, commit {meta['commit']}); "
              f"preset {PRESET}, backend "
-             f"{args.backend}, 1 thread per training, two trainings at a time. centre = texels of primitives whose "
+             f"{args.backend}, 1 thread per training (several in parallel on the 2 shared cores). centre = texels of primitives whose "
              "centre projects into the image (before issue 17); rasterized = primitives the rasterizer keeps (the "
              "authors' release, now the default); transmittance = rasterized, L1 weighted by 1 - mean transmittance "
              "(texture_reg_transmittance; one extra forward pass per iteration for the statistics, so its training "
