@@ -26,6 +26,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 # (routine_margin=0; split threshold 2 texels and texel exponents down to 0, so it splits and upscales),
 # texture reallocations every 10 (50 and 60 change the allocation). Log every step.
 ROUTINE_AT = 40
+CLOCK_FIELDS = ("seconds", "wall")  # time readings in log.jsonl: the only fields a resumed run may change
 SETS = ("iterations=60", "schedule_scale=0.04", "checkpoint_every=750", "backend='cpu'", "max_init_points=200",
         "threads=1", "routine_margin=0", "tau_tr_start=2.0", "tau_tr_end=2.0", "min_t2p_exp=0", "start_texels=4.0",
         "log_every=1")
@@ -56,10 +57,11 @@ def _same_models(a, b):
 
 
 def _log(run: str) -> list[dict]:
-    """log.jsonl without the wall-clock field."""
+    """log.jsonl without its clock readings."""
     rows = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
     for r in rows:
-        r.pop("seconds", None)
+        for clock in CLOCK_FIELDS:
+            r.pop(clock, None)
     return rows
 
 
