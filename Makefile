@@ -67,7 +67,7 @@ $(LPIPS_WEIGHTS): | $(STAMP)
 lpips-weights: $(LPIPS_WEIGHTS)
 
 $(RUNS)/%/model.pt: | $(STAMP)
-	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
+	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	scene=$(DATA_ROOT)/$$dataset/$*; \
 	test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; \
 	resume=$$(test -d $(RUNS)/$*/checkpoints && echo --resume); \
@@ -81,11 +81,11 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	$(CTGS) compress $*/model -o $*/model-compressed --codebook-size $(CODEBOOK)
 
 $(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
-	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
+	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --backend $(BACKEND)
 
 $(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json | $(LPIPS_WEIGHTS)
-	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
+	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model-compressed -o $(RUNS)/$*/eval-compressed \
 		--dataset $$dataset --backend $(BACKEND)
 

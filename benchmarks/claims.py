@@ -74,7 +74,7 @@ def main() -> int:
 
 def table_rows(work: str, scene: str) -> dict:
     from ctgs.train.allocation import allocation_measures
-    from ctgs.train.run import load_run
+    from ctgs.io.run_model import load_run
 
     meta = json.load(open(os.path.join(scene, "demo_meta.json")))
     rows = {}
@@ -82,7 +82,7 @@ def table_rows(work: str, scene: str) -> dict:
         path = os.path.join(work, name, "train_summary.json")
         if not os.path.exists(path):
             continue
-        model, _ = load_run(os.path.join(work, name))
+        model = load_run(os.path.join(work, name)).model
         rows[name] = {"summary": json.load(open(path)), "allocation": allocation_measures(model, meta)}
     return rows
 

@@ -94,9 +94,9 @@ def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
 
 def allocation(run: str, scene_dir: str) -> dict:
     from ctgs.train.allocation import allocation_measures
-    from ctgs.train.run import load_run
+    from ctgs.io.run_model import load_run
 
-    model, _ = load_run(run)
+    model = load_run(run).model
     meta = json.load(open(os.path.join(scene_dir, "demo_meta.json")))
     return allocation_measures(model, meta)["ratios"]
 

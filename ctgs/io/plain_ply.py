@@ -22,14 +22,13 @@ from ctgs.errors import UserError
 from ctgs.io.ply import read_ply, write_ply
 from ctgs.model.geometry import quat_to_rotmat, rotmat_to_quat
 from ctgs.model.surfels import SurfelModel
+from ctgs.render.constants import CUTOFF_RHO
 
 SH_C0 = 0.28209479177387814
 PLAIN_SH_COEFFS = 16  # degree 3: 1 DC + 15 rest per channel, what 3DGS viewers read
 # Third (normal-axis) scale relative to the smaller tangent scale: thin enough to look flat, large
 # enough that viewers inverting the 3D covariance stay finite in float32.
 FLAT_SCALE_RATIO = 1e-3
-# Texels further than this many standard deviations from the centre carry no weight (renderer cutoff).
-CUTOFF_SIGMA = 3.0
 
 
 def texture_means(model: SurfelModel) -> torch.Tensor:
@@ -49,7 +48,7 @@ def texture_means(model: SurfelModel) -> torch.Tensor:
     lx = (iu.double() - (res[prim, 0].double() - 1) / 2) * k[:, 0]
     ly = (iv.double() - (res[prim, 1].double() - 1) / 2) * k[:, 1]
     rho = (lx / scales[:, 0]) ** 2 + (ly / scales[:, 1]) ** 2
-    w = torch.exp(-0.5 * rho) * (rho <= CUTOFF_SIGMA**2)  # [T']
+    w = torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)  # renderer cutoff: no weight past 3 sigma  # [T']
     tex = model.textures.detach().double()[rows]  # [T', 3]
     wsum = torch.zeros(n, dtype=torch.float64).index_add_(0, prim, w)
     out.index_add_(0, prim, tex * w[:, None])

@@ -144,10 +144,3 @@ def load_cpu(verbose: bool = False) -> ModuleType:
         _cpu_module = jit_build("ctgs_cpu", CPU_SOURCES, what="CPU", fallback="reference", verbose=verbose,
                                 first_use="~1 min", extra_cflags=CPU_CFLAGS, extra_ldflags=CPU_LDFLAGS)
         return _cpu_module
-
-
-def load_cuda(verbose: bool = False) -> ModuleType:
-    """The compiled CUDA backend; built by ctgs.render._ext_cuda (only where a GPU is visible)."""
-    from ctgs.render._ext_cuda import load_cuda as _load_cuda
-
-    return _load_cuda(verbose)

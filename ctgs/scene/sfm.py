@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.images import image_info, list_images, read_image, resize_image, stderr_silenced, write_image
 from ctgs.scene.align import umeyama  # noqa: F401  (moved to ctgs.scene.align; kept importable from here)
 
@@ -108,8 +109,7 @@ def _done(work: str, step: str) -> bool:
 
 
 def _mark(work: str, step: str, seconds: float) -> None:
-    with open(os.path.join(work, f"{step}.done"), "w") as f:
-        f.write(f"{seconds:.3f}\n")
+    atomic.write_text(os.path.join(work, f"{step}.done"), f"{seconds:.3f}\n")
 
 
 def _invalidate_from(work: str, step: str) -> None:
@@ -141,8 +141,7 @@ def _prepare_work(work: str, fingerprint: dict, force: bool) -> None:
     else:
         shutil.rmtree(work, ignore_errors=True)
         os.makedirs(work)
-    with open(path, "w") as f:
-        json.dump(fingerprint, f)
+    atomic.write_json(path, fingerprint, indent=None)
 
 
 def _extract(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> None:
@@ -340,8 +339,7 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
             fn()
             _mark(work, step, time.perf_counter() - start)
         report = _report(work, images_dir, scene_dir, names, opts)
-        with open(os.path.join(work, "scene", REPORT_NAME), "w") as f:
-            json.dump(asdict(report), f, indent=1)
+        atomic.write_json(os.path.join(work, "scene", REPORT_NAME), asdict(report), indent=1)
         _install(os.path.join(work, "scene"), scene_dir)
     except UserError:
         shutil.rmtree(work, ignore_errors=True)  # the same input would fail the same way: nothing to resume

@@ -109,7 +109,7 @@ def default_out(source: str, fmt: str) -> str:
 
 @click.command(name="export")
 @click.argument("source", metavar="RUN_DIR", type=click.Path(file_okay=False))
-@click.option("-o", "--out", "out", default=None, type=click.Path(),
+@click.option("-o", "--output", "out", default=None, type=click.Path(),
               help="Output (default RUN_DIR/model for ctgs, RUN_DIR/model.<format> otherwise); replaced atomically.")
 @click.option("--format", "fmt", type=click.Choice(list(FORMATS)), default="ctgs", show_default=True,
               help="; ".join(f"{name}: {f.help}" for name, f in FORMATS.items()) + ".")

@@ -74,6 +74,8 @@ class TrainConfig:
     lambda_ssim: float = _f(0.2, "weight of 1 - SSIM (L1 gets 1 - this)")
     lambda_opacity: float = _f(0.01, "opacity regulariser weight on mean(opacity)")
     lambda_texture: float = _f(1e-8, "texture sparsity weight on sum |texel| of visible primitives")
+    texture_reg_transmittance: bool = _f(False, "weight each primitive's texel L1 by 1 - its mean transmittance in "
+                                        "the view (the authors' README variant; the paper and their code use plain L1)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")

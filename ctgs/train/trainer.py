@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.train import checkpoint as ckpt
@@ -59,12 +60,6 @@ def make_views(views, device) -> list[TrainView]:
             raise UserError(f"{v.image_path}: image not loaded")
         out.append(TrainView(v.name, v.camera.to(device), torch.from_numpy(np.ascontiguousarray(v.image)).to(device)))
     return out
-
-
-def machine_name() -> str:
-    import platform
-
-    return f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
 
 
 class Trainer:
@@ -168,7 +163,7 @@ class Trainer:
 
     def _save_checkpoint(self) -> str:
         path = ckpt.checkpoint_path(self.run_dir)
-        ckpt.atomic_torch_save(self._state(), path)
+        atomic.torch_save(self._state(), path)
         return path
 
     def _log(self, record: dict) -> None:

@@ -14,7 +14,7 @@ import pytest
 
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
-from ctgs.train.run import load_run
+from ctgs.io.run_model import load_run
 
 ITERATIONS = 400
 # Measured: 23.1 dB test PSNR at 400 iterations of the fast schedule on this 96x72 scene (1 thread, deterministic);
@@ -42,7 +42,7 @@ def test_short_run_reaches_a_quality_floor_and_runs_every_routine(run):
     for key in ("upscaled", "downscaled"):
         assert sum(r[key] for r in full) > 0, key
     assert any(r["kind"] == "late" for r in log if r["type"] == "routine")
-    model, info = load_run(run_dir)
+    model = load_run(run_dir).model
     # Textures of different texel sizes: the allocation adapted to content.
     assert model.num_texels > 0 and len(set(model.t2p_exp.tolist())) >= 3
     assert summary["params_per_observed_value"] == pytest.approx(model.num_params() / summary["observed_values"])
