@@ -31,6 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from ctgs.io import atomic  # noqa: E402
 from ctgs.io.compress import DEFAULT_TARGET, TARGETS, Spec, compress_model  # noqa: E402
 from ctgs.io.model_format import read_model, write_model, write_packed_model  # noqa: E402
 from ctgs.io.run_model import load_run  # noqa: E402
@@ -146,7 +147,8 @@ def plot(rows: list[dict], path: str, title: str) -> None:
     axes[0].legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
@@ -182,9 +184,7 @@ def main() -> None:
             raise SystemExit("the raw point must be measured first (it is the first point)")
         print(f"[{time.strftime('%H:%M:%S')}] {args.name}: {name}", flush=True)
         row = measure(args.run_dir, name, spec, work, scene, not args.no_lpips)
-        with open(cache + ".tmp", "w") as f:
-            json.dump(row, f, indent=1)
-        os.replace(cache + ".tmp", cache)
+        atomic.write_json(cache, row, indent=1)
         rows.append({**row, "group": group})
     raw = rows[0]
     default = next((r for r in rows if r["point"] == f"target_{DEFAULT_TARGET}"), rows[-1])
@@ -200,8 +200,7 @@ def main() -> None:
                         "load_average_start": load_start, "load_average_end": os.getloadavg()},
             "summary": summary, "rows": rows}
     out = os.path.join("benchmarks", "results", f"compress_{args.name}")
-    with open(out + ".json", "w") as f:
-        json.dump(info, f, indent=1)
+    atomic.write_json(out + ".json", info, indent=1)
     md = [f"# Compression curve: {args.name}", "",
           f"Run `{run.run_dir}` ({run.images}, {run.iteration} iterations, {raw['points']} primitives, "
           f"{raw['texels']} texels). {args.note}".strip(), "",
@@ -213,8 +212,7 @@ def main() -> None:
           "Test metrics over the run's test views (every 8th); train PSNR over the other views. "
           "dPSNR: difference to the raw export. Attribute rows change one attribute on top of "
           "`texels_scalar_256` (all other values float32).", "", table(rows, raw)]
-    with open(out + ".md", "w") as f:
-        f.write("\n".join(md))
+    atomic.write_text(out + ".md", "\n".join(md))
     plot(rows, out + ".png", f"ctgs compress: {args.name} ({raw['points']} primitives, {raw['texels']} texels)")
     print("\n".join(md))
 

@@ -14,7 +14,7 @@ TARGET_HELP = ("Preset, a measured point of the size-quality curve (benchmarks/r
 
 @click.command(name="compress")
 @click.argument("model_dir", type=click.Path(file_okay=False))
-@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+@click.option("-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output model folder (replaced atomically).")
 @click.option("--target", type=click.Choice(["lossless-ish", "balanced", "small"]), default="balanced",
               show_default=True, help=TARGET_HELP)

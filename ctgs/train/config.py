@@ -47,6 +47,8 @@ class TrainConfig:
     preset: str = _f("", "the preset this config was built on (set by `ctgs train --preset`; informational)")
     # ---- initialisation ----
     max_init_points: int = _f(0, "farthest-point subsample SfM points above this count (0 = keep all)")
+    primitives_per_pixel: float = _f(0.0, "> 0: at most this many primitives per pixel of a training image, at "
+                                     "initialisation and through splits (caps max_primitives; 0 = no cap, the paper)")
     init_opacity: float = _f(0.1, "initial opacity")
     random_rotation: bool = _f(True, "random initial rotations (else identity)")
     init_normals: bool = _f(False, "orient initial surfels in the PCA plane of their 16 nearest SfM points "
@@ -72,6 +74,8 @@ class TrainConfig:
     lambda_ssim: float = _f(0.2, "weight of 1 - SSIM (L1 gets 1 - this)")
     lambda_opacity: float = _f(0.01, "opacity regulariser weight on mean(opacity)")
     lambda_texture: float = _f(1e-8, "texture sparsity weight on sum |texel| of visible primitives")
+    texture_reg_transmittance: bool = _f(False, "weight each primitive's texel L1 by 1 - its mean transmittance in "
+                                        "the view (the authors' README variant; the paper and their code use plain L1)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
@@ -150,7 +154,7 @@ def _prob(v):
 _RANGES = [
     ("iterations", _ge(1), ">= 1"), ("schedule_scale", _ge(0), ">= 0 (0 = iterations / 30000)"),
     ("time_budget", _ge(0), ">= 0 minutes (0 = none)"), ("holdout", _ge(0), ">= 0"), ("validation_holdout", _ge(0), ">= 0"), ("threads", _ge(0), ">= 0"),
-    ("max_init_points", _ge(0), ">= 0"), ("init_opacity", lambda v: 0 < v < 1, "in (0, 1)"),
+    ("max_init_points", _ge(0), ">= 0"), ("primitives_per_pixel", _ge(0), ">= 0 (0 = no cap)"), ("init_opacity", lambda v: 0 < v < 1, "in (0, 1)"),
     ("max_sh_degree", lambda v: 0 <= v <= 3, "in 0..3"), ("sh_every", _gt(0), "> 0"),
     ("lr_position_init", _ge(0), ">= 0"), ("lr_position_final", _gt(0), "> 0 (exponential decay)"),
     ("lr_sh_dc", _ge(0), ">= 0"), ("lr_sh_rest", _ge(0), ">= 0"), ("lr_opacity", _ge(0), ">= 0"),
@@ -261,24 +265,11 @@ def load_toml(path: str) -> dict:
 PRESETS = ("preview", "fast", "balanced", "paper")
 
 
-def configs_dir() -> str:
-    """The shipped configs/ folder (presets, experiments, baselines)."""
-    import os
-
-    return os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "configs")
-
-
 def config_path(name_or_path: str) -> str:
-    """A path stays a path; a bare name (`default`, `2dgs`, `fast`) is configs/<name>.toml."""
-    import os
+    """A path stays a path; a bare name (`default`, `2dgs`, `fast`) is the shipped configs/<name>.toml."""
+    from ctgs.resources import resolve_config
 
-    if os.sep in name_or_path or name_or_path.endswith(".toml") or os.path.exists(name_or_path):
-        return name_or_path
-    path = os.path.join(configs_dir(), name_or_path + ".toml")
-    if not os.path.exists(path):
-        names = sorted(f[:-5] for f in os.listdir(configs_dir()) if f.endswith(".toml"))
-        raise UserError(f"--config {name_or_path}: no such config; use a file path or one of {', '.join(names)}")
-    return path
+    return resolve_config(name_or_path)
 
 
 def _apply_file(cfg: TrainConfig, path: str) -> None:

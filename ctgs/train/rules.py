@@ -8,12 +8,23 @@ recipe is reproduced exactly; elsewhere:
 - iterations (texture start, routine cadence and window, tau_tr decay, SH bands, reallocation,
   densification, logging): x iterations / 30000 - a schedule is a fraction of the run (ctgs/train/schedule.py),
   which is also what lets `--time-budget` re-plan the run length while it runs;
-- texels across a primitive (tau_tr_start, tau_tr_end, max_texture_res): x sqrt(pixels / 1e6). A texel is
-  at least 2**min_t2p_exp pixels of the closest camera, so a primitive of a given world size spans
-  sqrt(pixels)-proportionally many texels: with this rule the same scene makes the same split decisions at
-  any image size (the paper's 32 texels of >= 2 px are 6.4% of a 1000-px-wide image, and so they are at 200 px);
+- the texture cap (max_texture_res, texels per axis, a memory guard): x sqrt(pixels / 1e6), next power of
+  two, at least MIN_TEXTURE_CAP: the widest texture stays the same fraction of the image;
+- the split threshold (tau_tr_start, tau_tr_end, texels across a primitive): no rule, deliberately. A texel
+  is at least 2**min_t2p_exp pixels of the closest camera, so tau_tr is already a size in pixels: a primitive
+  splits when its texture needs more than tau_tr texels of >= 2 px, at any image size. Geometric detail is
+  visible only down to a pixel, so primitives should shrink with the pixels: the model's size then follows
+  the observed values. Scaling tau_tr with sqrt(pixels) instead (keeping split decisions at the same world
+  size) was measured on 192x128 real photos: 3000 primitives became 24,652 by 50% of a 1000-iteration run
+  (tau_tr 5 texels: 13% of the primitives split at every routine), against 3,185 at the end with the paper's
+  32 texels (benchmarks/results/train_findings.md);
 - lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
+- the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a
+  training image, at initialisation (farthest-point subsample of the SfM points) and through splits
+  (max_primitives). SfM points are found at the photos' full resolution: on downsampled images they are
+  far denser than a pixel (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's
+  Mip-NeRF 360 models hold 0.1-0.3 primitives per pixel);
 - settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
   texel values (tau_ds), learning rates (x scene extent for positions), the 2DGS baseline's densification
   threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
@@ -37,10 +48,9 @@ PAPER_ITERATIONS = 30000
 ITERATION_KEYS = ("texture_start", "sh_every", "routine_every", "routine_until", "routine_margin",
                   "late_downscale_every", "realloc_every", "tau_tr_iters", "densify_from", "densify_until",
                   "densify_every", "opacity_reset_every", "test_every", "checkpoint_every")
-# Keys counting texels across a primitive: x sqrt(pixels / PAPER_PIXELS).
-TEXEL_KEYS = ("tau_tr_start", "tau_tr_end", "max_texture_res")
-# Smallest texture cap the rules may produce (texels per axis): a split needs a few texels on each side.
-MIN_TEXTURE_CAP = 8
+# Smallest texture cap the rule may produce (texels per axis): above the split threshold (tau_tr_end = 32), so
+# a primitive always splits before its texture reaches the cap.
+MIN_TEXTURE_CAP = 64
 
 
 @dataclass(frozen=True)
@@ -70,15 +80,22 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
     (which `--time-budget` may change while training).
     """
     s = scale_of(cfg, pixels)
+    cap = int(round(cfg.primitives_per_pixel * pixels)) if cfg.primitives_per_pixel > 0 else 0
+    caps = [c for c in (cfg.max_primitives, cap) if c > 0]
+    cfg = replace(cfg, max_primitives=min(caps) if caps else 0)
     if not cfg.scale_rules:
-        return replace(cfg)
+        return cfg
     return replace(
         cfg,
-        tau_tr_start=cfg.tau_tr_start * s.linear,
-        tau_tr_end=cfg.tau_tr_end * s.linear,
         max_texture_res=min(cfg.max_texture_res, _pow2_at_least(cfg.max_texture_res * s.linear, MIN_TEXTURE_CAP)),
         lambda_texture=cfg.lambda_texture / s.area,
     )
+
+
+def init_point_cap(cfg: TrainConfig, pixels: float) -> int:
+    """Initial primitives: max_init_points, and at most primitives_per_pixel per training-image pixel (0 = all)."""
+    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels))) if c > 0]
+    return min(caps) if caps else 0
 
 
 def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: dict[str, int]) -> list[dict]:
@@ -89,8 +106,9 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
     from ctgs.train import schedule
 
     rows = []
-    for key, rule in (("tau_tr_start", "x sqrt(HW / 1e6)"), ("tau_tr_end", "x sqrt(HW / 1e6)"),
-                      ("max_texture_res", "x sqrt(HW / 1e6), next power of two, >= 8"),
+    for key, rule in (("tau_tr_start", "none: texels are >= 2 px already"),
+                      ("tau_tr_end", "none: texels are >= 2 px already"),
+                      ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
                       ("lambda_texture", "x 1e6 / HW")):
         vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
         rows.append({"setting": key, "unit": "texels" if key != "lambda_texture" else "per texel",

@@ -10,10 +10,11 @@ import math
 import torch
 import torch.nn.functional as F
 
+from ctgs.render.constants import CUTOFF_RHO, MIN_ALPHA
 from ctgs.train import edit
 
-ALPHA_MIN = 1.0 / 255.0  # renderer's MIN_ALPHA: beyond this falloff a surfel is invisible
-CUTOFF_SIGMA = 3.0  # renderer's CUTOFF_RHO = 9 -> 3 sigma
+# The renderer's cutoffs: alpha < MIN_ALPHA is skipped, and nothing is drawn past rho = CUTOFF_RHO (3 sigma).
+CUTOFF_SIGMA = math.sqrt(CUTOFF_RHO)
 LOGIT_EPS = 1e-4  # activated texels are stored as logits; keep them finite at +-1
 
 
@@ -21,7 +22,7 @@ def active_half_extent(model) -> torch.Tensor:
     """[N, 2] half extent (world units) where the surfel can reach alpha >= 1/255: the official code's
     sqrt(2 ln(255 o)) sigma, capped at 3 sigma (0 if the opacity can never reach 1/255)."""
     o = model.opacities.detach()
-    r = torch.sqrt(2 * torch.log((o / ALPHA_MIN).clamp_min(1.0))).clamp(max=CUTOFF_SIGMA)  # [N] sigmas
+    r = torch.sqrt(2 * torch.log((o / MIN_ALPHA).clamp_min(1.0))).clamp(max=CUTOFF_SIGMA)  # [N] sigmas
     return r[:, None] * model.scales.detach()
 
 
@@ -118,7 +119,7 @@ def texel_weights(model, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
     xu = (torch.arange(ru, device=k.device, dtype=k.dtype) - (ru - 1) / 2)[None, None, :] * k[:, None, None]
     xv = (torch.arange(rv, device=k.device, dtype=k.dtype) - (rv - 1) / 2)[None, :, None] * k[:, None, None]
     rho = (xu / s[:, 0, None, None]) ** 2 + (xv / s[:, 1, None, None]) ** 2
-    return torch.exp(-0.5 * rho) * (rho <= CUTOFF_SIGMA ** 2)
+    return torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
 
 
 @torch.no_grad()

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.train import checkpoint as ckpt
@@ -61,12 +62,6 @@ def make_views(views, device) -> list[TrainView]:
     return out
 
 
-def machine_name() -> str:
-    import platform
-
-    return f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
-
-
 class Trainer:
     """cfg: the config as given (saved with the run); self.cfg is its copy resolved for this scene's image size
     (ctgs/train/rules.py) whose `iterations` is the planned run length (`--time-budget` re-plans it).
@@ -100,7 +95,7 @@ class Trainer:
         np.random.seed(cfg.seed % 2**32)
         if state is None:
             mode = {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}[cfg.method]
-            self.model = init_model(scene.points, scene.point_colors, max_points=cfg.max_init_points,
+            self.model = init_model(scene.points, scene.point_colors, max_points=rules.init_point_cap(cfg, self.pixels),
                                     opacity=cfg.init_opacity, max_sh_degree=cfg.max_sh_degree,
                                     random_rotation=cfg.random_rotation, normals=cfg.init_normals, texture_mode=mode,
                                     fixed_res=cfg.fixed_texture_res, seed=cfg.seed)
@@ -168,7 +163,7 @@ class Trainer:
 
     def _save_checkpoint(self) -> str:
         path = ckpt.checkpoint_path(self.run_dir)
-        ckpt.atomic_torch_save(self._state(), path)
+        atomic.torch_save(self._state(), path)
         return path
 
     def _log(self, record: dict) -> None:

@@ -73,17 +73,15 @@ def test_compressed_model_through_eval_render_export(compressed, mode):
         b = read_image(str(root / f"e_{mode}" / "renders" / name))
         assert np.abs(a - b).max() <= 1 / 255 + 1e-6
 
-    _ok(["export", run, "--model", model_dir, "-o", str(root / f"x_{mode}")])
+    _ok(["export", model_dir, "-o", str(root / f"x_{mode}")])
     back, xfiles = read_model(str(root / f"x_{mode}"))
     assert xfiles.manifest["version"] == 1 and os.path.isfile(root / f"x_{mode}" / "plain_3dgs.ply")
     for name, t in model.state_dict().items():  # the export holds the decoded model exactly
         assert (t == back.state_dict()[name]) if not hasattr(t, "shape") else bool((t == back.state_dict()[name]).all())
 
 
-def test_export_with_model_needs_its_own_output(compressed):
+def test_export_of_a_compressed_folder_leaves_it_untouched(compressed):
     run, root, models = compressed
-    res = CliRunner().invoke(main, ["export", run, "--model", models["scalar"]])
-    assert res.exit_code == 2 and "-o" in res.output
-    res = CliRunner().invoke(main, ["export", run, "--model", models["scalar"], "-o", models["scalar"]])
-    assert res.exit_code == 2
-    assert read_model(models["scalar"])[1].manifest["version"] == 2  # untouched
+    _ok(["export", models["scalar"], "--no-plain-ply"])  # default output: a sibling, MODEL-export
+    assert read_model(models["scalar"] + "-export")[1].manifest["version"] == 1
+    assert read_model(models["scalar"])[1].manifest["version"] == 2

@@ -23,20 +23,21 @@ def test_rules_are_the_identity_at_the_papers_scale():
     assert schedule.factor(r) == 1.0 and schedule.texture_start(r) == 500
 
 
-def test_rules_scale_texels_with_the_linear_size_and_lambda_with_the_area():
+def test_rules_scale_the_texture_cap_with_the_linear_size_and_lambda_with_the_area():
     c = TrainConfig()
-    r = resolve(c, 250 * 250)  # a quarter of the paper's width
-    assert r.tau_tr_start == pytest.approx(16.0) and r.tau_tr_end == pytest.approx(8.0)
-    assert r.max_texture_res == 64 and r.lambda_texture == pytest.approx(1.6e-7)
-    tiny = resolve(c, 10 * 10)
-    assert tiny.max_texture_res == 8  # the floor: a split still has texels on each side
+    r = resolve(c, 500 * 500)  # half the paper's width
+    assert r.max_texture_res == 128 and r.lambda_texture == pytest.approx(4e-8)
+    # tau_tr counts texels of >= 2 px: already pixel-relative, no rule.
+    assert (r.tau_tr_start, r.tau_tr_end) == (64.0, 32.0)
+    tiny = resolve(c, 100 * 100)
+    assert tiny.max_texture_res == 64  # the floor stays above tau_tr_end
     # The paper preset uses every value as written.
     p = resolve(load_config(None, preset="paper"), 250 * 250)
     assert (p.tau_tr_start, p.tau_tr_end, p.max_texture_res, p.lambda_texture) == (64.0, 32.0, 256, 1e-8)
     # The rule table documents every rule with its value at the paper's scale and at 200 px.
     rows = rule_table(c, {"paper": (1000, 1000), "200px": (200, 150)}, {"30k": 30000, "3k": 3000})
-    tau = next(r for r in rows if r["setting"] == "tau_tr_end")
-    assert tau["values"]["paper"] == 32.0 and tau["values"]["200px"] == pytest.approx(32 * (3e4 / 1e6) ** 0.5)
+    lam = next(r for r in rows if r["setting"] == "lambda_texture")
+    assert lam["values"]["paper"] == 1e-8 and lam["values"]["200px"] == pytest.approx(1e-8 * 1e6 / 3e4)
     ts = next(r for r in rows if r["setting"] == "texture_start")
     assert ts["values"] == {"30k": 500, "3k": 50}
 
