@@ -22,6 +22,7 @@ import datetime
 import json
 import os
 import platform
+import shlex
 import sys
 import time
 from dataclasses import asdict, replace
@@ -194,7 +195,7 @@ def main() -> None:
                "train_psnr_loss_db": raw["train_psnr"] - default["train_psnr"]}
     info = {"name": args.name, "run_dir": run.run_dir, "scene_dir": run.scene_dir, "images": run.images,
             "iterations": run.iteration, "config": run.config, "note": args.note,
-            "command": "python " + " ".join(sys.argv), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+            "command": "python " + shlex.join(sys.argv), "date": datetime.datetime.now().isoformat(timespec="seconds"),
             "machine": {"node": platform.node(), "processor": platform.processor() or platform.machine(),
                         "cpu_count": os.cpu_count(), "torch": torch.__version__,
                         "load_average_start": load_start, "load_average_end": os.getloadavg()},
@@ -204,8 +205,9 @@ def main() -> None:
     md = [f"# Compression curve: {args.name}", "",
           f"Run `{run.run_dir}` ({run.images}, {run.iteration} iterations, {raw['points']} primitives, "
           f"{raw['texels']} texels). {args.note}".strip(), "",
-          f"Command: `{info['command']}`; {info['date']}; {info['machine']['node']}, "
-          f"{info['machine']['cpu_count']} CPUs; CPU backend.", "",
+          f"{info['date']}; {info['machine']['node']}, {info['machine']['cpu_count']} CPUs; CPU backend; "
+          "points cached in WORK are reused, so the date is the table's, not each point's. Command:", "",
+          "```", info["command"], "```", "",
           f"**Default (`--target {DEFAULT_TARGET}`): {default['bytes'] / 1e6:.3f} MB vs raw {raw['bytes'] / 1e6:.3f} MB "
           f"(x{summary['size_ratio']:.1f} smaller), test PSNR {default['psnr']:.3f} vs {raw['psnr']:.3f} dB "
           f"({-summary['test_psnr_loss_db']:+.3f} dB), train PSNR {-summary['train_psnr_loss_db']:+.3f} dB.**", "",

@@ -111,12 +111,13 @@ def _kmeans_k(codec: str) -> int | None:
     return int(k) if head == "kmeans" and k.isdigit() and int(k) >= 1 else None
 
 
-# The --target presets: measured points of the size-quality curve (benchmarks/results/compress_curve.md),
-# chosen on the demo's training views. Per-attribute costs there (train PSNR, on top of scalar texels):
-# every f16 and sh_rest q8 <= 0.0002 dB; means q16 0.001, scales q16 0.000 / q8 0.003, quats q8 0.012,
-# opacity q8 0.000, sh_dc q8 0.004 dB; scalar K=256 / 64 / 32 texels 0.002 / 0.025 / 0.100 dB.
-# K-means SH (0.24 dB at K=4096 for 12% fewer bytes than q8) and vector texel codebooks (0.07 dB at
-# K=65536 and larger than scalar; 0.8 dB at 4096) lose more per byte saved, so no preset uses them.
+# The --target presets: measured points of the size-quality curve (benchmarks/results/compress_demo.md,
+# compress_herzjesu25.md), chosen on training views. Per-attribute train-PSNR costs on the demo, each on
+# top of scalar K=256 texels: every f16, sh_rest q8, opacity q8, scales q8/q16, means q16 <= 0.001 dB;
+# sh_dc q8 0.001, quats q8 0.016 dB; scalar K=256 / 64 / 32 texels 0.001 / 0.010 / 0.044 dB vs raw.
+# K-means SH (demo: 0.017 dB at K=1024 for <1% fewer bytes than q8; herzjesu25 0.08 dB for 22% fewer) and
+# vector texel codebooks (demo: 0.025 dB at K=65536 for 1.6x scalar's bytes; 0.32 dB at K=4096) lose more
+# per byte saved, so no preset uses them; dropping SH bands costs 0.26-0.8 dB (train) and is opt-in.
 TARGETS: dict[str, Spec] = {
     # float16 where it costs nothing measurable; positions and texel sizes stay float32.
     "lossless-ish": Spec(texels="scalar", scales="f16", quats="f16", opacity="f16", sh_dc="f16", sh_rest="f16"),
