@@ -10,7 +10,7 @@ results/trade_<tag>.json + .md and two plots (PSNR vs train time, PSNR vs params
 Usage (each run is skipped when already done; several invocations with disjoint --only may share --work):
     .venv/bin/python benchmarks/trade.py --work /work/runs/trade [--scenes demo herzjesu]
         [--herzjesu /work/data/herzjesu25] [--budgets 5 15 45] [--presets preview fast balanced]
-        [--only SUBSTRING ...] [--table-only] [--threads 1]
+        [--scales 192x144 images_8 ...] [--only SUBSTRING ...] [--table-only] [--threads 1]
 The herzjesu scene must exist (`ctgs sfm ../shared/data/herzjesu25/images -o SCENE`). Test views follow the
 protocol (every 8th); nothing here chooses a setting.
 """
@@ -110,11 +110,14 @@ def main() -> None:
     ap.add_argument("--budgets", nargs="*", type=float, default=[5.0, 15.0, 45.0])
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--scales", nargs="*", default=None, help="only these scales (192x144 384x288 images_8 images_4)")
     ap.add_argument("--table-only", action="store_true")
     ap.add_argument("--tag", default=platform.node())
     args = ap.parse_args()
     rows = []
     for s in scenes(args):
+        if args.scales and s["scale"] not in args.scales:
+            continue
         for p in args.presets:
             rec = run_one(s, f"ca_{p}", ["--preset", p], args)
             if rec:

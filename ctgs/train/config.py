@@ -88,6 +88,9 @@ class TrainConfig:
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
     tau_tr_start: float = _f(64.0, "split threshold on active texture resolution at iteration 0")
     tau_tr_end: float = _f(32.0, "split threshold reached at tau_tr_iters")
+    tau_tr_pixel_exponent: float = _f(0.0, "tau_tr_start/end x (HW / 1e6) ** this (rules.py): 0 keeps the paper's "
+                                      "texel counts at every image size, 0.5 keeps split decisions at the same "
+                                      "fraction of the image")
     tau_tr_iters: int = _f(7000, "iterations of the linear tau_tr decay (paper scale)")
     prune_opacity: float = _f(10.0 / 255.0, "prune below this opacity during routines")
     prune_opacity_late: float = _f(1.0 / 255.0, "prune threshold after routine_until")
@@ -166,6 +169,7 @@ _RANGES = [
     ("late_downscale_every", _gt(0), "> 0"), ("realloc_every", _gt(0), "> 0"),
     ("top_fraction", _unit_open_closed, "in (0, 1]"), ("tau_ds", _gt(0), "> 0"),
     ("tau_tr_start", _gt(0), "> 0 texels"), ("tau_tr_end", _gt(0), "> 0 texels"), ("tau_tr_iters", _gt(0), "> 0"),
+    ("tau_tr_pixel_exponent", lambda v: 0 <= v <= 1, "in [0, 1]"),
     ("prune_opacity", _prob, "in [0, 1)"), ("prune_opacity_late", _prob, "in [0, 1)"),
     ("max_primitives", _ge(0), ">= 0 (0 = unlimited)"),
     ("max_texture_res", lambda v: v >= 2 and (v & (v - 1)) == 0, "a power of two >= 2"),

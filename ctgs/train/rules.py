@@ -17,7 +17,9 @@ recipe is reproduced exactly; elsewhere:
   the observed values. Scaling tau_tr with sqrt(pixels) instead (keeping split decisions at the same world
   size) was measured on 192x128 real photos: 3000 primitives became 24,652 by 50% of a 1000-iteration run
   (tau_tr 5 texels: 13% of the primitives split at every routine), against 3,185 at the end with the paper's
-  32 texels (benchmarks/results/train_findings.md);
+  32 texels; on the 96x72 demo (400 fast iterations, validation views) tau x (HW/1e6)**e gave 21.96 dB at
+  e = 0, 17.6 at 0.25, 11.84 at 0.5 (1k, 3.7k, 21k primitives): `tau_tr_pixel_exponent` (default 0) keeps
+  the option, measured in benchmarks/results/train_findings.md;
 - lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
 - the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a
@@ -89,6 +91,8 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
         cfg,
         max_texture_res=min(cfg.max_texture_res, _pow2_at_least(cfg.max_texture_res * s.linear, MIN_TEXTURE_CAP)),
         lambda_texture=cfg.lambda_texture / s.area,
+        tau_tr_start=cfg.tau_tr_start * s.area ** cfg.tau_tr_pixel_exponent,
+        tau_tr_end=cfg.tau_tr_end * s.area ** cfg.tau_tr_pixel_exponent,
     )
 
 
@@ -106,8 +110,8 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
     from ctgs.train import schedule
 
     rows = []
-    for key, rule in (("tau_tr_start", "none: texels are >= 2 px already"),
-                      ("tau_tr_end", "none: texels are >= 2 px already"),
+    for key, rule in (("tau_tr_start", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
+                      ("tau_tr_end", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
                       ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
                       ("lambda_texture", "x 1e6 / HW")):
         vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}

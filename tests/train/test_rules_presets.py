@@ -31,6 +31,9 @@ def test_rules_scale_the_texture_cap_with_the_linear_size_and_lambda_with_the_ar
     assert (r.tau_tr_start, r.tau_tr_end) == (64.0, 32.0)
     tiny = resolve(c, 100 * 100)
     assert tiny.max_texture_res == 64  # the floor stays above tau_tr_end
+    # The opt-in exponent: 0.5 keeps split decisions at the same fraction of the image (tau x linear size).
+    half = resolve(TrainConfig(tau_tr_pixel_exponent=0.5), 500 * 500)
+    assert (half.tau_tr_start, half.tau_tr_end) == pytest.approx((32.0, 16.0))
     # The paper preset uses every value as written.
     p = resolve(load_config(None, preset="paper"), 250 * 250)
     assert (p.tau_tr_start, p.tau_tr_end, p.max_texture_res, p.lambda_texture) == (64.0, 32.0, 256, 1e-8)
