@@ -1,8 +1,12 @@
-"""The ctgs model folder: manifest.json + primitives.ply + textures.bin (spec: docs/model_format.md).
+"""The ctgs model folder (spec: docs/model_format.md), in one of two layouts.
 
-`write_model` / `read_model` round-trip a `SurfelModel` bit-exactly (raw parameters, dtypes kept).
-A compressed model (codebook blob, optional float16 per-primitive properties) reads back as an
-ordinary `SurfelModel`, so eval and render never know the difference.
+- version 1, written by `ctgs export`: manifest.json + primitives.ply + textures.bin. `write_model` /
+  `read_model` round-trip a `SurfelModel` bit-exactly (raw parameters, dtypes kept). Folders from the
+  first `ctgs compress` (codebook blob, float16 SH in the PLY) are version 1 too and still read.
+- version 2, written by `ctgs compress`: manifest.json + model.bin, packed sections (ctgs.io.packed)
+  whose encodings the manifest states (ctgs.io.compress).
+
+Both read back as an ordinary `SurfelModel`, so eval, render and export never know the difference.
 """
 
 from __future__ import annotations
@@ -22,6 +26,9 @@ from ctgs.model.surfels import SurfelModel
 
 FORMAT_NAME = "ctgs-model"
 FORMAT_VERSION = 1
+PACKED_VERSION = 2
+READ_VERSIONS = (FORMAT_VERSION, PACKED_VERSION)
+PACKED = "model.bin"
 MANIFEST = "manifest.json"
 PRIMITIVES = "primitives.ply"
 TEXTURES = "textures.bin"
@@ -43,6 +50,11 @@ class ModelFiles:
 
 def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
+
+
+def _ensure_replaceable(out_dir: str) -> None:
+    # Replacing means deleting: only ever an earlier model folder (never, say, the run folder).
+    atomic.ensure_replaceable(out_dir, lambda names: MANIFEST in names, "a ctgs model folder")
 
 
 def primitive_columns(model: SurfelModel, half: bool = False) -> tuple[dict[str, np.ndarray], list[str]]:
@@ -86,7 +98,7 @@ def write_model(model: SurfelModel, out_dir: str, *, blob: TextureBlob | None = 
     plain_ply: also write the 3DGS-style approximation (ctgs.io.plain_ply).
     """
     model.validate()
-    atomic.ensure_replaceable(out_dir, lambda names: MANIFEST in names, "a ctgs model folder")
+    _ensure_replaceable(out_dir)
     if blob is None:
         blob = TextureBlob(_np(model.textures_raw))
     if blob.num_texels != model.num_texels:
@@ -135,15 +147,69 @@ def read_manifest(model_dir: str) -> dict:
         raise UserError(f"{path}: unreadable manifest ({exc}); re-export the model") from exc
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise UserError(f"{path}: not a ctgs model manifest; pass a folder written by `ctgs export`")
-    if manifest.get("version") != FORMAT_VERSION:
-        raise UserError(f"{path}: model format version {manifest.get('version')}, this ctgs reads version "
-                        f"{FORMAT_VERSION}; re-export the model with this version of ctgs")
+    if manifest.get("version") not in READ_VERSIONS:
+        raise UserError(f"{path}: model format version {manifest.get('version')}, this ctgs reads versions "
+                        f"{', '.join(map(str, READ_VERSIONS))}; re-export the model with this version of ctgs")
     return manifest
 
 
+def write_packed_model(packed, out_dir: str, *, extra: dict | None = None) -> dict:
+    """Write a `ctgs.io.compress.Packed` as a version-2 folder (replaced atomically). Returns the manifest."""
+    from ctgs.io.packed import encode_section
+
+    spec = packed.header["spec"]
+    _ensure_replaceable(out_dir)
+    with atomic.atomic_dir(out_dir) as tmp:
+        entries, offset = [], 0
+        with open(os.path.join(tmp, PACKED), "wb") as f:
+            for section in packed.sections:
+                coded, entry = encode_section(section, spec["coder"], offset)
+                f.write(coded)
+                offset += len(coded)
+                entries.append(entry)
+        n, t = packed.header["num_primitives"], packed.header["num_texels"]
+        # SurfelModel.num_params of the decoded model (SH counted as stored, up to max_sh_degree).
+        per_prim = 10 + 3 * (packed.header["max_sh_degree"] + 1) ** 2 + (packed.header["texture_mode"] != "none")
+        manifest = {
+            "format": FORMAT_NAME, "version": PACKED_VERSION, "layout": "packed", "packed": PACKED,
+            **packed.header,
+            "num_params": per_prim * n + 3 * t,
+            "file_bytes": {PACKED: offset},
+            "sections": entries,
+            **(extra or {}),
+        }
+        atomic.write_json(os.path.join(tmp, MANIFEST), manifest)
+    return manifest
+
+
+def _read_packed(model_dir: str, manifest: dict, device) -> SurfelModel:
+    from ctgs.io.compress import unpack_model
+    from ctgs.io.packed import decode_section
+
+    path = os.path.join(model_dir, manifest.get("packed", PACKED))
+    try:
+        with open(path, "rb") as f:
+            blob = f.read()
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read packed model ({exc.strerror}); re-compress the model") from exc
+    entries = manifest.get("sections")
+    if not isinstance(entries, list) or not all(isinstance(e, dict) and "name" in e for e in entries):
+        raise UserError(f"{model_dir}/{MANIFEST}: no valid section list; re-compress the model")
+    arrays = {e["name"]: decode_section(blob, e, path) for e in entries}
+    encodings = {e["name"]: e.get("encoding", {}) for e in entries}
+    try:
+        return unpack_model(manifest, arrays, encodings, device=device)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise UserError(f"{model_dir}: inconsistent compressed model ({type(exc).__name__}: {exc}); "
+                        "re-compress it") from exc
+
+
 def read_model(model_dir: str, device: torch.device | str = "cpu") -> tuple[SurfelModel, ModelFiles]:
-    """Load a model folder (exported or compressed) as a SurfelModel."""
+    """Load a model folder (exported or compressed, any layout) as a SurfelModel."""
     manifest = read_manifest(model_dir)
+    if manifest["version"] == PACKED_VERSION:
+        model = _read_packed(model_dir, manifest, device)
+        return model, _model_files(model_dir, manifest, (MANIFEST, manifest.get("packed", PACKED)))
     ply_path = os.path.join(model_dir, manifest.get("primitives", PRIMITIVES))
     blob_path = os.path.join(model_dir, manifest.get("textures", TEXTURES))
     cols, _ = read_ply(ply_path)
@@ -199,11 +265,15 @@ def read_model(model_dir: str, device: torch.device | str = "cpu") -> tuple[Surf
     except ValueError as exc:
         raise UserError(f"{model_dir}: inconsistent model ({exc}); re-export it") from exc
     model = SurfelModel.from_state_dict(model.state_dict(), device=device)
+    return model, _model_files(model_dir, manifest, (MANIFEST, manifest.get("primitives"), manifest.get("textures"),
+                                                     manifest.get("plain_ply")))
+
+
+def _model_files(model_dir: str, manifest: dict, names: tuple) -> ModelFiles:
     files = {}
     for name in os.listdir(model_dir):
         p = os.path.join(model_dir, name)
-        if os.path.isfile(p) and name in (MANIFEST, manifest.get("primitives"), manifest.get("textures"),
-                                          manifest.get("plain_ply")):
+        if os.path.isfile(p) and name in names:
             files[name] = os.path.getsize(p)
     needed = sum(b for name, b in files.items() if name != manifest.get("plain_ply"))
-    return model, ModelFiles(manifest=manifest, bytes_on_disk=needed, files=files)
+    return ModelFiles(manifest=manifest, bytes_on_disk=needed, files=files)

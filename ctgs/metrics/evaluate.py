@@ -128,6 +128,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             "texture_encoding": manifest["texture_encoding"] if manifest else "raw",
             "codebook_size": manifest.get("codebook_size") if manifest else None,
             "compressed": bool(manifest and "compression" in manifest),
+            "compression_target": ((manifest or {}).get("compression") or {}).get("target"),
             "fps": len(times) / sum(times), "render_ms_mean": 1e3 * sum(times) / len(times),
             "backend": backend, "device": str(device), "resolution": [renders[0].shape[1], renders[0].shape[0]],
             "peak_memory_bytes": peak, "peak_memory_kind": peak_kind,

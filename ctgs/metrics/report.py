@@ -16,11 +16,14 @@ METRICS_VERSION = 1
 # The error panel of a strip shows |gt - render| per channel times this gain (clipped to 1), so small
 # errors stay visible.
 ERROR_GAIN = 4.0
-# Columns of the paper's per-scene table (Tab. per-scene), in order: header, metrics.json key, format.
+# Columns of the paper's per-scene table (Tab. per-scene), in order: header, metrics key, format.
+# Mem is the model's storage as the paper counts it (4 bytes per parameter) for an uncompressed model, and
+# the bytes of its files for a compressed one (`storage_bytes`); Disk is what loading reads in either case
+# (model.pt of a run, or the model folder's files).
 TABLE_COLUMNS = [
     ("SSIM", "ssim", "{:.3f}"), ("PSNR", "psnr", "{:.2f}"), ("LPIPS", "lpips", "{:.3f}"),
     ("Points", "points", "count"), ("Texels", "texels", "count"), ("Params", "params", "count"),
-    ("FPS", "fps", "{:.0f}"), ("Mem", "model_memory_bytes", "bytes"),
+    ("FPS", "fps", "{:.0f}"), ("Mem", "storage_bytes", "bytes"), ("Disk", "bytes_on_disk", "bytes"),
     ("Texels/Primitive", "texels_per_primitive", "{:.1f}"),
 ]
 
@@ -72,8 +75,12 @@ def _fmt(value, how: str) -> str:
         return "n/a"
     if how == "count":
         return f"{value / 1e6:.1f}M" if value >= 1e6 else f"{value / 1e3:.0f}K" if value >= 1e3 else f"{value:.0f}"
-    if how == "bytes":
-        return f"{value / 1e6:.0f}MB" if value >= 1e6 else f"{value / 1e3:.0f}KB"
+    if how == "bytes":  # three significant digits: a 1.1 MB compressed model must not read "1MB"
+        for scale, unit in ((1e9, "GB"), (1e6, "MB"), (1e3, "KB")):
+            if value >= scale:
+                v = value / scale
+                return f"{v:.{2 if v < 10 else 1 if v < 100 else 0}f}{unit}"
+        return f"{value:.0f}B"
     return how.format(value)
 
 
@@ -83,26 +90,44 @@ def _mean(values: list):
     return sum(vals) / len(vals) if vals and len(vals) == len(values) else None
 
 
+def variant(m: dict) -> str:
+    """"" for an uncompressed model, else how it was compressed (e.g. "compressed balanced: scalar K=256")."""
+    if not (m.get("compressed") or m.get("codebook_size")):
+        return ""
+    target = m.get("compression_target")
+    enc = m.get("texture_encoding")
+    mode = "" if enc in (None, "codebook") else enc  # "codebook": the first ctgs compress (vector, v1 folders)
+    k = f"K={m['codebook_size']}" if m.get("codebook_size") else ""
+    detail = " ".join(x for x in (mode, k) if x)
+    return "compressed" + (f" {target}" if target else "") + (f": {detail}" if detail else "")
+
+
+def storage_bytes(m: dict):
+    """The Mem column: bytes on disk for a compressed model, 4 bytes x params (the paper's Mem) otherwise."""
+    return m.get("bytes_on_disk") if variant(m) else m.get("model_memory_bytes")
+
+
 def build_table(metrics_list: list[dict]) -> tuple[str, str]:
-    """(markdown, csv) per scene grouped by dataset, each group followed by its mean row."""
-    groups: dict[str, list[dict]] = {}
+    """(markdown, csv): scenes grouped by dataset and variant (uncompressed, or one compression setting),
+    each group followed by its mean row, so a model is never averaged with its own compressed copy."""
+    groups: dict[tuple[str, str], list[dict]] = {}
     for m in metrics_list:
-        groups.setdefault(m.get("dataset") or "unknown", []).append(m)
+        m = {**m, "storage_bytes": storage_bytes(m)}
+        groups.setdefault((m.get("dataset") or "unknown", variant(m)), []).append(m)
     header = ["Dataset", "Scene"] + [c[0] for c in TABLE_COLUMNS]
     md = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * len(TABLE_COLUMNS)) + "|"]
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(header)
-    for dataset in sorted(groups):
-        rows = sorted(groups[dataset], key=lambda m: m.get("scene", ""))
+    for dataset, var in sorted(groups):
+        rows = sorted(groups[(dataset, var)], key=lambda m: m.get("scene", ""))
+        suffix = f" ({var})" if var else ""
         for m in rows:
-            label = m.get("scene", "?")
-            if m.get("compressed") or m.get("codebook_size"):
-                label += f" (compressed, K={m['codebook_size']})" if m.get("codebook_size") else " (compressed)"
+            label = m.get("scene", "?") + suffix
             md.append("| " + " | ".join([dataset, label] + [_fmt(m.get(k), f) for _, k, f in TABLE_COLUMNS]) + " |")
             w.writerow([dataset, label] + ["" if m.get(k) is None else m.get(k) for _, k, _ in TABLE_COLUMNS])
         means = {k: _mean([m.get(k) for m in rows]) for _, k, _ in TABLE_COLUMNS}
-        md.append("| " + " | ".join([f"**{dataset}**", f"**mean ({len(rows)})**"] +
+        md.append("| " + " | ".join([f"**{dataset}**", f"**mean{suffix} ({len(rows)})**"] +
                                     [_fmt(means[k], f) for _, k, f in TABLE_COLUMNS]) + " |")
-        w.writerow([dataset, "mean"] + ["" if means[k] is None else means[k] for _, k, _ in TABLE_COLUMNS])
+        w.writerow([dataset, "mean" + suffix] + ["" if means[k] is None else means[k] for _, k, _ in TABLE_COLUMNS])
     return "\n".join(md) + "\n", buf.getvalue()

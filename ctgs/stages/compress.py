@@ -1,4 +1,4 @@
-"""`ctgs compress MODEL_DIR -o OUT_DIR`: K-means texel codebook (+ optional float16 SH) of an exported model."""
+"""`ctgs compress MODEL_DIR -o OUT_DIR`: texel codebook + attribute quantisation + xz of an exported model."""
 
 from __future__ import annotations
 
@@ -8,38 +8,63 @@ import click
 
 from ctgs.errors import UserError
 
+TARGET_HELP = ("Preset, a measured point of the size-quality curve (benchmarks/results/compress_demo.md): "
+               "lossless-ish, balanced (default; <= 0.1 dB PSNR on the demo), small.")
+
 
 @click.command(name="compress")
 @click.argument("model_dir", type=click.Path(file_okay=False))
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output model folder (replaced atomically).")
-@click.option("--codebook-size", "-k", default=256, show_default=True,
-              help="K, number of codebook colours (<= 256: uint8 indices, <= 65536: uint16).")
-@click.option("--half/--no-half", default=True, show_default=True,
-              help="Store SH coefficients and the codebook as float16 (positions/rotations/scales stay float32).")
+@click.option("--target", type=click.Choice(["lossless-ish", "balanced", "small"]), default="balanced",
+              show_default=True, help=TARGET_HELP)
+@click.option("--texels", type=click.Choice(["scalar", "vector", "f16", "f32"]), default=None,
+              help="Texel storage (overrides the target): scalar = 1-D codebook, 1 byte per channel (the "
+                   "paper's); vector = RGB codebook, one index per texel; f16/f32 = raw values.")
+@click.option("--codebook-size", "-k", type=int, default=None,
+              help="K of the texel codebook (overrides the target; scalar <= 256 keeps 1-byte indices).")
+@click.option("--attr", "attrs", multiple=True, metavar="NAME=CODEC",
+              help="Per-primitive attribute codec (repeatable, overrides the target): means=f32|f16|q16, "
+                   "scales=f32|f16|q16|q8, quats=f32|f16|q8, opacity=f32|f16|q8, sh_dc=f32|f16|q8, "
+                   "sh_rest=f32|f16|q8|kmeans:K, k_min=f32|f16, sh_degree=0..3 (drop higher SH bands).")
+@click.option("--coder", type=click.Choice(["xz", "zlib", "none"]), default=None,
+              help="Lossless coder of every section (default: the target's, xz).")
+@click.option("--sort/--no-sort", default=None,
+              help="Morton-sort primitives so neighbours share bytes (default: the target's, on).")
 @click.option("--seed", default=0, show_default=True, help="K-means random seed.")
-def command(model_dir: str, out_dir: str, codebook_size: int, half: bool, seed: int) -> None:
-    """Compress MODEL_DIR (from `ctgs export`) into OUT_DIR; `ctgs eval --model OUT_DIR` measures quality."""
-    from ctgs.io.compress import kmeans_codebook
-    from ctgs.io.model_format import read_model, write_model
+def command(model_dir: str, out_dir: str, target: str, texels: str | None, codebook_size: int | None,
+            attrs: tuple[str, ...], coder: str | None, sort: bool | None, seed: int) -> None:
+    """Compress MODEL_DIR (from `ctgs export`) into OUT_DIR; `ctgs eval RUN --model OUT_DIR` measures quality."""
+    from dataclasses import asdict, replace
+
+    from ctgs.io.compress import TARGETS, compress_model
+    from ctgs.io.model_format import read_model, write_packed_model
 
     if os.path.abspath(model_dir) == os.path.abspath(out_dir):
         raise UserError(f"{out_dir}: output must differ from the input model folder")
     model, files = read_model(model_dir)
     if files.manifest.get("texture_encoding") != "raw" or "compression" in files.manifest:
-        raise UserError(f"{model_dir}: already compressed; compress the exported model instead")
+        raise UserError(f"{model_dir}: already compressed; compress the exported model (`ctgs export`) instead")
+    spec = TARGETS[target]
+    changes = {k: v for k, v in (("texels", texels), ("codebook_size", codebook_size), ("coder", coder),
+                                 ("sort", sort)) if v is not None}
+    if texels is not None and codebook_size is None and texels != spec.texels:
+        changes["codebook_size"] = 256  # the other texel mode's K is not meant for this one
+    spec = replace(spec, **changes).with_overrides(list(attrs))
+    if codebook_size is None and spec.texels == "vector" and 0 < model.num_texels < spec.codebook_size:
+        spec = replace(spec, codebook_size=model.num_texels)  # a target's K on a tiny model: one entry per texel
+    packed = compress_model(model, spec, seed=seed)
     before = files.bytes_on_disk
-    info = {"source": os.path.abspath(model_dir), "codebook_size": codebook_size, "half": half, "bytes_before": before}
-    if model.num_texels == 0:
-        # Untextured models (2DGS baseline, runs stopped before texturing): nothing to cluster, only fp16.
-        info.update(codebook_size=None, method="none (no texels)", rmse_activated=0.0, seconds=0.0)
-        blob = None
-    else:
-        result = kmeans_codebook(model, codebook_size, seed=seed, half=half)
-        blob = result.blob
-        info.update(method=result.method, rmse_activated=result.rmse_activated, seconds=result.seconds)
-    manifest = write_model(model, out_dir, blob=blob, half=half, plain_ply=False, extra={"compression": info})
+    info = {"target": target, "spec": asdict(spec), "source_model": os.path.abspath(model_dir),
+            "bytes_before": before, **packed.stats}
+    extra = {"compression": info}
+    if "source" in files.manifest:
+        extra["source"] = files.manifest["source"]
+    manifest = write_packed_model(packed, out_dir, extra=extra)
     after = os.path.getsize(os.path.join(out_dir, "manifest.json")) + sum(manifest["file_bytes"].values())
+    tex = packed.stats["texels"]
+    k = f", K={tex['codebook_size']}" if tex.get("codebook_size") else ""
+    rmse = f", texel RMSE {tex['rmse_activated']:.4f}" if "rmse_activated" in tex else ""
     click.echo(f"{model_dir}: {before / 1e6:.3f} MB -> {out_dir}: {after / 1e6:.3f} MB "
-               f"(x{before / max(after, 1):.2f} smaller); K={info['codebook_size']} ({info['method']}, "
-               f"{info['seconds']:.1f} s), texel RMSE {info['rmse_activated']:.4f}")
+               f"(x{before / max(after, 1):.2f} smaller); target {target}, texels {tex['mode']}{k}{rmse} "
+               f"({packed.stats['seconds']:.1f} s)")

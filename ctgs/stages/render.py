@@ -16,8 +16,10 @@ import click
               show_default=True, help="Renderer backend; `reference` is the slow pure-PyTorch one.")
 @click.option("--views", type=click.Choice(["test", "train", "all"]), default="test", show_default=True,
               help="Which of the scene's views to render (test = every holdout-th image).")
-def command(run_dir: str, out_dir: str, backend: str, views: str) -> None:
-    """Render RUN_DIR/model.pt from the cameras of the scene it was trained on."""
+@click.option("--model", "model_dir", default=None, type=click.Path(file_okay=False),
+              help="Render this exported/compressed model folder instead of RUN_DIR/model.pt.")
+def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str | None) -> None:
+    """Render RUN_DIR/model.pt (or --model) from the cameras of the scene it was trained on."""
     import torch
 
     from ctgs.io import atomic
@@ -33,6 +35,10 @@ def command(run_dir: str, out_dir: str, backend: str, views: str) -> None:
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
     chosen = {"test": scene.test, "train": scene.train, "all": scene.train + scene.test}[views]
     model = run.model
+    if model_dir is not None:
+        from ctgs.io.model_format import read_model
+
+        model = read_model(model_dir, device=device)[0]
     # Rendered into a temporary sibling that becomes OUT_DIR when every view is written (an earlier render
     # folder is replaced whole): a failure part-way leaves nothing behind.
     with torch.no_grad(), atomic.atomic_dir(out_dir) as tmp:

@@ -19,7 +19,7 @@ SCHEMA = {
     "scene_dir": str, "images": str, "holdout": int, "num_test_views": int, "psnr": float, "ssim": float,
     "lpips": (float, type(None)), "lpips_status": str, "points": int, "texels": int, "params": int,
     "texels_per_primitive": float, "model_memory_bytes": int, "bytes_on_disk": int, "texture_encoding": str,
-    "codebook_size": (int, type(None)), "compressed": bool, "fps": float, "render_ms_mean": float, "backend": str, "device": str,
+    "codebook_size": (int, type(None)), "compressed": bool, "compression_target": (str, type(None)), "fps": float, "render_ms_mean": float, "backend": str, "device": str,
     "resolution": list, "peak_memory_bytes": int, "peak_memory_kind": str, "train_seconds": (float, type(None)),
     "iterations": int, "machine": dict, "files": dict, "per_image": list,
 }
@@ -80,18 +80,27 @@ def test_eval_exported_and_compressed_models(run_dir, tmp_path):
     for name in os.listdir(tmp_path / "e0" / "renders"):
         assert (tmp_path / "e1" / "renders" / name).read_bytes() == (tmp_path / "e0" / "renders" / name).read_bytes()
     assert raw["lpips"] is None and "skipped" in raw["lpips_status"]
-    assert cmp["texture_encoding"] == "codebook" and cmp["codebook_size"] == 16
+    assert cmp["texture_encoding"] == "scalar" and cmp["codebook_size"] == 16
     assert cmp["bytes_on_disk"] < raw["bytes_on_disk"]
     assert cmp["psnr"] != raw["psnr"]
 
+    # The table: a compressed model is its own group (never averaged with its source), and its Mem is
+    # what it takes on disk, not 4 bytes per decoded parameter.
     res = CliRunner().invoke(main, ["eval", "--table", str(tmp_path / "e1"), str(tmp_path / "e2"),
                                     "-o", str(tmp_path / "table")])
     assert res.exit_code == 0, res.output
     md = (tmp_path / "table" / "table.md").read_text()
-    assert "| SSIM | PSNR | LPIPS | Points | Texels | Params | FPS | Mem | Texels/Primitive |" in md
-    assert "mean (2)" in md and "(compressed, K=16)" in md
-    lines = (tmp_path / "table" / "table.csv").read_text().strip().splitlines()
-    assert len(lines) == 1 + 2 + 1  # header, two runs, the dataset mean
+    assert "| SSIM | PSNR | LPIPS | Points | Texels | Params | FPS | Mem | Disk | Texels/Primitive |" in md
+    assert "mean (1)" in md and "(compressed balanced: scalar K=16)" in md
+    assert "mean (compressed balanced: scalar K=16) (1)" in md
+    rows = list(csv.reader(open(tmp_path / "table" / "table.csv")))
+    assert len(rows) == 1 + 2 * 2  # header, then each variant: its run and its own mean
+    head = rows[0]
+    by_label = {r[1]: dict(zip(head, r)) for r in rows[1:]}
+    small = by_label["evalrun0 (compressed balanced: scalar K=16)".replace("evalrun0", raw["scene"])]
+    assert int(small["Mem"]) == cmp["bytes_on_disk"] == int(small["Disk"])
+    assert int(by_label[raw["scene"]]["Mem"]) == 4 * raw["params"]
+    assert abs(float(by_label["mean"]["PSNR"]) - raw["psnr"]) < 1e-9  # the raw mean is the raw model alone
 
 
 def test_run_without_model_is_user_error(tmp_path):
