@@ -49,7 +49,7 @@ DATA_ROOT ?= data
 BACKEND ?= auto
 SCENES ?=
 RUNS ?= runs
-CODEBOOK ?= 256
+COMPRESS_TARGET ?= balanced
 DEMO_DIR ?= out/demo
 # The demo scene of benchmarks/claims.py (same size, views, points), trained with DEMO_PRESET planned to end
 # within DEMO_MINUTES on this machine (`--time-budget`), so `make demo` stays within 10 minutes on 2 cores.
@@ -80,7 +80,7 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	$(CTGS) export $* -o $*/model
 
 %/model-compressed/manifest.json: %/model/manifest.json
-	$(CTGS) compress $*/model -o $*/model-compressed --codebook-size $(CODEBOOK)
+	$(CTGS) compress $*/model -o $*/model-compressed --target $(COMPRESS_TARGET)
 
 $(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
 	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
