@@ -2,6 +2,8 @@
 // outputs and dispatches float/double to the raw-pointer cores in kernels/cpu (and, later, kernels/cuda).
 #include <torch/extension.h>
 
+#include <map>
+#include <string>
 #include <vector>
 
 #include "binding_common.h"
@@ -116,4 +118,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("backward_cpu", &backward_cpu, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
         "v_texel_size, v_textures, v_background)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
+  m.def("profile_counters", [](bool reset) {
+    const std::vector<double> v = ctgs::cpu::prof_read(reset);
+    std::map<std::string, double> out;
+    for (int k = 0; k < ctgs::cpu::PROF_COUNT; ++k) out[ctgs::cpu::PROF_NAMES[k]] = v[k];
+    return out;
+  }, "wall-clock seconds per kernel phase since the last reset (benchmarks/profile_train.py)",
+  py::arg("reset") = true);
 }

@@ -37,6 +37,7 @@ inline void add_grad(SurfelGrad<S>& sum, const SurfelGrad<S>& g) {
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out) {
+  ProfTimer timer;
   std::vector<SurfelPrim<S>> prims;
   std::vector<PixelRect> rects;
   bin_primitives<S>(a, prims, rects, nullptr);  // camera-space constants only; the lists come from forward
@@ -59,6 +60,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   const bool use_atomics = nt > 1 && !private_tex;
   const S bg[3] = {a.background[0], a.background[1], a.background[2]};
   constexpr int TP = TILE_W * TILE_H;
+  timer.lap(PROF_BWD_SETUP);
 
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
@@ -160,6 +162,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
       row[G_TEXEL + 1] += sum.kv;
     }
   }
+  timer.lap(PROF_BWD_RASTER);
 
 #pragma omp parallel for schedule(static) num_threads(nt)
   for (int i = 0; i < N; ++i) {
@@ -175,6 +178,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     for (int k = 0; k < 3; ++k) out.v_colors[3 * i + k] = row[G_COLOR + k];
     for (int k = 0; k < 2; ++k) out.v_texel_size[2 * i + k] = row[G_TEXEL + k];
   }
+  timer.lap(PROF_BWD_REDUCE);
   if (private_tex) {
 #pragma omp parallel for schedule(static) num_threads(nt)
     for (long long k = 0; k < (long long)tex_n; ++k) {
@@ -188,6 +192,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     for (int t = 0; t < nt; ++t) s += bgbuf[3 * t + c];
     out.v_background[c] = s;
   }
+  timer.lap(PROF_BWD_TEX_REDUCE);
 }
 
 template void backward<float>(const SceneArgs<float>&, const TileBinsView&, const float*, const int32_t*,

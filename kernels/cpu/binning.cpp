@@ -6,6 +6,21 @@
 namespace ctgs {
 namespace cpu {
 
+const char* const PROF_NAMES[PROF_COUNT] = {"fwd_bin", "fwd_raster", "fwd_reduce", "bwd_setup",
+                                            "bwd_raster", "bwd_reduce", "bwd_tex_reduce"};
+namespace {
+double prof_seconds[PROF_COUNT] = {};
+}  // namespace
+
+void prof_add(int phase, double seconds) { prof_seconds[phase] += seconds; }
+
+std::vector<double> prof_read(bool reset) {
+  std::vector<double> out(prof_seconds, prof_seconds + PROF_COUNT);
+  if (reset)
+    for (double& v : prof_seconds) v = 0.0;
+  return out;
+}
+
 template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
                     TileBins* bins) {

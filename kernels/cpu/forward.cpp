@@ -14,9 +14,11 @@ namespace cpu {
 
 template <typename S>
 void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
+  ProfTimer timer;
   std::vector<SurfelPrim<S>> prims;
   std::vector<PixelRect> rects;
   bin_primitives(a, prims, rects, bins);
+  timer.lap(PROF_FWD_BIN);
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
   const bool stats = out.error_image != nullptr;
@@ -103,6 +105,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
         out.n_contrib[pix] = last[p];
       }
   }
+  timer.lap(PROF_FWD_RASTER);
   if (stats) {
 #pragma omp parallel for schedule(static) num_threads(nt)
     for (int i = 0; i < N; ++i) {
@@ -118,6 +121,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
       out.err[i] = r;
     }
   }
+  timer.lap(PROF_FWD_REDUCE);
 }
 
 template void forward<float>(const SceneArgs<float>&, const ForwardOut<float>&, TileBins*);

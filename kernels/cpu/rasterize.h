@@ -2,6 +2,7 @@
 // tensors). Templated on the scalar S (float, double); explicit instantiations live in the .cpp files.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <vector>
 
@@ -61,6 +62,34 @@ using BackwardOut = ctgs::BackwardOut<S>;
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out);
+
+// Wall-clock seconds per phase, summed over calls since the last read (benchmarks/profile_train.py reads
+// them through the binding `profile_counters`). Only the calling thread touches them, outside parallel
+// regions: a few clock reads per render, nothing per pixel.
+enum ProfPhase : int {
+  PROF_FWD_BIN = 0,     // per-primitive setup, bounds, depth sort, tile lists
+  PROF_FWD_RASTER,      // blending
+  PROF_FWD_REDUCE,      // per-thread error statistics -> outputs
+  PROF_BWD_SETUP,       // per-primitive setup and zeroing of the gradient buffers
+  PROF_BWD_RASTER,      // back-to-front blending gradients
+  PROF_BWD_REDUCE,      // per-thread per-primitive gradients -> outputs
+  PROF_BWD_TEX_REDUCE,  // per-thread texel gradients -> output
+  PROF_COUNT
+};
+extern const char* const PROF_NAMES[PROF_COUNT];
+void prof_add(int phase, double seconds);
+// Returns the counters and, if reset, zeroes them.
+std::vector<double> prof_read(bool reset);
+
+// Adds the time from construction (or the last lap) to a phase.
+struct ProfTimer {
+  std::chrono::steady_clock::time_point t0 = std::chrono::steady_clock::now();
+  void lap(int phase) {
+    const auto t1 = std::chrono::steady_clock::now();
+    prof_add(phase, std::chrono::duration<double>(t1 - t0).count());
+    t0 = t1;
+  }
+};
 
 }  // namespace cpu
 }  // namespace ctgs
