@@ -40,7 +40,8 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   ProfTimer timer;
   std::vector<SurfelPrim<S>> prims;
   std::vector<PixelRect> rects;
-  bin_primitives<S>(a, prims, rects, nullptr);  // camera-space constants only; the lists come from forward
+  PrimSpans spans;
+  bin_primitives<S>(a, prims, rects, spans, nullptr);  // camera-space constants only; the lists come from forward
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
   const int nt = std::max(1, a.num_threads);
@@ -93,15 +94,16 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
       const int32_t i = bins.list[begin + jj];
       const SurfelPrim<S>& P = prims[i];
       const PixelRect& r = rects[i];
-      const int rx0 = std::max(r.x0, x0), rx1 = std::min(r.x1, x1 - 1);
       const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
+      const int32_t* sp = ry0 <= ry1 ? spans.row(i, ry0) : nullptr;
       SurfelGrad<S> sum;
       const Vec3<S> zero = make_vec3(S(0), S(0), S(0));
       sum.mu = sum.u = sum.v = sum.n = zero;
       sum.sx = sum.sy = sum.opacity = sum.ku = sum.kv = S(0);
       sum.color[0] = sum.color[1] = sum.color[2] = S(0);
       bool any = false;
-      for (int y = ry0; y <= ry1; ++y) {
+      for (int y = ry0; y <= ry1; ++y, sp += 2) {
+        const int rx0 = std::max(int(sp[0]), x0), rx1 = std::min(int(sp[1]), x1 - 1);
         for (int x = rx0; x <= rx1; ++x) {
           const int p = (y - y0) * TILE_W + (x - x0);
           if (jj >= ncon[p]) continue;  // behind where this pixel stopped

@@ -1,7 +1,9 @@
 // Per-primitive preprocessing and per-tile depth-sorted lists for the CPU backend.
 #include <algorithm>
+#include <climits>
 
 #include "rasterize.h"
+#include "spans.h"
 
 namespace ctgs {
 namespace cpu {
@@ -21,20 +23,67 @@ std::vector<double> prof_read(bool reset) {
   return out;
 }
 
+namespace {
+
+// Tiles of tile row ty that the spans of rows [ya, yb] touch: [*tx0, *tx1) (empty if tx0 >= tx1).
+inline void band_tiles(const int32_t* xs, int ya, int yb, int* tx0, int* tx1) {
+  int lo = INT32_MAX, hi = -1;
+  for (int y = ya; y <= yb; ++y, xs += 2)
+    if (xs[0] <= xs[1]) {
+      lo = std::min(lo, int(xs[0]));
+      hi = std::max(hi, int(xs[1]));
+    }
+  *tx0 = hi < 0 ? 0 : lo / TILE_W;
+  *tx1 = hi < 0 ? 0 : hi / TILE_W + 1;
+}
+
+}  // namespace
+
 template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
-                    TileBins* bins) {
+                    PrimSpans& spans, TileBins* bins) {
   const int N = a.N;
   const int ntx = tiles_x(a.K.width), nty = tiles_y(a.K.height);
   const int num_tiles = ntx * nty;
+  const int nt = std::max(1, a.num_threads);
   prims.resize(N);
   rects.resize(N);
-#pragma omp parallel for schedule(static) num_threads(a.num_threads)
+  spans.offset.resize(N);
+  spans.row0.resize(N);
+#pragma omp parallel for schedule(static) num_threads(nt)
   for (int i = 0; i < N; ++i) {
     prims[i] = load_prim(i, a.mu_c, a.Rc, a.scales, a.opacities, a.colors, a.texel_size, a.tex_res, a.tex_offset,
                          a.K);
     const bool culled = !(prims[i].mu.z >= a.K.near_plane) || prims[i].opacity < S(MIN_ALPHA);
     rects[i] = culled ? PixelRect{0, 0, -1, -1} : surfel_pixel_rect(prims[i], a.K);
+  }
+  int64_t rows = 0;
+  for (int i = 0; i < N; ++i) {
+    spans.offset[i] = rows;
+    spans.row0[i] = rects[i].y0;
+    if (rects[i].x0 <= rects[i].x1 && rects[i].y0 <= rects[i].y1) rows += rects[i].y1 - rects[i].y0 + 1;
+  }
+  spans.xs.resize(size_t(2 * rows));
+  // Spans row by row; the rect shrinks to their bounding box.
+#pragma omp parallel for schedule(dynamic, 64) num_threads(nt)
+  for (int i = 0; i < N; ++i) {
+    const PixelRect r = rects[i];
+    if (r.x0 > r.x1 || r.y0 > r.y1) continue;
+    const SpanConic c = span_conic(prims[i]);
+    int32_t* xs = spans.xs.data() + 2 * spans.offset[i];
+    PixelRect t = {r.x1 + 1, r.y1 + 1, r.x0 - 1, r.y0 - 1};
+    for (int y = r.y0; y <= r.y1; ++y, xs += 2) {
+      int lo, hi;
+      if (span_of_row(c, a.K, y, r.x0, r.x1, &lo, &hi)) {
+        t = PixelRect{std::min(t.x0, lo), std::min(t.y0, y), std::max(t.x1, hi), std::max(t.y1, y)};
+      } else {
+        lo = 0;
+        hi = -1;
+      }
+      xs[0] = lo;
+      xs[1] = hi;
+    }
+    rects[i] = t.x0 <= t.x1 ? t : PixelRect{0, 0, -1, -1};
   }
   if (bins == nullptr) return;
   // Sorting once globally by (centre depth, index) and then bucketing stably by tile leaves every tile
@@ -47,27 +96,29 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
     const S zp = prims[p].mu.z, zq = prims[q].mu.z;
     return zp < zq || (zp == zq && p < q);
   });
+  // Visits the tiles primitive i's spans touch, tile row by tile row.
+  auto for_tiles = [&](int32_t i, auto&& fn) {
+    const PixelRect& r = rects[i];
+    for (int ty = r.y0 / TILE_H; ty <= r.y1 / TILE_H; ++ty) {
+      const int ya = std::max(r.y0, ty * TILE_H), yb = std::min(r.y1, ty * TILE_H + TILE_H - 1);
+      int tx0, tx1;
+      band_tiles(spans.row(i, ya), ya, yb, &tx0, &tx1);
+      for (int tx = tx0; tx < tx1; ++tx) fn(ty * ntx + tx);
+    }
+  };
   std::vector<int64_t>& off = bins->offsets;
   off.assign(num_tiles + 1, 0);
-  for (int32_t i : order) {
-    const TileRect r = tiles_of(rects[i]);
-    for (int ty = r.y0; ty < r.y1; ++ty)
-      for (int tx = r.x0; tx < r.x1; ++tx) ++off[ty * ntx + tx + 1];
-  }
+  for (int32_t i : order) for_tiles(i, [&](int k) { ++off[k + 1]; });
   for (int k = 0; k < num_tiles; ++k) off[k + 1] += off[k];
   bins->list.resize(off[num_tiles]);
   std::vector<int64_t> cursor(off.begin(), off.end() - 1);
-  for (int32_t i : order) {
-    const TileRect r = tiles_of(rects[i]);
-    for (int ty = r.y0; ty < r.y1; ++ty)
-      for (int tx = r.x0; tx < r.x1; ++tx) bins->list[cursor[ty * ntx + tx]++] = i;
-  }
+  for (int32_t i : order) for_tiles(i, [&](int k) { bins->list[cursor[k]++] = i; });
 }
 
 template void bin_primitives<float>(const SceneArgs<float>&, std::vector<SurfelPrim<float>>&,
-                                    std::vector<PixelRect>&, TileBins*);
+                                    std::vector<PixelRect>&, PrimSpans&, TileBins*);
 template void bin_primitives<double>(const SceneArgs<double>&, std::vector<SurfelPrim<double>>&,
-                                     std::vector<PixelRect>&, TileBins*);
+                                     std::vector<PixelRect>&, PrimSpans&, TileBins*);
 
 }  // namespace cpu
 }  // namespace ctgs

@@ -17,7 +17,8 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
   ProfTimer timer;
   std::vector<SurfelPrim<S>> prims;
   std::vector<PixelRect> rects;
-  bin_primitives(a, prims, rects, bins);
+  PrimSpans spans;
+  bin_primitives(a, prims, rects, spans, bins);
   timer.lap(PROF_FWD_BIN);
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
@@ -56,11 +57,12 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
       const int32_t i = list[j];
       const SurfelPrim<S>& P = prims[i];
       const PixelRect& r = rects[i];
-      const int rx0 = std::max(r.x0, x0), rx1 = std::min(r.x1, x1 - 1);
       const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
+      const int32_t* sp = ry0 <= ry1 ? spans.row(i, ry0) : nullptr;
       int32_t n_blend = 0;
       S sum_w = S(0), sum_ew = S(0);
-      for (int y = ry0; y <= ry1; ++y) {
+      for (int y = ry0; y <= ry1; ++y, sp += 2) {
+        const int rx0 = std::max(int(sp[0]), x0), rx1 = std::min(int(sp[1]), x1 - 1);
         for (int x = rx0; x <= rx1; ++x) {
           const int p = (y - y0) * TILE_W + (x - x0);
           if (done[p]) continue;

@@ -30,12 +30,23 @@ struct TileBinsView {
   const int32_t* list;     // [pairs]
 };
 
-// Camera-space primitives and their pixel bounds for every index, and (if bins) the tile lists. Culls
-// mu_c.z < near, opacity < MIN_ALPHA (alpha <= opacity can never reach MIN_ALPHA) and primitives whose
-// bounds miss the image (their rect is empty).
+// Per-row pixel spans of every primitive (spans.h): row y of primitive i covers pixels
+// xs[2 k], xs[2 k + 1] (inclusive; empty if the first is larger), k = offset[i] + y - row0[i], for
+// y in rects[i].y0..rects[i].y1. Every pair that can pass surfel_alpha lies inside its span.
+struct PrimSpans {
+  std::vector<int64_t> offset;  // [N]
+  std::vector<int32_t> row0;    // [N]
+  std::vector<int32_t> xs;      // [rows, 2]
+  const int32_t* row(int i, int y) const { return xs.data() + 2 * (offset[i] + (y - row0[i])); }
+};
+
+// Camera-space primitives, their pixel bounds and row spans for every index, and (if bins) the tile
+// lists. Culls mu_c.z < near, opacity < MIN_ALPHA (alpha <= opacity can never reach MIN_ALPHA) and
+// primitives none of whose rows has pixels (their rect is empty). rects[i] is the bounding box of the
+// spans; a primitive is listed in the tiles its spans touch.
 template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
-                    TileBins* bins);
+                    PrimSpans& spans, TileBins* bins);
 
 // Forward outputs; stats pointers may be null when no error image is given.
 template <typename S>
