@@ -151,6 +151,8 @@ def make_snapshot(args) -> None:
         if tr.it >= args.state_at:
             break
     tr._save_checkpoint()
+    with open(os.path.join(run, "snapshot.json"), "w") as fh:  # marks the snapshot complete
+        json.dump({"iteration": tr.it, "primitives": tr.model.num_primitives, "texels": tr.model.num_texels}, fh)
     print(f"snapshot at iteration {tr.it}: {tr.model.num_primitives} primitives, {tr.model.num_texels} texels")
 
 
@@ -271,7 +273,7 @@ def main() -> None:
     if args.make_snapshot:
         make_snapshot(args)
         return
-    if args.new_snapshot or not os.path.exists(os.path.join(args.work, f"snap_{args.tag}", "checkpoints")):
+    if args.new_snapshot or not os.path.exists(os.path.join(args.work, f"snap_{args.tag}", "snapshot.json")):
         cmd = [sys.executable, os.path.abspath(__file__), *sys.argv[1:], "--make-snapshot"]
         subprocess.run(cmd, check=True)
     write(profile(args), args.out)

@@ -1,0 +1,225 @@
+// docs/renderer.md steps 1-6 for W consecutive pixels of one row at once (lanes.h), as the CPU forward
+// and backward both evaluate them: everything that depends only on the primitive is computed once per
+// render (LanePrim), everything that depends only on the row once per row (LaneRow), and per pixel
+// only what varies along the row. With d = (dx, dy, 1), the plane hit uses
+//   t = (n.mu) / (n.d),  lx = u.(t d - mu) = t (u.d) - u.mu,  ly = t (v.d) - v.mu,
+// where n.d = (nx dx + ny dy) + nz (likewise u.d, v.d) has its row term ny dy precomputed: the
+// reference's formula (ctgs/render/reference.py), and the shared header's (ctgs/surfel.h) regrouped. Forward and
+// backward call these same inline functions, so their alphas (and blending decisions) are identical.
+#pragma once
+
+#include <cstdint>
+
+#include "ctgs/constants.h"
+#include "ctgs/surfel.h"
+#include "lanes.h"
+
+namespace ctgs {
+namespace cpu {
+
+// One primitive in the form the lane kernels use (camera space, precomputed reciprocals).
+template <typename S>
+struct LanePrim {
+  S nx, ny, nz, ux, uy, uz, vx, vy, vz;  // frame columns u, v, n
+  S mux, muy, muz;                        // centre
+  S n_mu, u_mu, v_mu;                     // n.mu, u.mu, v.mu
+  S sx, sy, isx, isy, isx2, isy2;         // sx, sy, 1/sx, 1/sy, 1/sx^2, 1/sy^2
+  S opacity;
+  S mx, my;                               // projected centre, pixels
+  S color[3];
+  S ku, kv, iku, ikv, iku2, ikv2;         // ku, kv, 1/ku, 1/kv, 1/ku^2, 1/kv^2
+  S half_u, half_v;                       // (res - 1) / 2: texel centres at integer coordinates
+  S res_uf, res_vf;
+  int res_u, res_v;
+  long long tex_off;
+  bool textured;                          // res_u > 0 and res_v > 0
+};
+
+template <typename S>
+inline LanePrim<S> lane_prim(const SurfelPrim<S>& P) {
+  LanePrim<S> L;
+  L.nx = P.n.x, L.ny = P.n.y, L.nz = P.n.z;
+  L.ux = P.u.x, L.uy = P.u.y, L.uz = P.u.z;
+  L.vx = P.v.x, L.vy = P.v.y, L.vz = P.v.z;
+  L.mux = P.mu.x, L.muy = P.mu.y, L.muz = P.mu.z;
+  L.n_mu = P.n_mu;
+  L.u_mu = dot(P.u, P.mu);
+  L.v_mu = dot(P.v, P.mu);
+  L.sx = P.sx;
+  L.sy = P.sy;
+  L.isx = S(1) / P.sx;
+  L.isy = S(1) / P.sy;
+  L.isx2 = S(1) / (P.sx * P.sx);
+  L.isy2 = S(1) / (P.sy * P.sy);
+  L.opacity = P.opacity;
+  L.mx = P.mx;
+  L.my = P.my;
+  for (int c = 0; c < 3; ++c) L.color[c] = P.color[c];
+  L.ku = P.ku;
+  L.kv = P.kv;
+  L.iku = S(1) / P.ku;
+  L.ikv = S(1) / P.kv;
+  L.iku2 = S(1) / (P.ku * P.ku);
+  L.ikv2 = S(1) / (P.kv * P.kv);
+  L.half_u = S(0.5) * S(P.res_u - 1);
+  L.half_v = S(0.5) * S(P.res_v - 1);
+  L.res_uf = S(P.res_u);
+  L.res_vf = S(P.res_v);
+  L.res_u = P.res_u;
+  L.res_v = P.res_v;
+  L.tex_off = P.tex_off;
+  L.textured = P.res_u > 0 && P.res_v > 0;
+  return L;
+}
+
+// Row constants of one primitive.
+template <typename S>
+struct LaneRow {
+  S dy;          // ray direction y
+  S bn, bu, bv;  // ny dy, uy dy, vy dy: n.d = (nx dx + ny dy) + nz (the reference's order), ...
+  S ey;          // pixel-centre y - projected centre y
+  S ey2;
+};
+
+template <typename S>
+CTGS_INLINE LaneRow<S> lane_row(const LanePrim<S>& P, S py, S dy) {
+  LaneRow<S> r;
+  r.dy = dy;
+  r.bn = P.ny * dy;
+  r.bu = P.uy * dy;
+  r.bv = P.vy * dy;
+  r.ey = py - P.my;
+  r.ey2 = r.ey * r.ey;
+  return r;
+}
+
+// Steps 1-4 for W pixels; lanes outside `in` (or failing) come out with ok = 0 and may hold any value.
+template <typename S>
+struct LaneHit {
+  typename Lanes<S>::V nd, ud, vd, t, lx, ly, G, alpha, z;
+  typename Lanes<S>::I ok, valid, use3d;
+};
+
+template <typename S>
+CTGS_INLINE void lane_alpha(const LanePrim<S>& P, const LaneRow<S>& R, typename Lanes<S>::V dx,
+                            typename Lanes<S>::V px, typename Lanes<S>::V dn, S near_plane,
+                            typename Lanes<S>::I in, LaneHit<S>& h) {
+  using V = typename Lanes<S>::V;
+  h.nd = (P.nx * dx + R.bn) + P.nz;
+  h.ud = (P.ux * dx + R.bu) + P.uz;
+  h.vd = (P.vx * dx + R.bv) + P.vz;
+  h.valid = vabs<S>(h.nd) > S(PARALLEL_EPS) * dn;
+  h.t = P.n_mu / h.nd;
+  h.lx = h.t * h.ud - P.u_mu;
+  h.ly = h.t * h.vd - P.v_mu;
+  const V ax = h.lx / P.sx, ay = h.ly / P.sy;
+  const V rho3d = sel(h.valid, ax * ax + ay * ay, splat(S(INFINITY)));
+  const typename Lanes<S>::I behind = h.valid & (h.t < near_plane);
+  const V ex = px - P.mx;
+  const V rho2d = S(FILTER_INV_SQUARE) * (ex * ex + R.ey2);
+  h.use3d = rho3d <= rho2d;
+  const V rho = sel(h.use3d, rho3d, rho2d);
+  // rho is NaN or above the cutoff only in lanes that fail below; the clamp keeps exp's input in range.
+  const V rc = sel(rho < S(CUTOFF_RHO), rho, splat(S(CUTOFF_RHO)));
+  h.G = vexp(S(-0.5) * rc);
+  const V a = P.opacity * h.G;
+  h.alpha = sel(a < S(MAX_ALPHA), a, splat(S(MAX_ALPHA)));
+  h.ok = in & ~behind & (rho <= S(CUTOFF_RHO)) & (h.alpha >= S(MIN_ALPHA));
+  h.z = sel(h.valid, h.t, splat(P.muz));
+}
+
+// Step 5 (bilinear taps) for the lanes in `use`: active lanes, tap weights, fractions and the texel
+// values (0 outside the grid and in inactive lanes). rows (if not null) receives each tap's texel row
+// (-1 outside) for the backward's scatter.
+template <typename S>
+struct LaneTex {
+  typename Lanes<S>::I active;
+  typename Lanes<S>::V fu, fv, w[4];
+  alignas(32) S texel[4][3][Lanes<S>::W];  // [tap][channel][lane]
+};
+
+template <typename S>
+CTGS_INLINE void lane_texture(const LanePrim<S>& P, const S* textures, const LaneHit<S>& h,
+                              typename Lanes<S>::I use, LaneTex<S>& tx, long long (*rows)[Lanes<S>::W]) {
+  using V = typename Lanes<S>::V;
+  constexpr int W = Lanes<S>::W;
+  // Divisions, not reciprocals: at texel centres (uu integral) the bilinear derivative jumps, so uu must
+  // round exactly as the reference computes it.
+  const V uu = h.lx / P.ku + P.half_u, vv = h.ly / P.kv + P.half_v;
+  // Written as a positive test so NaN lands in the inactive branch (ctgs/texture.h).
+  tx.active = use & h.valid & h.use3d & (uu > S(-1)) & (uu < P.res_uf) & (vv > S(-1)) & (vv < P.res_vf);
+  const V uc = sel(tx.active, uu, splat(S(0))), vc = sel(tx.active, vv, splat(S(0)));
+  const V fl_u = vfloor<S>(uc), fl_v = vfloor<S>(vc);
+  tx.fu = uc - fl_u;
+  tx.fv = vc - fl_v;
+  const V one = splat(S(1));
+  tx.w[0] = (one - tx.fu) * (one - tx.fv);
+  tx.w[1] = tx.fu * (one - tx.fv);
+  tx.w[2] = (one - tx.fu) * tx.fv;
+  tx.w[3] = tx.fu * tx.fv;
+  for (int k = 0; k < W; ++k) {
+    if (!tx.active[k]) {
+      for (int t = 0; t < 4; ++t) {
+        tx.texel[t][0][k] = tx.texel[t][1][k] = tx.texel[t][2][k] = S(0);
+        if (rows) rows[t][k] = -1;
+      }
+      continue;
+    }
+    const int u0 = int(fl_u[k]), v0 = int(fl_v[k]);  // in [-1, res - 1]
+    for (int t = 0; t < 4; ++t) {
+      const int iu = u0 + (t & 1), iv = v0 + (t >> 1);
+      if (iu >= 0 && iu < P.res_u && iv >= 0 && iv < P.res_v) {
+        const long long row = P.tex_off + static_cast<long long>(iv) * P.res_u + iu;
+        const S* src = textures + 3 * row;
+        tx.texel[t][0][k] = src[0];
+        tx.texel[t][1][k] = src[1];
+        tx.texel[t][2][k] = src[2];
+        if (rows) rows[t][k] = row;
+      } else {
+        tx.texel[t][0][k] = tx.texel[t][1][k] = tx.texel[t][2][k] = S(0);
+        if (rows) rows[t][k] = -1;
+      }
+    }
+  }
+}
+
+// Step 6: c_raw = colour + texture (sum of tap weight x texel, taps in order), c = max(c_raw, 0).
+template <typename S>
+CTGS_INLINE void lane_color(const LanePrim<S>& P, const LaneTex<S>& tx, typename Lanes<S>::V c_raw[3],
+                            typename Lanes<S>::V c[3]) {
+  using V = typename Lanes<S>::V;
+  for (int ch = 0; ch < 3; ++ch) {
+    V tex = tx.w[0] * vload<V>(tx.texel[0][ch]);
+    tex = tex + tx.w[1] * vload<V>(tx.texel[1][ch]);
+    tex = tex + tx.w[2] * vload<V>(tx.texel[2][ch]);
+    tex = tex + tx.w[3] * vload<V>(tx.texel[3][ch]);
+    c_raw[ch] = P.color[ch] + tex;
+    c[ch] = sel(c_raw[ch] > S(0), c_raw[ch], splat(S(0)));
+  }
+}
+
+// Step 6 for an untextured primitive (c_raw = colour).
+template <typename S>
+CTGS_INLINE void lane_color_plain(const LanePrim<S>& P, typename Lanes<S>::V c_raw[3], typename Lanes<S>::V c[3]) {
+  for (int ch = 0; ch < 3; ++ch) {
+    c_raw[ch] = splat(P.color[ch]);
+    c[ch] = sel(c_raw[ch] > S(0), c_raw[ch], splat(S(0)));
+  }
+}
+
+template <typename S>
+CTGS_INLINE S hsum(typename Lanes<S>::V v) {
+  S s = v[0];
+  for (int k = 1; k < Lanes<S>::W; ++k) s += v[k];
+  return s;
+}
+
+template <typename I>
+CTGS_INLINE int count_lanes(I m) {
+  int n = 0;
+  for (int k = 0; k < int(sizeof(I) / sizeof(m[0])); ++k) n += m[k] != 0;
+  return n;
+}
+
+}  // namespace cpu
+}  // namespace ctgs
