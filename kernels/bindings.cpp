@@ -2,11 +2,13 @@
 // outputs and dispatches float/double to the raw-pointer cores in kernels/cpu (and, later, kernels/cuda).
 #include <torch/extension.h>
 
+#include <cmath>
 #include <map>
 #include <string>
 #include <vector>
 
 #include "binding_common.h"
+#include "cpu/dense.h"
 #include "cpu/rasterize.h"
 
 namespace {
@@ -109,6 +111,86 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};
 }
 
+// Adam in place on p, m, v (all contiguous, same shape and dtype as g); lr: a float, or lr_tensor of p's
+// shape. Returns how many updated elements of p are NaN or infinite.
+int64_t adam_step_cpu(Tensor p, Tensor g, Tensor m, Tensor v, c10::optional<Tensor> lr_tensor, double lr,
+                      double beta1, double beta2, int64_t step, double eps, int64_t num_threads) {
+  TORCH_CHECK(p.device().is_cpu(), "adam_step_cpu: p must be a CPU tensor, got ", p.device());
+  const auto dt = p.scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "adam_step_cpu: p must be float32 or float64, got ", dt);
+  TORCH_CHECK(step >= 1, "adam_step_cpu: step must be >= 1, got ", step);
+  for (const Tensor* t : {&p, &g, &m, &v}) {
+    TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == dt && t->sizes() == p.sizes() && t->is_contiguous(),
+                "adam_step_cpu: p, grad, exp_avg, exp_avg_sq must be contiguous CPU tensors of one shape and "
+                "dtype, got ", t->sizes(), " ", t->scalar_type(), " vs p ", p.sizes(), " ", dt);
+  }
+  if (lr_tensor)
+    TORCH_CHECK(lr_tensor->scalar_type() == dt && lr_tensor->sizes() == p.sizes() && lr_tensor->is_contiguous(),
+                "adam_step_cpu: lr_tensor must be contiguous with p's shape ", p.sizes(), " and dtype, got ",
+                lr_tensor->sizes());
+  const double bc1 = 1.0 - std::pow(beta1, double(step)), bc2 = 1.0 - std::pow(beta2, double(step));
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  int64_t bad = 0;
+  AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_adam_step_cpu", [&] {
+    bad = ctgs::cpu::adam_step<scalar_t>(p.data_ptr<scalar_t>(), g.data_ptr<scalar_t>(), m.data_ptr<scalar_t>(),
+                                         v.data_ptr<scalar_t>(), p.numel(),
+                                         lr_tensor ? lr_tensor->data_ptr<scalar_t>() : nullptr, lr, beta1, beta2,
+                                         bc1, bc2, eps, threads);
+  });
+  return bad;
+}
+
+void check_texel_l1(const Tensor& raw, const Tensor& vis, const Tensor& tex_offset, const Tensor& tex_res) {
+  TORCH_CHECK(raw.device().is_cpu() && raw.dim() == 2 && raw.size(1) == 3 && raw.is_contiguous() &&
+              (raw.scalar_type() == at::kFloat || raw.scalar_type() == at::kDouble),
+              "texel_l1: raw must be a contiguous float CPU tensor [T, 3], got ", raw.sizes(), " ", raw.scalar_type());
+  const int64_t N = vis.numel();
+  check_tensor(vis, "vis", "[N] bool", {N}, at::kBool);
+  check_tensor(tex_offset, "tex_offset", "[N] int64", {N}, at::kLong);
+  check_tensor(tex_res, "tex_res", "[N, 2] int32", {N, 2}, at::kInt);
+  // Packed layout (ctgs.model.surfels.jagged_offsets): every texel belongs to exactly one primitive, so
+  // the gradient kernel writes every row.
+  const int64_t* off = tex_offset.data_ptr<int64_t>();
+  const int32_t* res = tex_res.data_ptr<int32_t>();
+  int64_t next = 0;
+  for (int64_t i = 0; i < N; ++i) {
+    TORCH_CHECK(res[2 * i] >= 0 && res[2 * i + 1] >= 0, "texel_l1: tex_res must be >= 0");
+    const int64_t size = int64_t(res[2 * i]) * res[2 * i + 1];
+    TORCH_CHECK(size == 0 || off[i] == next, "texel_l1: textures must be packed (tex_offset = exclusive cumsum "
+                "of res_u*res_v), primitive ", i, " starts at ", off[i], ", expected ", next);
+    next += size;
+  }
+  TORCH_CHECK(next == raw.size(0), "texel_l1: the primitives hold ", next, " texels, raw has ", raw.size(0));
+}
+
+// Sum over the texels of primitives with vis of |2 sigmoid(raw) - 1| (a 0-dim tensor of raw's dtype).
+Tensor texel_l1_forward_cpu(Tensor raw, Tensor vis, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
+  check_texel_l1(raw, vis, tex_offset, tex_res);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  double total = 0.0;
+  AT_DISPATCH_FLOATING_TYPES(raw.scalar_type(), "ctgs_texel_l1_forward_cpu", [&] {
+    total = ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), reinterpret_cast<const uint8_t*>(vis.data_ptr<bool>()),
+                                          reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
+                                          tex_res.data_ptr<int32_t>(), int(vis.numel()), nullptr, scalar_t(0), threads);
+  });
+  return torch::scalar_tensor(total, raw.options());
+}
+
+// scale * d/draw of texel_l1_forward_cpu, [T, 3].
+Tensor texel_l1_backward_cpu(Tensor raw, Tensor vis, Tensor tex_offset, Tensor tex_res, double scale,
+                             int64_t num_threads) {
+  check_texel_l1(raw, vis, tex_offset, tex_res);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  Tensor grad = torch::empty_like(raw);
+  AT_DISPATCH_FLOATING_TYPES(raw.scalar_type(), "ctgs_texel_l1_backward_cpu", [&] {
+    ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), reinterpret_cast<const uint8_t*>(vis.data_ptr<bool>()),
+                                  reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
+                                  tex_res.data_ptr<int32_t>(), int(vis.numel()), grad.data_ptr<scalar_t>(),
+                                  scalar_t(scale), threads);
+  });
+  return grad;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -117,6 +199,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "tile_list, count, contrib, err)");
   m.def("backward_cpu", &backward_cpu, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
         "v_texel_size, v_textures, v_background)");
+  m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
+  m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum of |2 sigmoid(raw) - 1| over visible primitives' texels");
+  m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
   m.def("profile_counters", [](bool reset) {
     const std::vector<double> v = ctgs::cpu::prof_read(reset);

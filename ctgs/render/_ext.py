@@ -18,7 +18,7 @@ from ctgs.errors import UserError
 # ctgs/render/_ext.py -> repo root (editable install: the kernels live next to the package).
 REPO_ROOT = Path(__file__).resolve().parents[2]
 KERNELS_DIR = REPO_ROOT / "kernels"
-CPU_SOURCES = ["bindings.cpp", "cpu/binning.cpp", "cpu/forward.cpp", "cpu/backward.cpp"]
+CPU_SOURCES = ["bindings.cpp", "cpu/binning.cpp", "cpu/forward.cpp", "cpu/backward.cpp", "cpu/dense.cpp"]
 # -O3: the per-pixel loops are the whole cost. No -march=native: a build dir may be shared between
 # machines, and forward/backward must recompute bit-identical alphas (no machine-dependent FMA contraction).
 CPU_CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-std=c++17"]

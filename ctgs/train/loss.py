@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from ctgs.metrics.ssim import ssim_map
+from ctgs.train.fused import texel_l1
 
 
 @dataclass
@@ -37,13 +38,11 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg) ->
         total = total + cfg.lambda_opacity * model.opacities.mean()
     if cfg.lambda_texture > 0 and model.texture_mode != "none" and model.num_texels > 0:
         vis = visible_mask(model.means, camera)
-        sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
-        texel_vis = torch.repeat_interleave(vis, sizes)  # [T]
         # The data term is a mean over pixels, so its gradient per texel shrinks as 1/(H*W) while the
         # sparsity term's does not: texture_reg_pixels keeps the paper's balance on smaller images.
         lam = cfg.lambda_texture
         if cfg.texture_reg_pixels > 0:
             lam = lam * cfg.texture_reg_pixels / (gt.shape[0] * gt.shape[1])
-        total = total + lam * (model.textures.abs().sum(1) * texel_vis).sum()
+        total = total + lam * texel_l1(model, vis)  # sum |texel| over visible primitives (fused on CPU)
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)
     return LossTerms(total=total, l1=float(l1.detach()), ssim=float(s.detach()), psnr=float(-10 * torch.log10(mse)))

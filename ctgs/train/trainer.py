@@ -30,6 +30,12 @@ from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
 
 
+def _all_finite(t: torch.Tensor) -> bool:
+    # min/max propagate NaN and expose +-inf in one pass without a bool temporary of the tensor's size.
+    lo, hi = torch.aminmax(t.detach())
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
+
+
 class TrainingDiverged(UserError):
     """NaN/Inf in the loss or the parameters: training stopped, the last checkpoint is kept."""
 
@@ -138,6 +144,7 @@ class Trainer:
                 "log_lines": self.log_lines, "config": self.cfg.to_dict()}
 
     def _save_checkpoint(self) -> str:
+        self._check_finite(None, full=True)
         path = ckpt.checkpoint_path(self.run_dir)
         ckpt.atomic_torch_save(self._state(), path)
         return path
@@ -176,14 +183,18 @@ class Trainer:
         return float(np.mean(psnrs)), float(np.mean(ssims))
 
     # ---- guard -----------------------------------------------------------------------------------
-    def _check_finite(self, loss: torch.Tensor) -> None:
+    def _check_finite(self, loss: torch.Tensor | None, full: bool = False) -> None:
+        """NaN/Inf in the loss, or in a parameter the last optimiser step made non-finite (its fused
+        kernel counts them as it writes; parameters it updated otherwise are scanned here). full: scan
+        every parameter (before a checkpoint is written, so no NaN can reach one)."""
         bad = None
-        if not bool(torch.isfinite(loss)):
+        if loss is not None and not bool(torch.isfinite(loss)):
             bad = "loss"
         else:
+            names = ALL_PARAMS if full else self.opt.nonfinite + self.opt.unchecked
             for name in ALL_PARAMS:
                 p = getattr(self.model, name)
-                if p.numel() and not bool(torch.isfinite(p).all()):
+                if name in names and p.numel() and (name in self.opt.nonfinite or not _all_finite(p)):
                     bad = f"parameter {name}"
                     break
         if bad is None:

@@ -207,12 +207,6 @@ CTGS_INLINE void lane_color_plain(const LanePrim<S>& P, typename Lanes<S>::V c_r
   }
 }
 
-template <typename S>
-CTGS_INLINE S hsum(typename Lanes<S>::V v) {
-  S s = v[0];
-  for (int k = 1; k < Lanes<S>::W; ++k) s += v[k];
-  return s;
-}
 
 template <typename I>
 CTGS_INLINE int count_lanes(I m) {

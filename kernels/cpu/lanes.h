@@ -98,6 +98,14 @@ CTGS_INLINE bool any(I m) {
   return std::memcmp(&m, &z, sizeof(I)) != 0;
 }
 
+// Sum of the lanes, in lane order.
+template <typename S>
+CTGS_INLINE S hsum(typename Lanes<S>::V v) {
+  S s = v[0];
+  for (int k = 1; k < Lanes<S>::W; ++k) s += v[k];
+  return s;
+}
+
 // floor() for |x| < 2^31 (callers clamp first): truncate, then step down where that rounded up.
 template <typename S>
 CTGS_INLINE typename Lanes<S>::V vfloor(typename Lanes<S>::V x) {

@@ -1,0 +1,59 @@
+"""Fused CPU kernels for the training loop's dense per-element work (kernels/cpu/dense.cpp).
+
+At 1-2M texels every [T, 3] PyTorch op of the optimiser and the texture regulariser (each a full pass
+plus a fresh temporary) showed in the profile of an iteration (issue 11); these do the same math in one
+pass each. Everything falls back to plain PyTorch off the CPU or where the extension cannot be built.
+"""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+import torch
+
+from ctgs.errors import UserError
+
+_ext: ModuleType | None = None
+_ext_failed = False
+
+
+def cpu_ext() -> ModuleType | None:
+    """The compiled CPU extension, or None if it cannot be built here (then callers use PyTorch)."""
+    global _ext, _ext_failed
+    if _ext is None and not _ext_failed:
+        from ctgs.render._ext import load_cpu
+
+        try:
+            _ext = load_cpu()
+        except UserError:
+            _ext_failed = True
+    return _ext
+
+
+def fusable(*tensors: torch.Tensor) -> bool:
+    return all(t.device.type == "cpu" and t.is_contiguous() and t.dtype in (torch.float32, torch.float64)
+               for t in tensors) and cpu_ext() is not None
+
+
+class _TexelL1(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, raw, vis, tex_offset, tex_res):
+        ctx.save_for_backward(raw, vis, tex_offset, tex_res)
+        return cpu_ext().texel_l1_forward_cpu(raw, vis, tex_offset, tex_res, torch.get_num_threads())
+
+    @staticmethod
+    def backward(ctx, grad):
+        raw, vis, tex_offset, tex_res = ctx.saved_tensors
+        g = cpu_ext().texel_l1_backward_cpu(raw, vis, tex_offset, tex_res, float(grad), torch.get_num_threads())
+        return g, None, None, None
+
+
+def texel_l1(model, vis: torch.Tensor) -> torch.Tensor:
+    """sum over the texels of primitives with vis [N] bool of |activated texel| (model.textures), summed
+    over the channels: a scalar, differentiable w.r.t. model.textures_raw."""
+    raw = model.textures_raw
+    if fusable(raw):
+        return _TexelL1.apply(raw, vis.contiguous(), model.tex_offset.contiguous(), model.tex_res.contiguous())
+    sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
+    texel_vis = torch.repeat_interleave(vis, sizes)  # [T]
+    return (model.textures.abs().sum(1) * texel_vis).sum()

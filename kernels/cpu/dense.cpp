@@ -1,0 +1,142 @@
+// Dense per-element training work on the CPU, one pass each instead of a chain of PyTorch ops (issue 11:
+// at 1-2M texels every [T, 3] pass and temporary of the optimiser and the texture regulariser showed in
+// the profile):
+//  - adam_step: Adam on one parameter tensor in place (p, m, v), counting non-finite results so the
+//    trainer's NaN guard needs no scan of its own;
+//  - texel_l1: sum over the texels of visible primitives of |2 sigmoid(raw) - 1| (the activated texel
+//    offsets, ctgs/model/surfels.py) and its gradient w.r.t. raw.
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "dense.h"
+#include "lanes.h"
+
+namespace ctgs {
+namespace cpu {
+
+namespace {
+// Elements per OpenMP chunk: large enough that scheduling costs nothing, small enough to balance.
+constexpr int64_t CHUNK = 1 << 14;
+}  // namespace
+
+template <typename S>
+int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, double lr, double beta1,
+                  double beta2, double bc1, double bc2, double eps, int threads) {
+  const S b1 = S(beta1), b2 = S(beta2), c1 = S(1 - beta1), c2 = S(1 - beta2);
+  const S ibc1 = S(1) / S(bc1), ibc2 = S(1) / S(bc2), e = S(eps), lr_s = S(lr);
+  int64_t bad = 0;
+#pragma omp parallel for schedule(static) num_threads(std::max(1, threads)) reduction(+ : bad)
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK) {
+    const int64_t c1e = std::min(n, c0 + CHUNK);
+    int64_t b = 0;
+#pragma omp simd reduction(+ : b)
+    for (int64_t k = c0; k < c1e; ++k) {
+      const S gk = g[k];
+      const S mk = b1 * m[k] + c1 * gk;
+      const S vk = b2 * v[k] + c2 * (gk * gk);
+      m[k] = mk;
+      v[k] = vk;
+      const S step = (lr_vec ? lr_vec[k] : lr_s) * (mk * ibc1) / (std::sqrt(vk * ibc2) + e);
+      const S pk = p[k] - step;
+      p[k] = pk;
+      b += !(pk - pk == S(0));  // NaN or +-inf (x - x is NaN for both)
+    }
+    bad += b;
+  }
+  return bad;
+}
+
+namespace {
+
+// |tanh(x/2)| = |2 sigmoid(x) - 1| = (1 - e) / (1 + e) and d/dx = sign(x) 2e / (1 + e)^2 with
+// e = exp(-|x|) in (0, 1]: no cancellation, exp's argument always <= 0 (lanes.h vexp's range).
+template <typename S>
+CTGS_INLINE void l1_lanes(const S* x, S* grad, S scale, typename Lanes<S>::V& acc) {
+  using V = typename Lanes<S>::V;
+  const V xv = vload<V>(x);
+  const V ax = vabs<S>(xv);
+  const V arg = sel(ax < S(87), -ax, splat(S(-87)));  // exp(-87) ~ 1.6e-38: the rest rounds to 1 or 0 anyway
+  const V e = vexp(arg);
+  const V one = splat(S(1));
+  if (grad == nullptr) {
+    acc += (one - e) / (one + e);
+  } else {
+    const V d = S(2) * e / ((one + e) * (one + e));
+    const V s = sel(xv > S(0), one, sel(xv < S(0), -one, splat(S(0))));
+    vstore(grad, scale * s * d);
+  }
+}
+
+// For the primitives in [i0, i1) with vis[i]: grad (if given) or the sum of |tanh(raw/2)| over their texels.
+template <typename S>
+CTGS_INLINE double texel_l1_range(const S* raw, const uint8_t* vis, const long long* tex_offset,
+                                  const int* tex_res, int i0, int i1, S* grad, S scale) {
+  using L = Lanes<S>;
+  constexpr int W = L::W;
+  typename L::V acc{};
+  double total = 0.0;
+  for (int i = i0; i < i1; ++i) {
+    const int64_t cnt = 3 * int64_t(tex_res[2 * i]) * tex_res[2 * i + 1];
+    if (cnt <= 0) continue;
+    const int64_t off = 3 * tex_offset[i];
+    if (!vis[i]) {
+      if (grad) std::fill(grad + off, grad + off + cnt, S(0));
+      continue;
+    }
+    int64_t k = 0;
+    for (; k + W <= cnt; k += W) l1_lanes<S>(raw + off + k, grad ? grad + off + k : nullptr, scale, acc);
+    if (k < cnt) {  // tail through a zero-padded copy (|tanh(0)| = 0, its gradient is dropped)
+      alignas(32) S xs[W] = {}, gs[W];
+      std::copy(raw + off + k, raw + off + cnt, xs);
+      l1_lanes<S>(xs, grad ? gs : nullptr, scale, acc);
+      if (grad) std::copy(gs, gs + (cnt - k), grad + off + k);
+    }
+    if (!grad && (i & 63) == 63) {  // flush to double now and then: float lanes would drift over 1e6 terms
+      total += double(hsum<S>(acc));
+      acc = typename L::V{};
+    }
+  }
+  return total + double(hsum<S>(acc));
+}
+
+CTGS_LANE_CLONES double texel_l1_part(const float* raw, const uint8_t* vis, const long long* off, const int* res,
+                                      int i0, int i1, float* grad, float scale) {
+  return texel_l1_range<float>(raw, vis, off, res, i0, i1, grad, scale);
+}
+CTGS_LANE_CLONES double texel_l1_part(const double* raw, const uint8_t* vis, const long long* off, const int* res,
+                                      int i0, int i1, double* grad, double scale) {
+  return texel_l1_range<double>(raw, vis, off, res, i0, i1, grad, scale);
+}
+
+}  // namespace
+
+template <typename S>
+double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, const int* tex_res, int n_prims,
+                S* grad, S scale, int threads) {
+  const int nt = std::max(1, threads);
+  // Fixed blocks of primitives summed in block order: the result does not depend on the thread count.
+  constexpr int BLOCK = 256;
+  const int nb = (n_prims + BLOCK - 1) / BLOCK;
+  std::vector<double> part(nb, 0.0);
+#pragma omp parallel for schedule(dynamic, 4) num_threads(nt)
+  for (int b = 0; b < nb; ++b)
+    part[b] = texel_l1_part(raw, vis, tex_offset, tex_res, b * BLOCK, std::min(n_prims, (b + 1) * BLOCK), grad,
+                            scale);
+  double total = 0.0;
+  for (double v : part) total += v;
+  return total;
+}
+
+template int64_t adam_step<float>(float*, const float*, float*, float*, int64_t, const float*, double, double,
+                                  double, double, double, double, int);
+template int64_t adam_step<double>(double*, const double*, double*, double*, int64_t, const double*, double,
+                                   double, double, double, double, double, int);
+template double texel_l1<float>(const float*, const uint8_t*, const long long*, const int*, int, float*, float,
+                                int);
+template double texel_l1<double>(const double*, const uint8_t*, const long long*, const int*, int, double*,
+                                 double, int);
+
+}  // namespace cpu
+}  // namespace ctgs
