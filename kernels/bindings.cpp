@@ -29,11 +29,11 @@ void check_tensor(const Tensor& t, const char* name, const char* shape, std::vec
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
 // [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (the last three empty
 // unless error_image [H,W] is given). With poison=true outputs start as NaN, so unwritten pixels show up.
-std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
-                                Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
-                                Tensor background, double fx, double fy, double cx, double cy, int64_t width,
-                                int64_t height, double near_plane, c10::optional<Tensor> error_image,
-                                int64_t num_threads, bool poison) {
+std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                 Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                 Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                 int64_t height, double near_plane, c10::optional<Tensor> error_image,
+                                 int64_t num_threads, bool poison, bool record_pairs) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, fx, fy, cx, cy, width, height, near_plane, num_threads,
                               at::kCPU, "cpu");
@@ -49,7 +49,9 @@ std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor op
   Tensor count = torch::zeros({stats ? N : 0}, fopt.dtype(at::kInt));
   Tensor contrib = torch::zeros({stats ? N : 0}, fopt), err = torch::zeros({stats ? N : 0}, fopt);
   ctgs::cpu::TileBins bins;
+  Tensor pix, prim, w;
   AT_DISPATCH_FLOATING_TYPES(mu_c.scalar_type(), "ctgs_forward_cpu", [&] {
+    ctgs::cpu::BlendPairs<scalar_t> pairs;
     ctgs::cpu::ForwardOut<scalar_t> o;
     o.rgb = rgb.data_ptr<scalar_t>();
     o.alpha = alpha.data_ptr<scalar_t>();
@@ -60,11 +62,39 @@ std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor op
     o.count = stats ? count.data_ptr<int32_t>() : nullptr;
     o.contrib = stats ? contrib.data_ptr<scalar_t>() : nullptr;
     o.err = stats ? err.data_ptr<scalar_t>() : nullptr;
+    o.pairs = record_pairs ? &pairs : nullptr;
     ctgs::cpu::forward<scalar_t>(scene_args<scalar_t>(s), o, &bins);
+    if (record_pairs) {
+      const int64_t P = int64_t(pairs.pix.size());
+      pix = torch::from_blob(pairs.pix.data(), {P}, at::kInt).clone();
+      prim = torch::from_blob(pairs.prim.data(), {P}, at::kInt).clone();
+      w = torch::from_blob(pairs.w.data(), {P}, fopt.dtype()).clone();
+    }
   });
+  if (record_pairs) return {rgb, alpha, depth, pix, prim, w};
   Tensor tile_offsets = torch::from_blob(bins.offsets.data(), {int64_t(bins.offsets.size())}, at::kLong).clone();
   Tensor tile_list = torch::from_blob(bins.list.data(), {int64_t(bins.list.size())}, at::kInt).clone();
   return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err};
+}
+
+std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                int64_t height, double near_plane, c10::optional<Tensor> error_image,
+                                int64_t num_threads, bool poison) {
+  return forward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+                      fx, fy, cx, cy, width, height, near_plane, error_image, num_threads, poison, false);
+}
+
+// Forward without gradient bookkeeping that also returns every blended pair: rgb [H,W,3], alpha [H,W],
+// depth [H,W], pix [P] int32 (y * W + x), prim [P] int32, w [P] (tile by tile, ctgs::cpu::BlendPairs).
+std::vector<Tensor> forward_pairs_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                      Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                      Tensor background, double fx, double fy, double cx, double cy,
+                                      int64_t width, int64_t height, double near_plane, int64_t num_threads,
+                                      bool poison) {
+  return forward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+                      fx, fy, cx, cy, width, height, near_plane, c10::nullopt, num_threads, poison, true);
 }
 
 // Returns v_mu_c [N,3], v_Rc [N,3,3], v_scales [N,2], v_opacities [N], v_colors [N,3], v_texel_size [N,2],
@@ -191,17 +221,72 @@ Tensor texel_l1_backward_cpu(Tensor raw, Tensor vis, Tensor tex_offset, Tensor t
   return grad;
 }
 
+// New jagged buffers [T', C] where new primitive j holds src[j]'s texels re-centred (ctgs/model/jagged.py
+// remap, which checks the arguments): buffers [T, C] each, old_res [N, 2] int32, old_off [N] int64,
+// src [N'] int64, shift [N', 2] int64, new_res [N', 2] int32, new_off [N'] int64.
+std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res, Tensor old_off, Tensor src,
+                                     Tensor shift, Tensor new_res, Tensor new_off, int64_t num_threads) {
+  const int64_t N = old_res.size(0), M = src.size(0);
+  check_tensor(old_res, "old_res", "[N, 2] int32", {N, 2}, at::kInt);
+  check_tensor(old_off, "old_off", "[N] int64", {N}, at::kLong);
+  check_tensor(src, "src", "[N'] int64", {M}, at::kLong);
+  check_tensor(shift, "shift", "[N', 2] int64", {M, 2}, at::kLong);
+  check_tensor(new_res, "new_res", "[N', 2] int32", {M, 2}, at::kInt);
+  check_tensor(new_off, "new_off", "[N'] int64", {M}, at::kLong);
+  const int32_t* ores = old_res.data_ptr<int32_t>();
+  const int32_t* nres = new_res.data_ptr<int32_t>();
+  const int64_t* ooff = old_off.data_ptr<int64_t>();
+  const int64_t* noff = new_off.data_ptr<int64_t>();
+  const int64_t* srcp = src.data_ptr<int64_t>();
+  int64_t new_rows = 0;
+  for (int64_t j = 0; j < M; ++j) {
+    TORCH_CHECK(srcp[j] >= 0 && srcp[j] < N, "jagged_remap: src out of range");
+    TORCH_CHECK(nres[2 * j] >= 0 && nres[2 * j + 1] >= 0, "jagged_remap: new_res must be >= 0");
+    TORCH_CHECK(noff[j] >= 0, "jagged_remap: new_off must be >= 0");
+    new_rows = std::max<int64_t>(new_rows, noff[j] + int64_t(nres[2 * j]) * nres[2 * j + 1]);
+  }
+  int64_t packed_rows = 0;  // every row written iff the new layout has no gaps (jagged_offsets packs)
+  for (int64_t j = 0; j < M; ++j) packed_rows += int64_t(nres[2 * j]) * nres[2 * j + 1];
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  std::vector<Tensor> out;
+  for (const Tensor& b : buffers) {
+    TORCH_CHECK(b.device().is_cpu() && b.dim() == 2 && b.is_contiguous() &&
+                (b.scalar_type() == at::kFloat || b.scalar_type() == at::kDouble),
+                "jagged_remap: buffers must be contiguous float CPU tensors [T, C], got ", b.sizes());
+    for (int64_t j = 0; j < M && b.size(0) > 0; ++j) {
+      const int64_t s = srcp[j];
+      TORCH_CHECK(ores[2 * s] >= 0 && ores[2 * s + 1] >= 0 && ooff[s] >= 0 &&
+                  ooff[s] + int64_t(ores[2 * s]) * ores[2 * s + 1] <= b.size(0),
+                  "jagged_remap: old layout exceeds a buffer of ", b.size(0), " rows");
+    }
+    Tensor o = packed_rows == new_rows ? torch::empty({new_rows, b.size(1)}, b.options())
+                                       : torch::zeros({new_rows, b.size(1)}, b.options());
+    AT_DISPATCH_FLOATING_TYPES(b.scalar_type(), "ctgs_jagged_remap_cpu", [&] {
+      ctgs::cpu::jagged_remap<scalar_t>(b.data_ptr<scalar_t>(), b.size(0), o.data_ptr<scalar_t>(), int(b.size(1)),
+                                        ores, reinterpret_cast<const long long*>(ooff),
+                                        reinterpret_cast<const long long*>(srcp),
+                                        reinterpret_cast<const long long*>(shift.data_ptr<int64_t>()), nres,
+                                        reinterpret_cast<const long long*>(noff), M, threads);
+    });
+    out.push_back(o);
+  }
+  return out;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, C++/OpenMP CPU backend (see docs/renderer.md)";
   m.def("forward_cpu", &forward_cpu, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
         "tile_list, count, contrib, err)");
+  m.def("forward_pairs_cpu", &forward_pairs_cpu, "forward that also returns every blended (pix, prim, w) "
+        "(returns rgb, alpha, depth, pix, prim, w)");
   m.def("backward_cpu", &backward_cpu, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
         "v_texel_size, v_textures, v_background)");
   m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
   m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum of |2 sigmoid(raw) - 1| over visible primitives' texels");
   m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
+  m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
   m.def("profile_counters", [](bool reset) {
     const std::vector<double> v = ctgs::cpu::prof_read(reset);

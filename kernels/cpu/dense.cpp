@@ -129,6 +129,38 @@ double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, c
   return total;
 }
 
+template <typename S>
+void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const int* old_res,
+                  const long long* old_off, const long long* src, const long long* shift, const int* new_res,
+                  const long long* new_off, int64_t n_new, int threads) {
+  auto floor_half = [](long long d) { return d >= 0 ? d / 2 : -((-d + 1) / 2); };
+#pragma omp parallel for schedule(dynamic, 256) num_threads(std::max(1, threads))
+  for (int64_t j = 0; j < n_new; ++j) {
+    const long long s = src[j];
+    const long long ru = old_res[2 * s], rv = old_res[2 * s + 1];
+    const long long nu = new_res[2 * j], nv = new_res[2 * j + 1];
+    const long long du = floor_half(ru - nu) + shift[2 * j], dv = floor_half(rv - nv) + shift[2 * j + 1];
+    // Columns iu with 0 <= iu + du < ru.
+    const long long u0 = std::min(nu, std::max(0LL, -du)), u1 = std::max(u0, std::min(nu, ru - du));
+    for (long long iv = 0; iv < nv; ++iv) {
+      S* dst = new_buf + C * (new_off[j] + iv * nu);
+      const long long ov = iv + dv;
+      if (old_rows == 0 || ov < 0 || ov >= rv || u0 >= u1) {
+        std::fill(dst, dst + C * nu, S(0));
+        continue;
+      }
+      std::fill(dst, dst + C * u0, S(0));
+      const S* from = old_buf + C * (old_off[s] + ov * ru + u0 + du);
+      std::copy(from, from + C * (u1 - u0), dst + C * u0);
+      std::fill(dst + C * u1, dst + C * nu, S(0));
+    }
+  }
+}
+
+template void jagged_remap<float>(const float*, int64_t, float*, int, const int*, const long long*,
+                                  const long long*, const long long*, const int*, const long long*, int64_t, int);
+template void jagged_remap<double>(const double*, int64_t, double*, int, const int*, const long long*,
+                                   const long long*, const long long*, const int*, const long long*, int64_t, int);
 template int64_t adam_step<float>(float*, const float*, float*, float*, int64_t, const float*, double, double,
                                   double, double, double, double, int);
 template int64_t adam_step<double>(double*, const double*, double*, double*, int64_t, const double*, double,

@@ -1,4 +1,4 @@
-// Dense per-element training work (dense.cpp): fused Adam and the texel L1 regulariser.
+// Dense per-element training work (dense.cpp): fused Adam, the texel L1 regulariser, jagged re-layout.
 #pragma once
 
 #include <cstdint>
@@ -20,6 +20,15 @@ int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, doub
 template <typename S>
 double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, const int* tex_res, int n_prims,
                 S* grad, S scale, int threads);
+
+// Jagged texture re-layout (ctgs/model/jagged.py remap): new primitive j copies primitive src[j]'s
+// texels re-centred, new texel (iu, iv) <- old (iu + floor((ru_old - ru_new) / 2) + shift[j, 0], iv + ...),
+// 0 where that falls outside the old grid. Buffers [rows, C] (one old, one new per buffer); offsets of
+// both layouts given. Row by row copies, primitives in parallel.
+template <typename S>
+void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const int* old_res,
+                  const long long* old_off, const long long* src, const long long* shift, const int* new_res,
+                  const long long* new_off, int64_t n_new, int threads);
 
 }  // namespace cpu
 }  // namespace ctgs

@@ -27,6 +27,7 @@ struct ForwardTileArgs {
   int32_t* count;  // this thread's statistics [N] (null without an error image)
   S* contrib;
   S* err;
+  BlendPairs<S>* pairs;  // this tile's blended pairs (null unless recorded)
 };
 
 // One tile: list entries [begin, end).
@@ -117,6 +118,14 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
         vstore(D + p0, sel(blend, vload<V>(D + p0) + w * h.z, vload<V>(D + p0)));
         vstore(T + p0, sel(blend, T_next, Tv));
         vstore(last + p0, seli(blend, I{} + jpos, vload<I>(last + p0)));
+        if (f.pairs) {
+          for (int k = 0; k < W; ++k)
+            if (blend[k]) {
+              f.pairs->pix.push_back(int32_t(int64_t(y) * Wimg + x + k));
+              f.pairs->prim.push_back(i);
+              f.pairs->w.push_back(w[k]);
+            }
+        }
         if (stats) {
           n_blend -= blend;
           sum_w += sel(blend, w, splat(S(0)));
@@ -175,6 +184,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
   // Per-thread statistics, reduced at the end: race-free and deterministic for a fixed thread count.
   std::vector<int32_t> count_buf(stats ? size_t(nt) * N : 0, 0);
   std::vector<S> contrib_buf(stats ? size_t(nt) * N : 0, S(0)), err_buf(stats ? size_t(nt) * N : 0, S(0));
+  std::vector<BlendPairs<S>> tile_pairs(out.pairs ? num_tiles : 0);
 
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
@@ -182,8 +192,21 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
     ForwardTileArgs<S> f{&a, &out, lp.data(), rects.data(), &spans, bins->list.data(), ntx,
                          stats ? count_buf.data() + size_t(tid) * N : nullptr,
                          stats ? contrib_buf.data() + size_t(tid) * N : nullptr,
-                         stats ? err_buf.data() + size_t(tid) * N : nullptr};
+                         stats ? err_buf.data() + size_t(tid) * N : nullptr,
+                         out.pairs ? &tile_pairs[tile] : nullptr};
     forward_tile(f, tile, bins->offsets[tile], bins->offsets[tile + 1]);
+  }
+  if (out.pairs) {
+    size_t total = 0;
+    for (const auto& t : tile_pairs) total += t.pix.size();
+    out.pairs->pix.reserve(total);
+    out.pairs->prim.reserve(total);
+    out.pairs->w.reserve(total);
+    for (const auto& t : tile_pairs) {
+      out.pairs->pix.insert(out.pairs->pix.end(), t.pix.begin(), t.pix.end());
+      out.pairs->prim.insert(out.pairs->prim.end(), t.prim.begin(), t.prim.end());
+      out.pairs->w.insert(out.pairs->w.end(), t.w.begin(), t.w.end());
+    }
   }
   timer.lap(PROF_FWD_RASTER);
   if (stats) {

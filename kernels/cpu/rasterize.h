@@ -48,6 +48,9 @@ template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
                     PrimSpans& spans, TileBins* bins);
 
+template <typename S>
+struct BlendPairs;
+
 // Forward outputs; stats pointers may be null when no error image is given.
 template <typename S>
 struct ForwardOut {
@@ -60,6 +63,17 @@ struct ForwardOut {
   int32_t* count;  // [N] pixels blended
   S* contrib;      // [N] sum of w
   S* err;          // [N] sum of e w
+  struct BlendPairs<S>* pairs = nullptr;  // if set: every blended (pixel, primitive, w), see BlendPairs
+};
+
+// Every blended (pixel, primitive, w) of one render, tile by tile in tile order (within a tile:
+// primitive by primitive in blending order, then pixel by pixel): the error statistics of any error
+// image computed afterwards are sums over these (one render instead of two, ctgs/render/api.py).
+template <typename S>
+struct BlendPairs {
+  std::vector<int32_t> pix;   // y * W + x
+  std::vector<int32_t> prim;
+  std::vector<S> w;
 };
 
 template <typename S>

@@ -95,3 +95,35 @@ def test_texel_l1_gradcheck_and_layout_check():
     assert torch.autograd.gradcheck(f, (model.textures_raw,))
     with pytest.raises(RuntimeError, match="packed"):
         fused._TexelL1.apply(model.textures_raw, vis, model.tex_offset + 1, model.tex_res)
+
+
+def test_jagged_remap_matches_pytorch(monkeypatch):
+    """The compiled re-layout (split children with shifts, crops, pads, duplicates) equals the index
+    arithmetic it replaces, for every buffer; so does replace_blocks built on it."""
+    from ctgs.model import jagged
+    from ctgs.model.surfels import jagged_offsets
+
+    gen = torch.Generator().manual_seed(4)
+    old_res = torch.tensor([[4, 4], [0, 0], [2, 8], [8, 2], [16, 16], [1, 1]], dtype=torch.int32)
+    old_off = jagged_offsets(old_res)
+    t = int(old_off[-1] + 1)
+    bufs = [torch.randn(t, 3, generator=gen), torch.rand(t, 3, generator=gen)]
+    src = torch.tensor([0, 2, 2, 3, 4, 4, 5, 1, 0])
+    shift = torch.tensor([[0, 0], [1, 0], [-1, 3], [0, -2], [5, 0], [-9, 2], [0, 0], [0, 0], [2, 2]])
+    new_res = torch.tensor([[8, 2], [2, 8], [4, 4], [2, 2], [16, 8], [4, 32], [2, 2], [2, 2], [1, 4]],
+                           dtype=torch.int32)
+    fast, off_fast = jagged.remap(bufs, old_res, old_off, src, shift, new_res)
+    monkeypatch.setattr(jagged, "_cpu_remap", lambda *a: None)
+    slow, off_slow = jagged.remap(bufs, old_res, old_off, src, shift, new_res)
+    assert torch.equal(off_fast, off_slow)
+    for a, b in zip(fast, slow):
+        assert torch.equal(a, b)
+    blocks = [(torch.tensor([0, 4]), [torch.randn(2, 2, 2, 3, generator=gen) for _ in bufs])]
+    res2 = old_res.clone()
+    res2[0] = res2[4] = torch.tensor([2, 2], dtype=torch.int32)
+    slow2 = jagged.replace_blocks(bufs, old_res, old_off, res2, blocks)
+    monkeypatch.undo()
+    fast2 = jagged.replace_blocks(bufs, old_res, old_off, res2, blocks)
+    assert torch.equal(fast2[1], slow2[1])
+    for a, b in zip(fast2[0], slow2[0]):
+        assert torch.equal(a, b)
