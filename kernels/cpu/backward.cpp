@@ -107,6 +107,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
   for (int32_t jj = jmax - 1; jj >= 0; --jj) {
     const int32_t i = b.bins->list[begin + jj];
     const LanePrim<S>& P = b.prims[i];
+    if (jj > 0) prefetch_texels(b.prims[b.bins->list[begin + jj - 1]], a.textures, b.v_tex);
     const PixelRect& r = b.rects[i];
     const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
     if (ry0 > ry1) continue;

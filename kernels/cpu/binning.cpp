@@ -86,33 +86,48 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
     rects[i] = t.x0 <= t.x1 ? t : PixelRect{0, 0, -1, -1};
   }
   if (bins == nullptr) return;
-  // Sorting once globally by (centre depth, index) and then bucketing stably by tile leaves every tile
-  // list in blending order without a per-tile sort.
-  std::vector<int32_t> order;
-  order.reserve(N);
-  for (int i = 0; i < N; ++i)
-    if (rects[i].x0 <= rects[i].x1 && rects[i].y0 <= rects[i].y1) order.push_back(i);
-  std::sort(order.begin(), order.end(), [&](int32_t p, int32_t q) {
-    const S zp = prims[p].mu.z, zq = prims[q].mu.z;
-    return zp < zq || (zp == zq && p < q);
-  });
-  // Visits the tiles primitive i's spans touch, tile row by tile row.
-  auto for_tiles = [&](int32_t i, auto&& fn) {
+  // Each primitive's tiles, tile row by tile row ([tx0, tx1) per row of tiles its rect spans), worked out
+  // in index order from its spans; the passes below then never touch the spans again.
+  std::vector<int64_t> band_off(N + 1, 0);
+  for (int i = 0; i < N; ++i) {
     const PixelRect& r = rects[i];
-    for (int ty = r.y0 / TILE_H; ty <= r.y1 / TILE_H; ++ty) {
+    band_off[i + 1] = band_off[i] + (r.x0 <= r.x1 && r.y0 <= r.y1 ? r.y1 / TILE_H - r.y0 / TILE_H + 1 : 0);
+  }
+  std::vector<int32_t> bands(size_t(2 * band_off[N]));
+#pragma omp parallel for schedule(dynamic, 64) num_threads(nt)
+  for (int i = 0; i < N; ++i) {
+    const PixelRect& r = rects[i];
+    int32_t* b = bands.data() + 2 * band_off[i];
+    for (int ty = r.y0 / TILE_H; ty <= r.y1 / TILE_H && r.x0 <= r.x1; ++ty, b += 2) {
       const int ya = std::max(r.y0, ty * TILE_H), yb = std::min(r.y1, ty * TILE_H + TILE_H - 1);
       int tx0, tx1;
       band_tiles(spans.row(i, ya), ya, yb, &tx0, &tx1);
-      for (int tx = tx0; tx < tx1; ++tx) fn(ty * ntx + tx);
+      b[0] = tx0;
+      b[1] = tx1;
+    }
+  }
+  auto for_tiles = [&](int32_t i, auto&& fn) {
+    const int ty0 = rects[i].y0 / TILE_H;
+    for (int64_t k = band_off[i]; k < band_off[i + 1]; ++k) {
+      const int ty = ty0 + int(k - band_off[i]);
+      for (int tx = bands[2 * k]; tx < bands[2 * k + 1]; ++tx) fn(ty * ntx + tx);
     }
   };
   std::vector<int64_t>& off = bins->offsets;
   off.assign(num_tiles + 1, 0);
-  for (int32_t i : order) for_tiles(i, [&](int k) { ++off[k + 1]; });
+  for (int32_t i = 0; i < N; ++i) for_tiles(i, [&](int k) { ++off[k + 1]; });
   for (int k = 0; k < num_tiles; ++k) off[k + 1] += off[k];
+  // Sorting once globally by (centre depth, index) and then bucketing stably by tile leaves every tile
+  // list in blending order without a per-tile sort. The keys are copied out so the sort reads
+  // contiguous memory.
+  std::vector<std::pair<S, int32_t>> order;
+  order.reserve(N);
+  for (int i = 0; i < N; ++i)
+    if (band_off[i + 1] > band_off[i]) order.emplace_back(prims[i].mu.z, i);
+  std::sort(order.begin(), order.end());
   bins->list.resize(off[num_tiles]);
   std::vector<int64_t> cursor(off.begin(), off.end() - 1);
-  for (int32_t i : order) for_tiles(i, [&](int k) { bins->list[cursor[k]++] = i; });
+  for (const auto& zi : order) for_tiles(zi.second, [&](int k) { bins->list[cursor[k]++] = zi.second; });
 }
 
 template void bin_primitives<float>(const SceneArgs<float>&, std::vector<SurfelPrim<float>>&,

@@ -75,6 +75,7 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
   for (int64_t j = begin; j < end && alive > 0; ++j) {
     const int32_t i = f.list[j];
     const LanePrim<S>& P = f.prims[i];
+    if (j + 1 < end) prefetch_texels(f.prims[f.list[j + 1]], a.textures, static_cast<const S*>(nullptr));
     const PixelRect& r = f.rects[i];
     const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
     if (ry0 > ry1) continue;
