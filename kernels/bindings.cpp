@@ -221,6 +221,34 @@ Tensor texel_l1_backward_cpu(Tensor raw, Tensor vis, Tensor tex_offset, Tensor t
   return grad;
 }
 
+// y = 2 sigmoid(x) - 1 of a contiguous float CPU tensor (any shape).
+Tensor texel_activation_cpu(Tensor x, int64_t num_threads) {
+  TORCH_CHECK(x.device().is_cpu() && x.is_contiguous() && (x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble),
+              "texel_activation: x must be a contiguous float CPU tensor, got ", x.sizes(), " ", x.scalar_type());
+  Tensor y = torch::empty_like(x);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ctgs_texel_activation_cpu", [&] {
+    ctgs::cpu::texel_activation<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), x.numel(), threads);
+  });
+  return y;
+}
+
+// grad_x = grad_y (1 - y^2) / 2 for y = texel_activation_cpu(x).
+Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_threads) {
+  TORCH_CHECK(y.device().is_cpu() && y.is_contiguous() && (y.scalar_type() == at::kFloat || y.scalar_type() == at::kDouble),
+              "texel_activation_backward: y must be a contiguous float CPU tensor");
+  TORCH_CHECK(grad_y.device().is_cpu() && grad_y.is_contiguous() && grad_y.scalar_type() == y.scalar_type() &&
+              grad_y.sizes() == y.sizes(), "texel_activation_backward: grad must match y ", y.sizes(), ", got ",
+              grad_y.sizes());
+  Tensor g = torch::empty_like(y);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  AT_DISPATCH_FLOATING_TYPES(y.scalar_type(), "ctgs_texel_activation_backward_cpu", [&] {
+    ctgs::cpu::texel_activation_backward<scalar_t>(y.data_ptr<scalar_t>(), grad_y.data_ptr<scalar_t>(),
+                                                   g.data_ptr<scalar_t>(), y.numel(), threads);
+  });
+  return g;
+}
+
 // New jagged buffers [T', C] where new primitive j holds src[j]'s texels re-centred (ctgs/model/jagged.py
 // remap, which checks the arguments): buffers [T, C] each, old_res [N, 2] int32, old_off [N] int64,
 // src [N'] int64, shift [N', 2] int64, new_res [N', 2] int32, new_off [N'] int64.
@@ -286,6 +314,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
   m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum of |2 sigmoid(raw) - 1| over visible primitives' texels");
   m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
+  m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
+  m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
   m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
   m.def("profile_counters", [](bool reset) {

@@ -58,7 +58,7 @@ def remap(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: torch.Ten
 def _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
     """remap in one compiled pass of row copies (kernels/cpu/dense.cpp) for CPU tensors: the index
     arithmetic below makes ~15 [T]-sized int64 temporaries, which dominated the routines (issue 11)."""
-    from ctgs.train.fused import cpu_ext, fusable
+    from ctgs.fused import cpu_ext, fusable
 
     if not buffers or not fusable(*buffers) or old_res.device.type != "cpu":
         return None

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.train import fused
+from ctgs import fused
 
 PRIM_PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 TEX_PARAM = "textures_raw"
@@ -30,7 +30,7 @@ class SurfelAdam:
     def step(self, model, lrs: dict) -> None:
         """One Adam step; lrs maps a parameter name to a float or a broadcastable tensor (SH bands).
 
-        On the CPU one fused pass per parameter (ctgs.train.fused), which also counts the non-finite
+        On the CPU one fused pass per parameter (ctgs.fused), which also counts the non-finite
         results: afterwards `nonfinite` names the parameters the step made NaN/Inf and `unchecked` those it
         updated without counting (the PyTorch path), for the trainer's guard.
         """

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from ctgs.metrics.ssim import ssim_map
-from ctgs.train.fused import texel_l1
+from ctgs.fused import texel_l1
 
 
 @dataclass

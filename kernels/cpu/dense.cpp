@@ -129,6 +129,77 @@ double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, c
   return total;
 }
 
+namespace {
+
+// y = sign(x) (1 - e) / (1 + e), e = exp(-|x|): tanh(|x| / 2) without cancellation.
+template <typename S>
+CTGS_INLINE typename Lanes<S>::V activation_lanes(typename Lanes<S>::V x) {
+  using V = typename Lanes<S>::V;
+  const V ax = vabs<S>(x);
+  const V e = vexp(sel(ax < S(87), -ax, splat(S(-87))));
+  const V one = splat(S(1));
+  const V t = (one - e) / (one + e);
+  return sel(x < S(0), -t, t);
+}
+
+template <typename S>
+CTGS_INLINE void activation_range(const S* x, S* y, const S* gy, S* gx, int64_t k0, int64_t k1) {
+  using V = typename Lanes<S>::V;
+  constexpr int W = Lanes<S>::W;
+  int64_t k = k0;
+  for (; k + W <= k1; k += W) {
+    if (gx == nullptr) {
+      vstore(y + k, activation_lanes<S>(vload<V>(x + k)));
+    } else {
+      const V yv = vload<V>(y + k);
+      vstore(gx + k, vload<V>(gy + k) * ((S(1) - yv) * (S(1) + yv) * S(0.5)));
+    }
+  }
+  if (k < k1) {  // tail through zero-padded copies
+    alignas(32) S a[W] = {}, b[W] = {};
+    if (gx == nullptr) {
+      std::copy(x + k, x + k1, a);
+      vstore(b, activation_lanes<S>(vload<V>(a)));
+      std::copy(b, b + (k1 - k), y + k);
+    } else {
+      std::copy(y + k, y + k1, a);
+      std::copy(gy + k, gy + k1, b);
+      const V yv = vload<V>(a);
+      vstore(a, vload<V>(b) * ((S(1) - yv) * (S(1) + yv) * S(0.5)));
+      std::copy(a, a + (k1 - k), gx + k);
+    }
+  }
+}
+
+CTGS_LANE_CLONES void activation_part(const float* x, float* y, const float* gy, float* gx, int64_t k0, int64_t k1) {
+  activation_range<float>(x, y, gy, gx, k0, k1);
+}
+CTGS_LANE_CLONES void activation_part(const double* x, double* y, const double* gy, double* gx, int64_t k0,
+                                      int64_t k1) {
+  activation_range<double>(x, y, gy, gx, k0, k1);
+}
+
+}  // namespace
+
+template <typename S>
+void texel_activation(const S* x, S* y, int64_t n, int threads) {
+#pragma omp parallel for schedule(static) num_threads(std::max(1, threads))
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK) activation_part(x, y, static_cast<const S*>(nullptr),
+                                                            static_cast<S*>(nullptr), c0, std::min(n, c0 + CHUNK));
+}
+
+template <typename S>
+void texel_activation_backward(const S* y, const S* grad_y, S* grad_x, int64_t n, int threads) {
+#pragma omp parallel for schedule(static) num_threads(std::max(1, threads))
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK)
+    activation_part(static_cast<const S*>(nullptr), const_cast<S*>(y), grad_y, grad_x, c0, std::min(n, c0 + CHUNK));
+}
+
+template void texel_activation<float>(const float*, float*, int64_t, int);
+template void texel_activation<double>(const double*, double*, int64_t, int);
+template void texel_activation_backward<float>(const float*, const float*, float*, int64_t, int);
+template void texel_activation_backward<double>(const double*, const double*, double*, int64_t, int);
+
 template <typename S>
 void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const int* old_res,
                   const long long* old_off, const long long* src, const long long* shift, const int* new_res,

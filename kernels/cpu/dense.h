@@ -21,6 +21,13 @@ template <typename S>
 double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, const int* tex_res, int n_prims,
                 S* grad, S scale, int threads);
 
+// Texel activation y = 2 sigmoid(x) - 1 = tanh(x / 2) on n elements, and its backward
+// grad_x = grad_y (1 - y) (1 + y) / 2.
+template <typename S>
+void texel_activation(const S* x, S* y, int64_t n, int threads);
+template <typename S>
+void texel_activation_backward(const S* y, const S* grad_y, S* grad_x, int64_t n, int threads);
+
 // Jagged texture re-layout (ctgs/model/jagged.py remap): new primitive j copies primitive src[j]'s
 // texels re-centred, new texel (iu, iv) <- old (iu + floor((ru_old - ru_new) / 2) + shift[j, 0], iv + ...),
 // 0 where that falls outside the old grid. Buffers [rows, C] (one old, one new per buffer); offsets of

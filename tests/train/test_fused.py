@@ -1,4 +1,4 @@
-"""The fused CPU kernels of the training loop (ctgs.train.fused, kernels/cpu/dense.cpp) against the PyTorch
+"""The fused CPU kernels of the training loop (ctgs.fused, kernels/cpu/dense.cpp) against the PyTorch
 expressions they replace: Adam (scalar and per-element learning rates, the non-finite count) and the
 texel L1 regulariser (value, gradient, gradcheck), in float32 and float64."""
 
@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from ctgs.train import fused
+from ctgs import fused
 from ctgs.train.adam import BETA1, BETA2, SurfelAdam
 
 # One fused pass vs PyTorch's chain of ops: the same formula, rounded in a different order.
@@ -127,3 +127,22 @@ def test_jagged_remap_matches_pytorch(monkeypatch):
     assert torch.equal(fast2[1], slow2[1])
     for a, b in zip(fast2[0], slow2[0]):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_texel_activation_matches_pytorch(dtype):
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randn(1001, 3, generator=gen, dtype=dtype) * 4  # length not a multiple of the lane width
+    x[0, :] = torch.tensor([0.0, 200.0, -200.0], dtype=dtype)  # saturation: exactly +-1, gradient 0
+    x.requires_grad_(True)
+    y = fused.texel_activation(x)
+    ref = 2.0 * torch.sigmoid(x) - 1.0
+    g = torch.randn(x.shape, generator=gen, dtype=dtype)
+    gy, = torch.autograd.grad(y, x, g)
+    gr, = torch.autograd.grad(ref, x, g)
+    tol = 1e-6 if dtype == torch.float32 else 1e-14
+    torch.testing.assert_close(y, ref, atol=tol, rtol=0)
+    torch.testing.assert_close(gy, gr, atol=tol, rtol=0)
+    assert y[0].tolist() == [0.0, 1.0, -1.0] and gy[0, 1:].abs().max() == 0
+    if dtype == torch.float64:
+        assert torch.autograd.gradcheck(fused.texel_activation, (x[1:50].detach().requires_grad_(True),))

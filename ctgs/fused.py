@@ -1,8 +1,9 @@
-"""Fused CPU kernels for the training loop's dense per-element work (kernels/cpu/dense.cpp).
+"""Fused CPU kernels for dense per-element work of the model and the training loop (kernels/cpu/dense.cpp).
 
-At 1-2M texels every [T, 3] PyTorch op of the optimiser and the texture regulariser (each a full pass
-plus a fresh temporary) showed in the profile of an iteration (issue 11); these do the same math in one
-pass each. Everything falls back to plain PyTorch off the CPU or where the extension cannot be built.
+At 1-2M texels every [T, 3] PyTorch op of the texel activation, the optimiser and the texture
+regulariser (each a full pass plus a fresh 10-20 MB temporary, page faults included) showed in the
+profile of an iteration (issue 11); these do the same math in one pass each. Everything falls back to
+plain PyTorch off the CPU or where the extension cannot be built.
 """
 
 from __future__ import annotations
@@ -33,6 +34,26 @@ def cpu_ext() -> ModuleType | None:
 def fusable(*tensors: torch.Tensor) -> bool:
     return all(t.device.type == "cpu" and t.is_contiguous() and t.dtype in (torch.float32, torch.float64)
                for t in tensors) and cpu_ext() is not None
+
+
+class _TexelActivation(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, raw):
+        y = cpu_ext().texel_activation_cpu(raw, torch.get_num_threads())
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad):
+        (y,) = ctx.saved_tensors
+        return cpu_ext().texel_activation_backward_cpu(y, grad.contiguous(), torch.get_num_threads())
+
+
+def texel_activation(raw: torch.Tensor) -> torch.Tensor:
+    """Activated texel offsets 2 sigmoid(raw) - 1 (= tanh(raw / 2)), in [-1, 1], differentiable."""
+    if fusable(raw):
+        return _TexelActivation.apply(raw)
+    return 2.0 * torch.sigmoid(raw) - 1.0
 
 
 class _TexelL1(torch.autograd.Function):
