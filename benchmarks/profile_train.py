@@ -176,12 +176,14 @@ def profile(args) -> dict:
     start_it, start_s = tr.it, tr.train_seconds
     n0, t0_texels = tr.model.num_primitives, tr.model.num_texels
     load0 = os.getloadavg()
+    faults0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     gen = tr.run()
     for _ in gen:
         if tr.it >= start_it + args.window:
             break
     seconds = tr.train_seconds - start_s
     iters = tr.it - start_it
+    faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults0) / iters
     per_it = {k: v / iters for k, v in sorted(timers.total.items())}
     routine = per_it.get("routines", 0.0)
     return {
@@ -192,7 +194,7 @@ def profile(args) -> dict:
         "train_seconds": seconds, "it_per_s": iters / seconds, "seconds_per_it": seconds / iters,
         "routine_share": routine / (seconds / iters), "per_iteration_s": per_it,
         "calls": dict(sorted(timers.calls.items())),
-        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "page_faults_per_it": faults,
         "loadavg_start": load0, "loadavg_end": os.getloadavg(),
         "commit": git_commit(), "machine": machine(), "torch": torch.__version__,
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -236,7 +238,8 @@ def write(res: dict, out_dir: str) -> None:
              f"Scene {res['scene']} ({res['images']}), config {res['config']}, seed {res['seed']}: iterations "
              f"{res['state_at']}..{res['state_at'] + res['window']} from a snapshot, "
              f"{res['primitives_start']} -> {res['primitives_end']} primitives, {res['texels_start']} -> "
-             f"{res['texels_end']} texels. Peak RSS {res['peak_rss_mib']:.0f} MiB.", "",
+             f"{res['texels_end']} texels. Peak RSS {res['peak_rss_mib']:.0f} MiB; "
+             f"{res['page_faults_per_it']:.0f} minor page faults per iteration.", "",
              f"**{res['it_per_s']:.2f} it/s** ({1000 * total:.1f} ms per iteration, routines included); "
              f"routines' share {100 * res['routine_share']:.1f}%.", "",
              "| phase (inclusive; children indented) | ms / iteration | share | calls |",

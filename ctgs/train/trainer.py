@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ctgs import fused
 from ctgs.errors import UserError
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
@@ -79,6 +80,8 @@ class Trainer:
         self.device = pick_device(cfg)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)  # OpenMP spin-waiting on an oversubscribed CPU costs ~5x
+        if self.device.type == "cpu":
+            fused.tune_allocator()  # freed [T, 3] temporaries are reused, not faulted in afresh
         self.extent = float(scene.extent)
         self.train_views = make_views(scene.train, self.device)
         self.test_views = make_views(scene.test, self.device)
