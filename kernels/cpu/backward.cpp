@@ -30,8 +30,6 @@ struct BackwardTileArgs {
   const SceneArgs<S>* a;
   const TileBinsView* bins;
   const LanePrim<S>* prims;
-  const PixelRect* rects;
-  const PrimSpans* spans;
   const S* final_T;
   const int32_t* n_contrib;
   const S* v_rgb;
@@ -103,15 +101,20 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
   I iota;
   for (int k = 0; k < W; ++k) iota[k] = k;
   const V zero = splat(S(0));
-  long long rows[4][W];
   for (int32_t jj = jmax - 1; jj >= 0; --jj) {
     const int32_t i = b.bins->list[begin + jj];
     const LanePrim<S>& P = b.prims[i];
-    if (jj > 0) prefetch_texels(b.prims[b.bins->list[begin + jj - 1]], a.textures, b.v_tex);
-    const PixelRect& r = b.rects[i];
+    // Two entries ahead: the struct; one ahead: its spans, texels and texel gradients.
+    if (jj > 1) prefetch_prim(&b.prims[b.bins->list[begin + jj - 2]]);
+    if (jj > 0) {
+      const LanePrim<S>& Q = b.prims[b.bins->list[begin + jj - 1]];
+      prefetch_spans(Q, y0, y1 - 1);
+      prefetch_texels(Q, a.textures, b.v_tex);
+    }
+    const PixelRect& r = P.rect;
     const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
     if (ry0 > ry1) continue;
-    const int32_t* sp = b.spans->row(i, ry0);
+    const int32_t* sp = P.spans + 2 * (ry0 - r.y0);
     GradSums<S> g;
     g.opacity = g.sx = g.sy = g.mx = g.my = g.ku = g.kv = g.lx = g.ly = g.s = g.z_invalid = zero;
     for (int c = 0; c < 3; ++c) g.color[c] = g.u[c] = g.v[c] = g.n[c] = zero;
@@ -134,7 +137,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
         V c_raw[3], c[3];
         LaneTex<S> tx;
         if (P.textured) {
-          lane_texture(P, a.textures, h, pass, tx, rows);
+          lane_texture(P, a.textures, h, pass, tx, true);
           lane_color(P, tx, c_raw, c);
         } else {
           tx.active = I{};
@@ -171,9 +174,10 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
         const I is2d = pass & ~(h.valid & h.use3d);
         g.mx += sel(is2d, -v_rho * S(2) * S(FILTER_INV_SQUARE) * (px - P.mx), zero);
         g.my += sel(is2d, -v_rho * S(2) * S(FILTER_INV_SQUARE) * R.ey, zero);
-        // Texture: uu = lx/ku + (res_u-1)/2 -> dL/dlx += v_uu/ku, dL/dku = -v_uu lx/ku^2.
+        // Texture: uu = lx/ku + (res_u-1)/2 -> dL/dlx += v_uu/ku, dL/dku = -v_uu lx/ku^2; the texel
+        // gradients (tap weight x dL/d(fetched value)) are scattered lane by lane.
         if (any(tx.active)) {
-          V tv[4];
+          V tv[4];  // dL/d(fetched value) . texel, per tap (0 outside the grid)
           for (int t = 0; t < 4; ++t)
             tv[t] = gtex[0] * vload<V>(tx.texel[t][0]) + gtex[1] * vload<V>(tx.texel[t][1]) +
                     gtex[2] * vload<V>(tx.texel[t][2]);
@@ -184,6 +188,23 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
           v_ly = v_ly + v_vv * P.ikv;
           g.ku += sel(tx.active, -v_uu * h.lx * P.iku2, zero);
           g.kv += sel(tx.active, -v_vv * h.ly * P.ikv2, zero);
+          for (int k = 0; k < W; ++k) {
+            if (!tx.active[k]) continue;
+            for (int t = 0; t < 4; ++t) {
+              if (tx.row[t][k] < 0) continue;
+              S* dst = b.v_tex + 3 * tx.row[t][k];
+              const S wt = tx.w[t][k];
+              for (int ch = 0; ch < 3; ++ch) {
+                const S val = wt * gtex[ch][k];
+                if (b.atomics) {
+#pragma omp atomic
+                  dst[ch] += val;
+                } else {
+                  dst[ch] += val;
+                }
+              }
+            }
+          }
         }
         const V v_z = w * gd;
         const I pv = pass & h.valid;
@@ -204,26 +225,6 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
         g.z_invalid += sel(pass & ~h.valid, v_z, zero);  // z = mu.z
         vstore(acc + p0, sel(pass, accv + w * f, accv));
         vstore(T + p0, sel(pass, T_i, Tv));
-        // Texel gradients: tap weight x dL/d(fetched value), scattered lane by lane.
-        if (any(tx.active)) {
-          for (int k = 0; k < W; ++k) {
-            if (!tx.active[k]) continue;
-            for (int t = 0; t < 4; ++t) {
-              if (rows[t][k] < 0) continue;
-              S* dst = b.v_tex + 3 * rows[t][k];
-              const S wt = tx.w[t][k];
-              for (int ch = 0; ch < 3; ++ch) {
-                const S val = wt * gtex[ch][k];
-                if (b.atomics) {
-#pragma omp atomic
-                  dst[ch] += val;
-                } else {
-                  dst[ch] += val;
-                }
-              }
-            }
-          }
-        }
       }
     }
     if (!any_pass) continue;
@@ -270,7 +271,10 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   const int nt = std::max(1, a.num_threads);
   std::vector<LanePrim<S>> lp(N);
 #pragma omp parallel for schedule(static) num_threads(nt)
-  for (int i = 0; i < N; ++i) lp[i] = lane_prim(prims[i]);
+  for (int i = 0; i < N; ++i) {
+    const PixelRect& r = rects[i];
+    lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr);
+  }
   std::vector<S> gbuf(size_t(nt) * N * G_STRIDE, S(0));
   std::vector<S> bgbuf(size_t(nt) * 3, S(0));
   // Thread 0 writes texel gradients straight into the output, threads 1.. into private copies.
@@ -290,7 +294,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
-    BackwardTileArgs<S> b{&a, &bins, lp.data(), rects.data(), &spans, final_T, n_contrib, v_rgb, v_alpha, v_depth,
+    BackwardTileArgs<S> b{&a, &bins, lp.data(), final_T, n_contrib, v_rgb, v_alpha, v_depth,
                           ntx, gbuf.data() + size_t(tid) * N * G_STRIDE,
                           (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n,
                           use_atomics, bgbuf.data() + 3 * tid};

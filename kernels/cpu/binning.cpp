@@ -1,6 +1,5 @@
 // Per-primitive preprocessing and per-tile depth-sorted lists for the CPU backend.
 #include <algorithm>
-#include <climits>
 
 #include "rasterize.h"
 #include "spans.h"
@@ -23,21 +22,6 @@ std::vector<double> prof_read(bool reset) {
   return out;
 }
 
-namespace {
-
-// Tiles of tile row ty that the spans of rows [ya, yb] touch: [*tx0, *tx1) (empty if tx0 >= tx1).
-inline void band_tiles(const int32_t* xs, int ya, int yb, int* tx0, int* tx1) {
-  int lo = INT32_MAX, hi = -1;
-  for (int y = ya; y <= yb; ++y, xs += 2)
-    if (xs[0] <= xs[1]) {
-      lo = std::min(lo, int(xs[0]));
-      hi = std::max(hi, int(xs[1]));
-    }
-  *tx0 = hi < 0 ? 0 : lo / TILE_W;
-  *tx1 = hi < 0 ? 0 : hi / TILE_W + 1;
-}
-
-}  // namespace
 
 template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
@@ -57,6 +41,8 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
     const bool culled = !(prims[i].mu.z >= a.K.near_plane) || prims[i].opacity < S(MIN_ALPHA);
     rects[i] = culled ? PixelRect{0, 0, -1, -1} : surfel_pixel_rect(prims[i], a.K);
   }
+  std::vector<PixelRect> bounds;
+  if (bins != nullptr) bounds = rects;  // the 3-sigma rects, for the tile lists
   int64_t rows = 0;
   for (int i = 0; i < N; ++i) {
     spans.offset[i] = rows;
@@ -86,36 +72,15 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
     rects[i] = t.x0 <= t.x1 ? t : PixelRect{0, 0, -1, -1};
   }
   if (bins == nullptr) return;
-  // Each primitive's tiles, tile row by tile row ([tx0, tx1) per row of tiles its rect spans), worked out
-  // in index order from its spans; the passes below then never touch the spans again.
-  std::vector<int64_t> band_off(N + 1, 0);
-  for (int i = 0; i < N; ++i) {
-    const PixelRect& r = rects[i];
-    band_off[i + 1] = band_off[i] + (r.x0 <= r.x1 && r.y0 <= r.y1 ? r.y1 / TILE_H - r.y0 / TILE_H + 1 : 0);
-  }
-  std::vector<int32_t> bands(size_t(2 * band_off[N]));
-#pragma omp parallel for schedule(dynamic, 64) num_threads(nt)
-  for (int i = 0; i < N; ++i) {
-    const PixelRect& r = rects[i];
-    int32_t* b = bands.data() + 2 * band_off[i];
-    for (int ty = r.y0 / TILE_H; ty <= r.y1 / TILE_H && r.x0 <= r.x1; ++ty, b += 2) {
-      const int ya = std::max(r.y0, ty * TILE_H), yb = std::min(r.y1, ty * TILE_H + TILE_H - 1);
-      int tx0, tx1;
-      band_tiles(spans.row(i, ya), ya, yb, &tx0, &tx1);
-      b[0] = tx0;
-      b[1] = tx1;
-    }
-  }
-  auto for_tiles = [&](int32_t i, auto&& fn) {
-    const int ty0 = rects[i].y0 / TILE_H;
-    for (int64_t k = band_off[i]; k < band_off[i + 1]; ++k) {
-      const int ty = ty0 + int(k - band_off[i]);
-      for (int tx = bands[2 * k]; tx < bands[2 * k + 1]; ++tx) fn(ty * ntx + tx);
-    }
-  };
+  // Tile lists from the 3-sigma rects (not the spans): the same lists as the CUDA backend's
+  // (tests/render/test_cuda_backend.py), so n_contrib means the same on both.
   std::vector<int64_t>& off = bins->offsets;
   off.assign(num_tiles + 1, 0);
-  for (int32_t i = 0; i < N; ++i) for_tiles(i, [&](int k) { ++off[k + 1]; });
+  for (int i = 0; i < N; ++i) {
+    const TileRect r = tiles_of(bounds[i]);
+    for (int ty = r.y0; ty < r.y1; ++ty)
+      for (int tx = r.x0; tx < r.x1; ++tx) ++off[ty * ntx + tx + 1];
+  }
   for (int k = 0; k < num_tiles; ++k) off[k + 1] += off[k];
   // Sorting once globally by (centre depth, index) and then bucketing stably by tile leaves every tile
   // list in blending order without a per-tile sort. The keys are copied out so the sort reads
@@ -123,11 +88,15 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
   std::vector<std::pair<S, int32_t>> order;
   order.reserve(N);
   for (int i = 0; i < N; ++i)
-    if (band_off[i + 1] > band_off[i]) order.emplace_back(prims[i].mu.z, i);
+    if (bounds[i].x0 <= bounds[i].x1 && bounds[i].y0 <= bounds[i].y1) order.emplace_back(prims[i].mu.z, i);
   std::sort(order.begin(), order.end());
   bins->list.resize(off[num_tiles]);
   std::vector<int64_t> cursor(off.begin(), off.end() - 1);
-  for (const auto& zi : order) for_tiles(zi.second, [&](int k) { bins->list[cursor[k]++] = zi.second; });
+  for (const auto& zi : order) {
+    const TileRect r = tiles_of(bounds[zi.second]);
+    for (int ty = r.y0; ty < r.y1; ++ty)
+      for (int tx = r.x0; tx < r.x1; ++tx) bins->list[cursor[ty * ntx + tx]++] = zi.second;
+  }
 }
 
 template void bin_primitives<float>(const SceneArgs<float>&, std::vector<SurfelPrim<float>>&,

@@ -20,8 +20,6 @@ struct ForwardTileArgs {
   const SceneArgs<S>* a;
   const ForwardOut<S>* out;
   const LanePrim<S>* prims;
-  const PixelRect* rects;
-  const PrimSpans* spans;
   const int32_t* list;
   int ntx;
   int32_t* count;  // this thread's statistics [N] (null without an error image)
@@ -75,11 +73,17 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
   for (int64_t j = begin; j < end && alive > 0; ++j) {
     const int32_t i = f.list[j];
     const LanePrim<S>& P = f.prims[i];
-    if (j + 1 < end) prefetch_texels(f.prims[f.list[j + 1]], a.textures, static_cast<const S*>(nullptr));
-    const PixelRect& r = f.rects[i];
+    // Two entries ahead: the struct; one ahead: its spans and texels (the struct is in cache by now).
+    if (j + 2 < end) prefetch_prim(&f.prims[f.list[j + 2]]);
+    if (j + 1 < end) {
+      const LanePrim<S>& Q = f.prims[f.list[j + 1]];
+      prefetch_spans(Q, y0, y1 - 1);
+      prefetch_texels(Q, a.textures, static_cast<const S*>(nullptr));
+    }
+    const PixelRect& r = P.rect;
     const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
     if (ry0 > ry1) continue;
-    const int32_t* sp = f.spans->row(i, ry0);
+    const int32_t* sp = P.spans + 2 * (ry0 - r.y0);
     const Int jpos = Int(j - begin + 1);
     V sum_w{}, sum_ew{};
     I n_blend{};
@@ -107,7 +111,7 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
         V c_raw[3], c[3];
         if (P.textured) {
           LaneTex<S> tx;
-          lane_texture(P, a.textures, h, blend, tx, nullptr);
+          lane_texture(P, a.textures, h, blend, tx, false);
           lane_color(P, tx, c_raw, c);
         } else {
           lane_color_plain(P, c_raw, c);
@@ -178,7 +182,10 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
   const int nt = std::max(1, a.num_threads);
   std::vector<LanePrim<S>> lp(N);
 #pragma omp parallel for schedule(static) num_threads(nt)
-  for (int i = 0; i < N; ++i) lp[i] = lane_prim(prims[i]);
+  for (int i = 0; i < N; ++i) {
+    const PixelRect& r = rects[i];
+    lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr);
+  }
   timer.lap(PROF_FWD_BIN);
   const int ntx = tiles_x(a.K.width), num_tiles = ntx * tiles_y(a.K.height);
   const bool stats = out.error_image != nullptr;
@@ -190,7 +197,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
-    ForwardTileArgs<S> f{&a, &out, lp.data(), rects.data(), &spans, bins->list.data(), ntx,
+    ForwardTileArgs<S> f{&a, &out, lp.data(), bins->list.data(), ntx,
                          stats ? count_buf.data() + size_t(tid) * N : nullptr,
                          stats ? contrib_buf.data() + size_t(tid) * N : nullptr,
                          stats ? err_buf.data() + size_t(tid) * N : nullptr,

@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <cstdint>
 
+#include "ctgs/bounds.h"
 #include "ctgs/constants.h"
 #include "ctgs/surfel.h"
 #include "lanes.h"
@@ -34,11 +35,16 @@ struct LanePrim {
   int res_u, res_v;
   long long tex_off;
   bool textured;                          // res_u > 0 and res_v > 0
+  // Where its pixels are (binning.cpp), kept here so a tile touches one struct per primitive:
+  PixelRect rect;                         // bounding box of the spans
+  const int32_t* spans;                   // row rect.y0's span (PrimSpans), then one pair per row
 };
 
 template <typename S>
-inline LanePrim<S> lane_prim(const SurfelPrim<S>& P) {
+inline LanePrim<S> lane_prim(const SurfelPrim<S>& P, const PixelRect& rect, const int32_t* spans) {
   LanePrim<S> L;
+  L.rect = rect;
+  L.spans = spans;
   L.nx = P.n.x, L.ny = P.n.y, L.nz = P.n.z;
   L.ux = P.u.x, L.uy = P.u.y, L.uz = P.u.z;
   L.vx = P.v.x, L.vy = P.v.y, L.vz = P.v.z;
@@ -129,19 +135,22 @@ CTGS_INLINE void lane_alpha(const LanePrim<S>& P, const LaneRow<S>& R, typename 
   h.z = sel(h.valid, h.t, splat(P.muz));
 }
 
-// Step 5 (bilinear taps) for the lanes in `use`: active lanes, tap weights, fractions and the texel
-// values (0 outside the grid and in inactive lanes). rows (if not null) receives each tap's texel row
-// (-1 outside) for the backward's scatter.
+// Step 5 (bilinear taps) for the lanes in `use`: active lanes, fractions, tap weights, and per lane the
+// fetched colour tex (the taps summed in order, 0 in inactive lanes). With keep, also each tap's texel
+// values and row (-1 outside the grid) for the backward. The fetch itself runs lane by lane (a gather)
+// and writes plain arrays that are read back as whole vectors only once per channel.
 template <typename S>
 struct LaneTex {
   typename Lanes<S>::I active;
   typename Lanes<S>::V fu, fv, w[4];
-  alignas(32) S texel[4][3][Lanes<S>::W];  // [tap][channel][lane]
+  alignas(32) S tex[3][Lanes<S>::W];       // [channel][lane]
+  alignas(32) S texel[4][3][Lanes<S>::W];  // [tap][channel][lane] (keep only)
+  long long row[4][Lanes<S>::W];           // [tap][lane] (keep only)
 };
 
 template <typename S>
 CTGS_INLINE void lane_texture(const LanePrim<S>& P, const S* textures, const LaneHit<S>& h,
-                              typename Lanes<S>::I use, LaneTex<S>& tx, long long (*rows)[Lanes<S>::W]) {
+                              typename Lanes<S>::I use, LaneTex<S>& tx, bool keep) {
   using V = typename Lanes<S>::V;
   constexpr int W = Lanes<S>::W;
   // Divisions, not reciprocals: at texel centres (uu integral) the bilinear derivative jumps, so uu must
@@ -158,30 +167,68 @@ CTGS_INLINE void lane_texture(const LanePrim<S>& P, const S* textures, const Lan
   tx.w[1] = tx.fu * (one - tx.fv);
   tx.w[2] = (one - tx.fu) * tx.fv;
   tx.w[3] = tx.fu * tx.fv;
+  alignas(32) S flu[W], flv[W], wt[4][W];
+  alignas(32) typename Lanes<S>::Int act[W];
+  vstore(flu, fl_u);
+  vstore(flv, fl_v);
+  vstore(act, tx.active);
+  for (int t = 0; t < 4; ++t) vstore(wt[t], tx.w[t]);
   for (int k = 0; k < W; ++k) {
-    if (!tx.active[k]) {
+    S sum[3] = {S(0), S(0), S(0)};
+    if (act[k]) {
+      const int u0 = int(flu[k]), v0 = int(flv[k]);  // in [-1, res - 1]
       for (int t = 0; t < 4; ++t) {
-        tx.texel[t][0][k] = tx.texel[t][1][k] = tx.texel[t][2][k] = S(0);
-        if (rows) rows[t][k] = -1;
+        const int iu = u0 + (t & 1), iv = v0 + (t >> 1);
+        const bool inside = iu >= 0 && iu < P.res_u && iv >= 0 && iv < P.res_v;
+        const long long row = inside ? P.tex_off + static_cast<long long>(iv) * P.res_u + iu : -1;
+        S val[3] = {S(0), S(0), S(0)};
+        if (inside) {
+          const S* src = textures + 3 * row;
+          val[0] = src[0];
+          val[1] = src[1];
+          val[2] = src[2];
+        }
+        // The same sum, in the same order, as w[0] t[0] + w[1] t[1] + w[2] t[2] + w[3] t[3] per lane.
+        for (int c = 0; c < 3; ++c) sum[c] = t == 0 ? wt[0][k] * val[c] : sum[c] + wt[t][k] * val[c];
+        if (keep) {
+          for (int c = 0; c < 3; ++c) tx.texel[t][c][k] = val[c];
+          tx.row[t][k] = row;
+        }
       }
-      continue;
+    } else if (keep) {
+      for (int t = 0; t < 4; ++t) tx.row[t][k] = -1;
     }
-    const int u0 = int(fl_u[k]), v0 = int(fl_v[k]);  // in [-1, res - 1]
-    for (int t = 0; t < 4; ++t) {
-      const int iu = u0 + (t & 1), iv = v0 + (t >> 1);
-      if (iu >= 0 && iu < P.res_u && iv >= 0 && iv < P.res_v) {
-        const long long row = P.tex_off + static_cast<long long>(iv) * P.res_u + iu;
-        const S* src = textures + 3 * row;
-        tx.texel[t][0][k] = src[0];
-        tx.texel[t][1][k] = src[1];
-        tx.texel[t][2][k] = src[2];
-        if (rows) rows[t][k] = row;
-      } else {
-        tx.texel[t][0][k] = tx.texel[t][1][k] = tx.texel[t][2][k] = S(0);
-        if (rows) rows[t][k] = -1;
-      }
-    }
+    for (int c = 0; c < 3; ++c) tx.tex[c][k] = sum[c];
   }
+}
+
+// Step 6: c_raw = colour + texture, c = max(c_raw, 0).
+template <typename S>
+CTGS_INLINE void lane_color(const LanePrim<S>& P, const LaneTex<S>& tx, typename Lanes<S>::V c_raw[3],
+                            typename Lanes<S>::V c[3]) {
+  using V = typename Lanes<S>::V;
+  for (int ch = 0; ch < 3; ++ch) {
+    c_raw[ch] = P.color[ch] + vload<V>(tx.tex[ch]);
+    c[ch] = sel(c_raw[ch] > S(0), c_raw[ch], splat(S(0)));
+  }
+}
+
+// Asks for a primitive's struct (the tile lists visit primitives in depth order, i.e. at random).
+template <typename S>
+CTGS_INLINE void prefetch_prim(const LanePrim<S>* P) {
+  const char* a = reinterpret_cast<const char*>(P);
+  for (size_t off = 0; off < sizeof(LanePrim<S>); off += 64) __builtin_prefetch(a + off, 0, 3);
+}
+
+// Its spans for rows [y0, y1] (the tile's rows; the struct itself must be at hand).
+template <typename S>
+CTGS_INLINE void prefetch_spans(const LanePrim<S>& P, int y0, int y1) {
+  const int ya = std::max(P.rect.y0, y0), yb = std::min(P.rect.y1, y1);
+  if (ya > yb) return;
+  const char* a = reinterpret_cast<const char*>(P.spans + 2 * (ya - P.rect.y0));
+  const char* b = reinterpret_cast<const char*>(P.spans + 2 * (yb - P.rect.y0));
+  for (; a <= b; a += 64) __builtin_prefetch(a, 0, 3);
+  __builtin_prefetch(b, 0, 3);
 }
 
 // Asks the memory system for the start of a primitive's texel block (and of its gradient rows) ahead of
@@ -197,21 +244,6 @@ CTGS_INLINE void prefetch_texels(const LanePrim<S>& P, const S* textures, const 
   for (long long off = 0; off < n * 3 * static_cast<long long>(sizeof(S)); off += 64) {
     __builtin_prefetch(a + off, 0, 3);
     if (b) __builtin_prefetch(b + off, 1, 3);
-  }
-}
-
-// Step 6: c_raw = colour + texture (sum of tap weight x texel, taps in order), c = max(c_raw, 0).
-template <typename S>
-CTGS_INLINE void lane_color(const LanePrim<S>& P, const LaneTex<S>& tx, typename Lanes<S>::V c_raw[3],
-                            typename Lanes<S>::V c[3]) {
-  using V = typename Lanes<S>::V;
-  for (int ch = 0; ch < 3; ++ch) {
-    V tex = tx.w[0] * vload<V>(tx.texel[0][ch]);
-    tex = tex + tx.w[1] * vload<V>(tx.texel[1][ch]);
-    tex = tex + tx.w[2] * vload<V>(tx.texel[2][ch]);
-    tex = tex + tx.w[3] * vload<V>(tx.texel[3][ch]);
-    c_raw[ch] = P.color[ch] + tex;
-    c[ch] = sel(c_raw[ch] > S(0), c_raw[ch], splat(S(0)));
   }
 }
 

@@ -43,7 +43,7 @@ struct PrimSpans {
 // Camera-space primitives, their pixel bounds and row spans for every index, and (if bins) the tile
 // lists. Culls mu_c.z < near, opacity < MIN_ALPHA (alpha <= opacity can never reach MIN_ALPHA) and
 // primitives none of whose rows has pixels (their rect is empty). rects[i] is the bounding box of the
-// spans; a primitive is listed in the tiles its spans touch.
+// spans; a primitive is listed in the tiles its 3-sigma rect (ctgs/bounds.h) touches, as on CUDA.
 template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
                     PrimSpans& spans, TileBins* bins);
