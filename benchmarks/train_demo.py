@@ -80,9 +80,9 @@ def texel_density(run_dir: str, scene: str) -> tuple[dict, dict]:
     """Texels per unit area on photo / flat / smooth demo surfaces, by primitive centre (the test's measure)
     and by texel position (ctgs.train.allocation)."""
     from ctgs.train.allocation import texel_density_by_kind, texel_position_density_by_kind
-    from ctgs.train.run import load_run
+    from ctgs.io.run_model import load_run
 
-    model, _ = load_run(run_dir)
+    model = load_run(run_dir).model
     with open(os.path.join(scene, "demo_meta.json")) as fh:
         meta = json.load(fh)
     return texel_density_by_kind(model, meta), texel_position_density_by_kind(model, meta)

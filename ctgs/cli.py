@@ -18,12 +18,13 @@ from ctgs.errors import UserError
 STAGES: dict[str, tuple[str, str]] = {
     "sfm": ("ctgs.stages.sfm", "Structure from motion (pycolmap): images -> undistorted COLMAP scene."),
     "train": ("ctgs.stages.train", "Train a content-aware textured 2DGS model on a scene."),
-    "export": ("ctgs.stages.export", "Export a trained run to PLY + texture blob (+ plain 3DGS PLY)."),
+    "export": ("ctgs.stages.export", "Export a trained run: ctgs model folder, 3DGS PLY, .splat or .glb."),
     "compress": ("ctgs.stages.compress", "K-means texel compression of an exported model."),
     "eval": ("ctgs.stages.eval", "Quality, size and speed figures of a run or model; aggregate tables."),
     "demo-scene": ("ctgs.stages.demo_scene", "Generate the built-in synthetic demo scene (COLMAP layout)."),
     "fetch": ("ctgs.stages.fetch", "Download and extract a benchmark dataset listed in data_manifests/."),
     "render": ("ctgs.stages.render", "Render a scene's cameras with a model (or demo primitives)."),
+    "view": ("ctgs.stages.view", "Web viewer (WebGL2) of a model on 127.0.0.1, textures included."),
 }
 
 
@@ -34,14 +35,7 @@ class LazyGroup(click.Group):
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         if name not in STAGES:
             return None
-        module_name, help_text = STAGES[name]
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
-            return _not_built(name, help_text)
-        return module.command
+        return importlib.import_module(STAGES[name][0]).command
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         # Help text from the table: listing commands must not import torch-heavy stage modules.
@@ -54,16 +48,6 @@ class LazyGroup(click.Group):
         except UserError as exc:
             click.secho(f"error: {exc}", fg="red", err=True)
             sys.exit(exc.exit_code)
-
-
-def _not_built(name: str, help_text: str) -> click.Command:
-    @click.command(name=name, help=f"{help_text} [NOT BUILT YET]",
-                   context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
-    def _cmd() -> None:
-        click.secho(f"error: `ctgs {name}` is not implemented in this version yet.", fg="red", err=True)
-        sys.exit(3)
-
-    return _cmd
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -5,9 +5,3 @@ class UserError(Exception):
     """Bad input or environment: the message names the file/cause and the fix."""
 
     exit_code = 2
-
-
-class NotBuiltYet(UserError):
-    """A stage that exists in the CLI but whose implementation has not landed."""
-
-    exit_code = 3

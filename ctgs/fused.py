@@ -87,23 +87,29 @@ def texel_activation(raw: torch.Tensor) -> torch.Tensor:
 
 class _TexelL1(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, raw, vis, tex_offset, tex_res):
-        ctx.save_for_backward(raw, vis, tex_offset, tex_res)
-        return cpu_ext().texel_l1_forward_cpu(raw, vis, tex_offset, tex_res, torch.get_num_threads())
+    def forward(ctx, raw, weight, tex_offset, tex_res):
+        ctx.save_for_backward(raw, weight, tex_offset, tex_res)
+        return cpu_ext().texel_l1_forward_cpu(raw, weight, tex_offset, tex_res, torch.get_num_threads())
 
     @staticmethod
     def backward(ctx, grad):
-        raw, vis, tex_offset, tex_res = ctx.saved_tensors
-        g = cpu_ext().texel_l1_backward_cpu(raw, vis, tex_offset, tex_res, float(grad), torch.get_num_threads())
-        return g, None, None, None
+        raw, weight, tex_offset, tex_res = ctx.saved_tensors
+        g = cpu_ext().texel_l1_backward_cpu(raw, weight, tex_offset, tex_res, float(grad), torch.get_num_threads())
+        return g, None, None, None  # the weights are constants of the loss (no gradient)
 
 
-def texel_l1(model, vis: torch.Tensor) -> torch.Tensor:
-    """sum over the texels of primitives with vis [N] bool of |activated texel| (model.textures), summed
-    over the channels: a scalar, differentiable w.r.t. model.textures_raw."""
+def texel_l1(model, weight: torch.Tensor) -> torch.Tensor:
+    """sum_i weight[i] * (sum over primitive i's texels and channels of |activated texel| (model.textures)):
+    a scalar, differentiable w.r.t. model.textures_raw, not w.r.t. weight. weight: [N] per-primitive
+    factors (ctgs.train.loss.texture_weights: the rasterized mask, times 1 - transmittance on option);
+    a bool mask is taken as 0/1."""
     raw = model.textures_raw
+    n = model.tex_res.shape[0]
+    if weight.shape != (n,):
+        raise ValueError(f"texel_l1: weight must be [N] = [{n}] (one per primitive), got {list(weight.shape)}")
+    weight = weight.detach().to(raw.dtype)
     if fusable(raw):
-        return _TexelL1.apply(raw, vis.contiguous(), model.tex_offset.contiguous(), model.tex_res.contiguous())
+        return _TexelL1.apply(raw, weight.contiguous(), model.tex_offset.contiguous(), model.tex_res.contiguous())
     sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
-    texel_vis = torch.repeat_interleave(vis, sizes)  # [T]
-    return (model.textures.abs().sum(1) * texel_vis).sum()
+    texel_w = torch.repeat_interleave(weight, sizes)  # [T]
+    return (model.textures.abs().sum(1) * texel_w).sum()

@@ -170,12 +170,12 @@ int64_t adam_step_cpu(Tensor p, Tensor g, Tensor m, Tensor v, c10::optional<Tens
   return bad;
 }
 
-void check_texel_l1(const Tensor& raw, const Tensor& vis, const Tensor& tex_offset, const Tensor& tex_res) {
+void check_texel_l1(const Tensor& raw, const Tensor& weight, const Tensor& tex_offset, const Tensor& tex_res) {
   TORCH_CHECK(raw.device().is_cpu() && raw.dim() == 2 && raw.size(1) == 3 && raw.is_contiguous() &&
               (raw.scalar_type() == at::kFloat || raw.scalar_type() == at::kDouble),
               "texel_l1: raw must be a contiguous float CPU tensor [T, 3], got ", raw.sizes(), " ", raw.scalar_type());
-  const int64_t N = vis.numel();
-  check_tensor(vis, "vis", "[N] bool", {N}, at::kBool);
+  const int64_t N = weight.numel();
+  check_tensor(weight, "weight", "[N] of raw's dtype", {N}, raw.scalar_type());
   check_tensor(tex_offset, "tex_offset", "[N] int64", {N}, at::kLong);
   check_tensor(tex_res, "tex_res", "[N, 2] int32", {N, 2}, at::kInt);
   // Packed layout (ctgs.model.surfels.jagged_offsets): every texel belongs to exactly one primitive, so
@@ -193,29 +193,29 @@ void check_texel_l1(const Tensor& raw, const Tensor& vis, const Tensor& tex_offs
   TORCH_CHECK(next == raw.size(0), "texel_l1: the primitives hold ", next, " texels, raw has ", raw.size(0));
 }
 
-// Sum over the texels of primitives with vis of |2 sigmoid(raw) - 1| (a 0-dim tensor of raw's dtype).
-Tensor texel_l1_forward_cpu(Tensor raw, Tensor vis, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
-  check_texel_l1(raw, vis, tex_offset, tex_res);
+// sum_i weight[i] x sum over primitive i's texels of |2 sigmoid(raw) - 1| (a 0-dim tensor of raw's dtype).
+Tensor texel_l1_forward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
+  check_texel_l1(raw, weight, tex_offset, tex_res);
   const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
   double total = 0.0;
   AT_DISPATCH_FLOATING_TYPES(raw.scalar_type(), "ctgs_texel_l1_forward_cpu", [&] {
-    total = ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), reinterpret_cast<const uint8_t*>(vis.data_ptr<bool>()),
+    total = ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), weight.data_ptr<scalar_t>(),
                                           reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
-                                          tex_res.data_ptr<int32_t>(), int(vis.numel()), nullptr, scalar_t(0), threads);
+                                          tex_res.data_ptr<int32_t>(), int(weight.numel()), nullptr, scalar_t(0), threads);
   });
   return torch::scalar_tensor(total, raw.options());
 }
 
 // scale * d/draw of texel_l1_forward_cpu, [T, 3].
-Tensor texel_l1_backward_cpu(Tensor raw, Tensor vis, Tensor tex_offset, Tensor tex_res, double scale,
+Tensor texel_l1_backward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, double scale,
                              int64_t num_threads) {
-  check_texel_l1(raw, vis, tex_offset, tex_res);
+  check_texel_l1(raw, weight, tex_offset, tex_res);
   const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
   Tensor grad = torch::empty_like(raw);
   AT_DISPATCH_FLOATING_TYPES(raw.scalar_type(), "ctgs_texel_l1_backward_cpu", [&] {
-    ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), reinterpret_cast<const uint8_t*>(vis.data_ptr<bool>()),
+    ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), weight.data_ptr<scalar_t>(),
                                   reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
-                                  tex_res.data_ptr<int32_t>(), int(vis.numel()), grad.data_ptr<scalar_t>(),
+                                  tex_res.data_ptr<int32_t>(), int(weight.numel()), grad.data_ptr<scalar_t>(),
                                   scalar_t(scale), threads);
   });
   return grad;
@@ -312,7 +312,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("backward_cpu", &backward_cpu, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
         "v_texel_size, v_textures, v_background)");
   m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
-  m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum of |2 sigmoid(raw) - 1| over visible primitives' texels");
+  m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum over primitives of weight x sum of |2 sigmoid(raw) - 1| over their texels");
   m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
   m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
   m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");

@@ -4,7 +4,9 @@ Compiles every kernels/cuda/*.cu with `nvcc -c -std=c++17 -O2 -I kernels/include
 a temporary directory (nothing is linked or run: no GPU needed), and, when torch's headers are installed,
 syntax-checks kernels/bindings_cuda.cpp with the host compiler (as torch's JIT build would compile it, with
 -DCTGS_WITH_CUDA). Jobs run in parallel, one per core. Prints what it compiled; on failure prints the
-compiler's output and exits 1. Usage: python kernels/check_cuda_build.py [--no-binding] [--jobs N]
+compiler's output and exits 1. It checks the kernel folder it sits in: the checkout's kernels/, or an
+installed package's (`python -m ctgs._kernels.check_cuda_build`; ctgs.resources.kernels_dir() names it).
+Usage: python kernels/check_cuda_build.py [--no-binding] [--jobs N]
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-KERNELS = Path(__file__).resolve().parent
+KERNELS = Path(__file__).resolve().parent  # the folder checked: where this script ships with the sources
 ARCHS = ("80", "90")  # A100 and H100/H200
 # Same code-generation flags as the JIT build (ctgs/render/_ext_cuda.py) where they matter to validity.
 NVCC_FLAGS = ["-c", "-std=c++17", "-O2", "-fmad=false", "-I", str(KERNELS / "include"), "-Werror", "all-warnings"]

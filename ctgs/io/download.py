@@ -17,6 +17,7 @@ import urllib.request
 from dataclasses import dataclass
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 
 CHUNK = 1 << 20  # bytes per read
 TIMEOUT_S = 60  # socket timeout per read, seconds
@@ -120,6 +121,5 @@ def download(url: str, dest: str, *, size: int | None = None, sha256: str | None
         raise UserError(f"{url}: sha256 mismatch (got {digest[:12]}..., expected {sha256[:12]}...); the corrupt "
                         f"download was deleted, run again")
     os.replace(part, dest)
-    with open(sidecar, "w") as f:
-        f.write(digest + "\n")
+    atomic.write_text(sidecar, digest + "\n")
     return DownloadResult(dest, got, digest, resumed_from, False)

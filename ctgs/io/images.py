@@ -7,8 +7,7 @@ Alpha: `read_rgb` composites RGBA over a background colour exactly as 3DGS does
 (`rgb * a + bg * (1 - a)`, with the file's unassociated alpha), black by default; `read_image`
 returns all channels untouched. Grey images are replicated to three channels by `read_rgb`.
 
-Writes are atomic: the file is written under a temporary name in the same folder and renamed, so an
-interrupted run never leaves a half-written image behind.
+Writes are atomic (ctgs.io.atomic): an interrupted run never leaves a half-written image behind.
 """
 
 from __future__ import annotations
@@ -16,13 +15,13 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
 import OpenImageIO as oiio
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 
 # Extensions `list_images` treats as images (lower case).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".hdr")
@@ -145,12 +144,8 @@ def write_image(path: str, array: np.ndarray, *, bits: int | None = None) -> Non
     if ext in (".jpg", ".jpeg"):
         spec.attribute("Compression", "jpeg:95")
 
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
     # The temporary name keeps the extension: OIIO picks the file format from it.
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=ext, dir=folder)
-    os.close(fd)
-    try:
+    with atomic.atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
             raise OSError(f"{path}: OpenImageIO cannot write this file type ({_oiio_message()})")
@@ -159,11 +154,6 @@ def write_image(path: str, array: np.ndarray, *, bits: int | None = None) -> Non
         out.close()
         if not ok:
             raise OSError(f"{path}: write failed ({err})")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 def resize_image(pixels: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.ply import read_ply, write_ply
 from ctgs.io.texture_blob import TextureBlob, decode_blob, encode_blob
 from ctgs.model.surfels import SurfelModel
@@ -87,22 +86,15 @@ def write_model(model: SurfelModel, out_dir: str, *, blob: TextureBlob | None = 
     plain_ply: also write the 3DGS-style approximation (ctgs.io.plain_ply).
     """
     model.validate()
-    if os.path.exists(out_dir) and not (os.path.isdir(out_dir) and (
-            not os.listdir(out_dir) or os.path.isfile(os.path.join(out_dir, MANIFEST)))):
-        # Replacing means deleting: only ever delete an earlier model folder (never, say, the run folder).
-        raise UserError(f"{out_dir}: exists and is not a ctgs model folder; choose another output folder")
+    atomic.ensure_replaceable(out_dir, lambda names: MANIFEST in names, "a ctgs model folder")
     if blob is None:
         blob = TextureBlob(_np(model.textures_raw))
     if blob.num_texels != model.num_texels:
         raise ValueError(f"texture blob has {blob.num_texels} texels, model {model.num_texels}")
     cols, halves = primitive_columns(model, half)
-    parent = os.path.dirname(os.path.abspath(out_dir))
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".tmp-" + os.path.basename(os.path.abspath(out_dir)) + "-", dir=parent)
-    try:
+    with atomic.atomic_dir(out_dir) as tmp:
         write_ply(os.path.join(tmp, PRIMITIVES), cols, comments=[f"{FORMAT_NAME} {FORMAT_VERSION}"])
-        with open(os.path.join(tmp, TEXTURES), "wb") as f:
-            f.write(encode_blob(blob))
+        atomic.write_bytes(os.path.join(tmp, TEXTURES), encode_blob(blob))
         files = [PRIMITIVES, TEXTURES]
         if plain_ply:
             from ctgs.io.plain_ply import write_plain_ply
@@ -128,14 +120,7 @@ def write_model(model: SurfelModel, out_dir: str, *, blob: TextureBlob | None = 
             "file_bytes": {name: os.path.getsize(os.path.join(tmp, name)) for name in files},
             **(extra or {}),
         }
-        with open(os.path.join(tmp, MANIFEST), "w") as f:
-            json.dump(manifest, f, indent=2)
-        if os.path.isdir(out_dir):
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        atomic.write_json(os.path.join(tmp, MANIFEST), manifest)
     return manifest
 
 

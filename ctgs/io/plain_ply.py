@@ -7,6 +7,10 @@ the Gaussian-weighted mean of its activated texels, folded into the DC coefficie
 surfel, the max(colour, 0) clamp applied after adding the texture, and the exact surfel shape: the flat
 axis gets a tiny third scale (FLAT_SCALE_RATIO of the smaller tangent scale), so 3DGS viewers splat a
 thin 3D Gaussian (EWA projection) instead of intersecting the surfel plane.
+
+`read_plain_ply` reads any 3DGS-layout PLY back as untextured surfels (`surfels_from_gaussians`: the two
+largest scales become the tangent axes, the smallest is dropped), so our renderer can show what a 3DGS
+viewer gets from the file; .splat files (ctgs.io.splat) come back the same way.
 """
 
 from __future__ import annotations
@@ -14,16 +18,17 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ctgs.io.ply import write_ply
+from ctgs.errors import UserError
+from ctgs.io.ply import read_ply, write_ply
+from ctgs.model.geometry import quat_to_rotmat, rotmat_to_quat
 from ctgs.model.surfels import SurfelModel
+from ctgs.render.constants import CUTOFF_RHO
 
 SH_C0 = 0.28209479177387814
 PLAIN_SH_COEFFS = 16  # degree 3: 1 DC + 15 rest per channel, what 3DGS viewers read
 # Third (normal-axis) scale relative to the smaller tangent scale: thin enough to look flat, large
 # enough that viewers inverting the 3D covariance stay finite in float32.
 FLAT_SCALE_RATIO = 1e-3
-# Texels further than this many standard deviations from the centre carry no weight (renderer cutoff).
-CUTOFF_SIGMA = 3.0
 
 
 def texture_means(model: SurfelModel) -> torch.Tensor:
@@ -43,7 +48,7 @@ def texture_means(model: SurfelModel) -> torch.Tensor:
     lx = (iu.double() - (res[prim, 0].double() - 1) / 2) * k[:, 0]
     ly = (iv.double() - (res[prim, 1].double() - 1) / 2) * k[:, 1]
     rho = (lx / scales[:, 0]) ** 2 + (ly / scales[:, 1]) ** 2
-    w = torch.exp(-0.5 * rho) * (rho <= CUTOFF_SIGMA**2)  # [T']
+    w = torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)  # renderer cutoff: no weight past 3 sigma  # [T']
     tex = model.textures.detach().double()[rows]  # [T', 3]
     wsum = torch.zeros(n, dtype=torch.float64).index_add_(0, prim, w)
     out.index_add_(0, prim, tex * w[:, None])
@@ -76,3 +81,58 @@ def write_plain_ply(model: SurfelModel, path: str) -> None:
     for i in range(4):
         cols[f"rot_{i}"] = f32(model.quats[:, i])
     write_ply(path, cols, comments=["ctgs plain 3DGS approximation: texture means folded into f_dc"])
+
+
+def surfels_from_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
+                           opacity_logits: torch.Tensor, sh: torch.Tensor) -> SurfelModel:
+    """3D Gaussians -> untextured surfels (texture_mode "none", float32): the smallest of the three axes
+    is the normal and is dropped; the other two keep their order as tangents u, v.
+
+    means [N, 3], log_scales [N, 3] (log standard deviations), quats [N, 4] (w, x, y, z), opacity_logits
+    [N], sh [N, K, 3] with K in (1, 4, 9, 16). Rows whose smallest scale is already the third (every PLY
+    or .splat ctgs writes) keep their quaternion bit-exactly.
+    """
+    n = means.shape[0]
+    f = lambda t: t.detach().to(torch.float32)  # noqa: E731
+    log_scales, quats = f(log_scales).clone(), f(quats).clone()
+    smallest = log_scales.argmin(1)  # [N]
+    tangents = torch.tensor([[1, 2], [0, 2], [0, 1]])[smallest]  # [N, 2] the two axes kept, in order
+    moved = smallest != 2
+    if bool(moved.any()):
+        r = quat_to_rotmat(quats[moved])  # [M, 3, 3] columns = the Gaussian's axes
+        idx = tangents[moved]
+        tu = r.gather(2, idx[:, None, :1].expand(-1, 3, 1))[..., 0]  # [M, 3]
+        tv = r.gather(2, idx[:, None, 1:].expand(-1, 3, 1))[..., 0]
+        quats[moved] = rotmat_to_quat(torch.stack([tu, tv, torch.cross(tu, tv, dim=1)], 2))
+    k = sh.shape[1]
+    if k not in (1, 4, 9, 16):
+        raise ValueError(f"sh must have shape [N, K, 3] with K in (1, 4, 9, 16), got {list(sh.shape)}")
+    return SurfelModel(
+        means=f(means).contiguous(), log_scales=log_scales.gather(1, tangents).contiguous(), quats=quats,
+        opacity_logits=f(opacity_logits).contiguous(), sh=f(sh).contiguous(),
+        textures_raw=torch.zeros(0, 3), k_min=torch.ones(n), t2p_exp=torch.zeros(n, dtype=torch.int32),
+        tex_res=torch.zeros(n, 2, dtype=torch.int32), tex_offset=torch.zeros(n, dtype=torch.int64),
+        sh_degree=int(round(k**0.5)) - 1, texture_mode="none",
+    )
+
+
+def read_plain_ply(path: str) -> SurfelModel:
+    """A 3DGS-layout PLY (ours or any 3DGS trainer's) as untextured surfels; UserError naming the file and
+    the missing property when it is not one."""
+    cols, _ = read_ply(path)
+    need = ["x", "y", "z", "opacity", *[f"scale_{i}" for i in range(3)], *[f"rot_{i}" for i in range(4)],
+            *[f"f_dc_{c}" for c in range(3)]]
+    missing = [name for name in need if name not in cols]
+    if missing:
+        raise UserError(f"{path}: not a 3DGS PLY (properties {missing} missing); pass a PLY written by "
+                        "`ctgs export --format ply` or a 3DGS trainer")
+    rest = sorted((name for name in cols if name.startswith("f_rest_")), key=lambda s: int(s[7:]))
+    k = 1 + len(rest) // 3
+    if k not in (1, 4, 9, 16) or len(rest) % 3:
+        raise UserError(f"{path}: {len(rest)} f_rest_* properties; a 3DGS PLY has 0, 9, 24 or 45")
+    t = lambda names: torch.from_numpy(np.stack([cols[c].astype(np.float32) for c in names], 1))  # noqa: E731
+    dc = t([f"f_dc_{c}" for c in range(3)])  # [N, 3]
+    sh_rest = t(rest).reshape(-1, 3, k - 1).transpose(1, 2) if rest else torch.zeros(len(dc), 0, 3)
+    return surfels_from_gaussians(t(["x", "y", "z"]), t([f"scale_{i}" for i in range(3)]),
+                                  t([f"rot_{i}" for i in range(4)]), t(["opacity"])[:, 0],
+                                  torch.cat([dc[:, None], sh_rest], 1))

@@ -7,11 +7,10 @@ data, so a truncated or foreign file raises `UserError` instead of returning gar
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 
 # PLY scalar type name <-> little-endian numpy dtype (the PLY 1.0 names; int8.. aliases accepted on read).
 PLY_TO_NUMPY = {
@@ -29,7 +28,7 @@ MAX_HEADER_BYTES = 1 << 20
 def write_ply(path: str, columns: dict[str, np.ndarray], comments: list[str] | None = None) -> None:
     """Write `columns` (name -> [N] array, any supported dtype) as a binary PLY `vertex` element.
 
-    Written to `path + ".tmp"` then renamed, so `path` never holds a half-written file.
+    Written atomically (ctgs.io.atomic): `path` never holds a half-written file.
     """
     if not columns:
         raise ValueError("write_ply needs at least one column")
@@ -51,11 +50,7 @@ def write_ply(path: str, columns: dict[str, np.ndarray], comments: list[str] | N
     header.append(f"element vertex {n}")
     header += [f"property {NUMPY_TO_PLY[np.dtype(t).str[1:]]} {name}" for name, t in fields]
     header.append("end_header")
-    tmp = path + ".tmp"
-    with open(tmp, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(data.tobytes())
-    os.replace(tmp, path)
+    atomic.write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + data.tobytes())
 
 
 def read_ply(path: str) -> tuple[dict[str, np.ndarray], list[str]]:

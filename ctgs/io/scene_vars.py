@@ -1,76 +1,51 @@
 """Make helper: `python -m ctgs.io.scene_vars SCENE` prints `DATASET IMAGES HOLDOUT` for a scene.
 
 The Makefile's per-scene rules read the dataset, image folder and holdout from data_manifests/ through
-this, so the facts live in one place. The manifest layout is walked generically (any TOML/JSON file in
-data_manifests/; a scene entry keyed by the scene name, or a list entry with `name = SCENE`; `images` /
-`holdout` looked up on the scene entry first, then on the dataset), so it keeps working as manifests grow.
-Unknown scenes print `unknown images 8` (the 3DGS defaults) with a warning on stderr.
+this, so the facts live in one place (ctgs.scene.manifests parses and validates the manifests). A scene
+no manifest lists is an error naming the known scenes, never a guess: training an unknown scene on
+`images/` with holdout 8 would give numbers that silently disagree with the paper's protocol.
 """
 
 from __future__ import annotations
 
-import json
-import os
 import sys
-import tomllib
 
-MANIFEST_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                            "data_manifests")
-IMAGE_KEYS = ("images", "image_folder", "images_dir")
+from ctgs.errors import UserError
+from ctgs.scene.manifests import available, load_manifest, manifest_dir
 
 
-def _load(path: str) -> dict | None:
+def scene_vars(scene: str, manifests: str | None = None) -> tuple[str, str, int]:
+    """(dataset, image folder, holdout) of `scene`; UserError if no manifest (or more than one) lists it."""
+    known: dict[str, list[str]] = {}  # scene -> datasets listing it
+    found = []
+    for name in available(manifests):
+        manifest = load_manifest(name, manifests)
+        for sname, info in manifest["scenes"].items():
+            known.setdefault(sname, []).append(manifest["name"])
+            if sname == scene:
+                found.append((manifest["name"], info["images"], int(info["holdout"])))
+    folder = manifest_dir(manifests)
+    if not found:
+        listing = ", ".join(sorted(known)) or "none"
+        raise UserError(f"{folder}: no manifest lists a scene {scene!r}; known scenes: {listing} "
+                        f"(add the scene to a data_manifests/<dataset>.toml to use it)")
+    if len(found) > 1:
+        raise UserError(f"{folder}: scene {scene!r} is listed by several datasets ({', '.join(known[scene])}); "
+                        "rename it in one manifest")
+    return found[0]
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print("usage: python -m ctgs.io.scene_vars SCENE", file=sys.stderr)
+        return 2
     try:
-        with open(path, "rb") as f:
-            return tomllib.load(f) if path.endswith(".toml") else json.loads(f.read()) if path.endswith(".json") else None
-    except (OSError, ValueError):
-        return None
-
-
-def _find_scene(node, scene: str):
-    """The first dict describing `scene` inside `node` (keyed by name or with name == scene)."""
-    if isinstance(node, dict):
-        if node.get("name") == scene:
-            return node
-        if scene in node and isinstance(node[scene], dict):
-            return node[scene]
-        children = node.values()
-    elif isinstance(node, list):
-        if scene in node:
-            return {}
-        children = node
-    else:
-        return None
-    for child in children:
-        hit = _find_scene(child, scene)
-        if hit is not None:
-            return hit
-    return None
-
-
-def _get(entry: dict, root: dict, keys: tuple[str, ...], default):
-    for d in (entry, root):
-        for k in keys:
-            if isinstance(d.get(k), (str, int)) and not isinstance(d.get(k), bool):
-                return d[k]
-    return default
-
-
-def scene_vars(scene: str, manifest_dir: str = MANIFEST_DIR) -> tuple[str, str, int]:
-    names = sorted(os.listdir(manifest_dir)) if os.path.isdir(manifest_dir) else []
-    for name in names:
-        root = _load(os.path.join(manifest_dir, name))
-        if not isinstance(root, dict):
-            continue
-        entry = _find_scene(root, scene)
-        if entry is not None:
-            dataset = str(root.get("name") or root.get("dataset") or os.path.splitext(name)[0])
-            return dataset, str(_get(entry, root, IMAGE_KEYS, "images")), int(_get(entry, root, ("holdout",), 8))
-    print(f"scene_vars: {scene} not in {manifest_dir}; using images/ and holdout 8", file=sys.stderr)
-    return "unknown", "images", 8
+        print(*scene_vars(argv[0]))
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    return 0
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 2:
-        sys.exit("usage: python -m ctgs.io.scene_vars SCENE")
-    print(*scene_vars(sys.argv[1]))
+    sys.exit(main(sys.argv[1:]))

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.metrics.psnr import psnr
 from ctgs.metrics.report import (METRICS_SCHEMA, METRICS_VERSION, ImageMetrics, strip, write_metrics_json,
                                      write_per_image_csv)
@@ -37,17 +38,9 @@ class EvalOptions:
 
 
 def _render_fn(backend: str):
-    try:
-        from ctgs.render import render
+    from ctgs.render import render
 
-        import ctgs.render.api  # noqa: F401  (present once the backends land)
-        return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg).rgb
-    except ModuleNotFoundError:
-        if backend not in ("reference", "auto"):
-            raise UserError(f"backend {backend!r}: renderer API not available in this build; use --backend reference")
-        from ctgs.render.reference import render_reference
-
-        return lambda inputs, cam, deg: render_reference(inputs, cam, sh_degree=deg).rgb
+    return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg).rgb
 
 
 def _sync(device: torch.device) -> None:
@@ -65,11 +58,10 @@ def _machine(device: torch.device) -> dict:
 
 def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     """Write metrics.json, per_image.csv, renders/*.png and strips/*.png into opts.out_dir; returns metrics."""
-    from ctgs.io.images import write_image
     from ctgs.io.run_model import load_run
-    from ctgs.metrics.ssim import ssim
     from ctgs.scene import load_scene
 
+    atomic.ensure_replaceable(opts.out_dir, lambda names: "metrics.json" in names, "an earlier eval folder")
     run = load_run(run_dir)
     device = torch.device(opts.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, bytes_on_disk, model_source = run.model, run.model_bytes, os.path.join(run.run_dir, "model.pt")
@@ -116,7 +108,45 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     else:
         status = "unavailable: skipped (--no-lpips)"
 
-    os.makedirs(os.path.join(opts.out_dir, "renders"), exist_ok=True)
+    # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
+    # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
+    with atomic.atomic_dir(opts.out_dir) as out:
+        rows, strips = _write_views(out, scene, renders, times, net, device)
+        summary = run.summary or {}
+        mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
+        metrics = {
+            "schema": METRICS_SCHEMA, "schema_version": METRICS_VERSION,
+            "scene": os.path.basename(os.path.normpath(run.scene_dir)),
+            "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
+            "run_dir": run.run_dir, "model_source": model_source, "scene_dir": run.scene_dir,
+            "images": run.images, "holdout": run.holdout, "num_test_views": len(rows),
+            "psnr": mean("psnr"), "ssim": mean("ssim"),
+            "lpips": None if net is None else mean("lpips"), "lpips_status": status,
+            "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
+            "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
+            "model_memory_bytes": 4 * model.num_params(), "bytes_on_disk": bytes_on_disk,
+            "texture_encoding": manifest["texture_encoding"] if manifest else "raw",
+            "codebook_size": manifest.get("codebook_size") if manifest else None,
+            "compressed": bool(manifest and "compression" in manifest),
+            "fps": len(times) / sum(times), "render_ms_mean": 1e3 * sum(times) / len(times),
+            "backend": backend, "device": str(device), "resolution": [renders[0].shape[1], renders[0].shape[0]],
+            "peak_memory_bytes": peak, "peak_memory_kind": peak_kind,
+            "train_seconds": summary.get("train_seconds"), "iterations": summary.get("iterations", run.iteration),
+            "machine": _machine(device),
+            "files": {"per_image_csv": "per_image.csv", "renders": "renders/", "strips": [f"strips/{s}" for s in strips]},
+            "per_image": [asdict(r) for r in rows],
+        }
+        write_metrics_json(os.path.join(out, "metrics.json"), metrics)
+    return metrics
+
+
+def _write_views(out: str, scene, renders: list, times: list, net, device) -> tuple[list[ImageMetrics], list[str]]:
+    """Per-view metrics, out/renders/*.png, out/strips/*.png and out/per_image.csv; returns (rows, strip names)."""
+    from ctgs.io.images import write_image
+    from ctgs.metrics.ssim import ssim
+
+    os.makedirs(os.path.join(out, "renders"))
+    os.makedirs(os.path.join(out, "strips"))
     rows: list[ImageMetrics] = []
     gts = []
     for view, rgb, dt in zip(scene.test, renders, times):
@@ -130,7 +160,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
 
             lp = lpips_hwc(net, rgb.to(device), gt.to(device))
         rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3))
-        write_image(os.path.join(opts.out_dir, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
+        write_image(os.path.join(out, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
         gts.append(gt)
 
     order = sorted(range(len(rows)), key=lambda i: rows[i].psnr)
@@ -138,37 +168,11 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     per_side = min(NUM_STRIPS, max(1, len(order) // 2))
     worst = order[:per_side]
     best = [i for i in order[::-1] if i not in worst][:per_side]
-    os.makedirs(os.path.join(opts.out_dir, "strips"), exist_ok=True)
     strips = []
     for rank, i in [("worst", i) for i in worst] + [("best", i) for i in best]:
         name = f"{rank}_{os.path.splitext(rows[i].name)[0]}.png"
-        write_image(os.path.join(opts.out_dir, "strips", name), strip(gts[i].numpy(), renders[i].numpy()))
+        write_image(os.path.join(out, "strips", name), strip(gts[i].numpy(), renders[i].numpy()))
         strips.append(name)
-    write_per_image_csv(os.path.join(opts.out_dir, "per_image.csv"), rows)
+    write_per_image_csv(os.path.join(out, "per_image.csv"), rows)
 
-    summary = run.summary or {}
-    mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
-    metrics = {
-        "schema": METRICS_SCHEMA, "schema_version": METRICS_VERSION,
-        "scene": os.path.basename(os.path.normpath(run.scene_dir)),
-        "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
-        "run_dir": run.run_dir, "model_source": model_source, "scene_dir": run.scene_dir,
-        "images": run.images, "holdout": run.holdout, "num_test_views": len(rows),
-        "psnr": mean("psnr"), "ssim": mean("ssim"),
-        "lpips": None if net is None else mean("lpips"), "lpips_status": status,
-        "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
-        "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
-        "model_memory_bytes": 4 * model.num_params(), "bytes_on_disk": bytes_on_disk,
-        "texture_encoding": manifest["texture_encoding"] if manifest else "raw",
-        "codebook_size": manifest.get("codebook_size") if manifest else None,
-        "compressed": bool(manifest and "compression" in manifest),
-        "fps": len(times) / sum(times), "render_ms_mean": 1e3 * sum(times) / len(times),
-        "backend": backend, "device": str(device), "resolution": [renders[0].shape[1], renders[0].shape[0]],
-        "peak_memory_bytes": peak, "peak_memory_kind": peak_kind,
-        "train_seconds": summary.get("train_seconds"), "iterations": summary.get("iterations", run.iteration),
-        "machine": _machine(device),
-        "files": {"per_image_csv": "per_image.csv", "renders": "renders/", "strips": [f"strips/{s}" for s in strips]},
-        "per_image": [asdict(r) for r in rows],
-    }
-    write_metrics_json(os.path.join(opts.out_dir, "metrics.json"), metrics)
-    return metrics
+    return rows, strips

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
-import os
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
+from ctgs.io import atomic
 
 METRICS_SCHEMA = "ctgs-metrics"
 METRICS_VERSION = 1
@@ -34,13 +34,6 @@ class ImageMetrics:
     render_ms: float  # render only, synchronised
 
 
-def write_text_atomic(path: str, text: str) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w", newline="") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def _finite(x):
     """JSON has no NaN/inf: non-finite numbers become null."""
     if isinstance(x, float) and not math.isfinite(x):
@@ -53,7 +46,7 @@ def _finite(x):
 
 
 def write_metrics_json(path: str, metrics: dict) -> None:
-    write_text_atomic(path, json.dumps(_finite(metrics), indent=2) + "\n")
+    atomic.write_json(path, _finite(metrics))
 
 
 def write_per_image_csv(path: str, rows: list[ImageMetrics]) -> None:
@@ -64,7 +57,7 @@ def write_per_image_csv(path: str, rows: list[ImageMetrics]) -> None:
         d = asdict(r)
         w.writerow([d["name"], f"{r.psnr:.4f}", f"{r.ssim:.5f}", "" if r.lpips is None else f"{r.lpips:.5f}",
                     f"{r.render_ms:.3f}"])
-    write_text_atomic(path, buf.getvalue())
+    atomic.write_text(path, buf.getvalue())
 
 
 def strip(gt: np.ndarray, render: np.ndarray) -> np.ndarray:

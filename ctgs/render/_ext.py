@@ -1,63 +1,138 @@
-"""Just-in-time build of the C++ extension (kernels/) with torch.utils.cpp_extension.
+"""Just-in-time build of the C++ extension (the kernel sources ctgs ships) with torch.utils.cpp_extension.
 
 Nothing here runs at import time: `load_cpu()` builds on first use (about a minute on 2 cores) and caches
-the module. The build goes to `$TORCH_EXTENSIONS_DIR/ctgs_cpu` if set, else `<repo>/build/torch_extensions/`
-(gitignored); torch rebuilds when a source or flag changes.
+the module. Building on first use rather than at `pip install`: the wheel stays pure Python (one wheel for
+every platform, CPU or CUDA torch alike), the extension is compiled against the torch actually installed
+(a torch upgrade later just triggers a rebuild), and `--backend reference` works without a compiler.
+
+Build folder: `$TORCH_EXTENSIONS_DIR/<name>` when that is set (torch's own variable), else the per-user
+cache `<CTGS_CACHE_DIR or ~/.cache/ctgs>/torch_extensions/<name>-<key>`, never inside the package (which
+may be a read-only site-packages). The key hashes every kernel source and header, the flags, the compiler,
+torch's and Python's versions: checkouts or installs with different kernels never share (or fight over)
+a build, and a header change rebuilds. A one-line message on stderr says when a build starts.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import platform
 import shutil
+import sys
 import threading
 from pathlib import Path
 from types import ModuleType
 
 from ctgs.errors import UserError
+from ctgs.resources import cache_dir, kernels_dir
 
-# ctgs/render/_ext.py -> repo root (editable install: the kernels live next to the package).
-REPO_ROOT = Path(__file__).resolve().parents[2]
-KERNELS_DIR = REPO_ROOT / "kernels"
 CPU_SOURCES = ["bindings.cpp", "cpu/binning.cpp", "cpu/forward.cpp", "cpu/backward.cpp", "cpu/dense.cpp"]
 # -O3: the per-pixel loops are the whole cost. No -march=native: a build dir may be shared between
 # machines, and forward/backward must recompute bit-identical alphas (no machine-dependent FMA contraction).
 # -fno-math-errno: sqrt need not set errno, so loops calling it vectorise (results are unchanged).
 CPU_CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-std=c++17"]
 CPU_LDFLAGS = ["-fopenmp"]
+# Files whose content goes into the build key (sources and every header they may include).
+KEYED_SUFFIXES = (".cpp", ".h", ".cu", ".cuh")
+KEY_CHARS = 16  # hex digits of the sha256 kept in the folder name: 64 bits, no collisions in practice
+BUILT_MARKER = ".ctgs-built"  # holds the key of the last successful build in that folder
 
 _lock = threading.Lock()
 _cpu_module: ModuleType | None = None
 
 
-def _build_dir(name: str) -> Path:
+def compiler() -> str:
+    """The host C++ compiler torch's build uses: $CXX, else `c++`."""
+    return os.environ.get("CXX") or "c++"
+
+
+def require_compiler(what: str, fallback: str) -> None:
+    """UserError naming the C++ compiler when it is not there (torch's own error is a long traceback)."""
+    cxx = compiler()
+    if shutil.which(cxx) is None:
+        where = f"$CXX={cxx}" if os.environ.get("CXX") else f"`{cxx}` on PATH"
+        raise UserError(f"C++ compiler not found ({where}): the {what} renderer is compiled on first use; install "
+                        f"g++ (e.g. apt-get install g++) or set CXX to a compiler, or pass --backend {fallback}")
+
+
+def _ensure_ninja(fallback: str) -> None:
+    """torch runs `ninja` from PATH; the pip package `ninja` (a dependency) puts it in the environment's
+    bin folder, which is not on PATH when ctgs is run as `venv/bin/ctgs` without activating the venv."""
+    if shutil.which("ninja"):
+        return
+    try:
+        import ninja
+
+        os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
+    except (ImportError, AttributeError):
+        pass
+    if shutil.which("ninja") is None:
+        raise UserError(f"the build tool `ninja` was not found on PATH: pip install ninja, or pass --backend {fallback}")
+
+
+def build_key(name: str, flags: dict) -> str:
+    """Hash of everything that makes one build differ from another (see the module docstring)."""
+    import torch
+
+    h = hashlib.sha256()
+    root = kernels_dir()
+    for path in sorted(p for p in root.rglob("*") if p.suffix in KEYED_SUFFIXES and p.is_file()):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    context = [name, sorted((k, list(v)) for k, v in flags.items()), compiler(), torch.__version__,
+               torch.version.cuda, sys.version_info[:2], platform.machine()]
+    h.update(repr(context).encode())
+    return h.hexdigest()[:KEY_CHARS]
+
+
+def build_dir(name: str, key: str) -> Path:
+    """Where extension `name` with build key `key` is built (not created here)."""
     root = os.environ.get("TORCH_EXTENSIONS_DIR")
-    path = Path(root) / name if root else REPO_ROOT / "build" / "torch_extensions" / name
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+    if root:
+        return Path(root) / name
+    return cache_dir() / "torch_extensions" / f"{name}-{key}"
 
 
-def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbose: bool, **flags) -> ModuleType:
-    """Build (or reuse) extension `name` from kernels/`sources`; every failure is one UserError that says
-    what to do (`fallback`: the backend to pass instead). `flags` go to torch.utils.cpp_extension.load."""
-    missing = [s for s in sources if not (KERNELS_DIR / s).is_file()]
+def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbose: bool, first_use: str,
+              **flags) -> ModuleType:
+    """Build (or reuse) extension `name` from the shipped kernels/`sources`; every failure is one UserError
+    that says what to do (`fallback`: the backend to pass instead; `first_use`: the build time to announce).
+    `flags` go to torch.utils.cpp_extension.load."""
+    kernels = kernels_dir()
+    missing = [s for s in sources if not (kernels / s).is_file()]
     if missing:
-        raise UserError(f"{KERNELS_DIR}: kernel sources {missing} not found (needs an editable install of "
-                        f"the repository); pass --backend {fallback}")
+        raise UserError(f"{kernels}: kernel sources {missing} not found (an incomplete install?); reinstall "
+                        f"ctgs, or pass --backend {fallback}")
+    _ensure_ninja(fallback)
     from torch.utils import cpp_extension
 
+    key = build_key(name, flags)
+    folder = build_dir(name, key)
+    marker = folder / BUILT_MARKER
     try:
-        return cpp_extension.load(
+        folder.mkdir(parents=True, exist_ok=True)
+        fresh = not marker.is_file() or marker.read_text().strip() != key
+    except OSError as exc:
+        raise UserError(f"{folder}: cannot create the extension build folder ({exc.strerror}); set "
+                        f"CTGS_CACHE_DIR to a writable folder, or pass --backend {fallback}") from exc
+    if fresh:
+        print(f"ctgs: building the {what} renderer extension (first use, {first_use}) in {folder} ...",
+              file=sys.stderr, flush=True)
+    try:
+        module = cpp_extension.load(
             name=name,
-            sources=[str(KERNELS_DIR / s) for s in sources],
-            extra_include_paths=[str(KERNELS_DIR / "include"), str(KERNELS_DIR)],
-            build_directory=str(_build_dir(name)),
+            sources=[str(kernels / s) for s in sources],
+            extra_include_paths=[str(kernels / "include"), str(kernels)],
+            build_directory=str(folder),
             verbose=verbose or os.environ.get("CTGS_VERBOSE_BUILD", "") == "1",
             **flags,
         )
     except (RuntimeError, OSError, ImportError) as exc:
         last = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"building the {what} renderer extension (kernels/) failed: {last}; rerun with "
+        raise UserError(f"building the {what} renderer extension ({kernels}) failed: {last}; rerun with "
                         f"CTGS_VERBOSE_BUILD=1 for the compiler output, or pass --backend {fallback}") from exc
+    if fresh:
+        marker.write_text(key + "\n")
+    return module
 
 
 def load_cpu(verbose: bool = False) -> ModuleType:
@@ -66,17 +141,7 @@ def load_cpu(verbose: bool = False) -> ModuleType:
     with _lock:
         if _cpu_module is not None:
             return _cpu_module
-        cxx = os.environ.get("CXX", "c++")
-        if shutil.which(cxx) is None:
-            raise UserError(f"C++ compiler `{cxx}` not found: install g++ (apt-get install g++) to build the cpu "
-                            "renderer, or pass --backend reference")
-        _cpu_module = jit_build("ctgs_cpu", CPU_SOURCES, what="cpu", fallback="reference", verbose=verbose,
-                                extra_cflags=CPU_CFLAGS, extra_ldflags=CPU_LDFLAGS)
+        require_compiler("CPU", "reference")
+        _cpu_module = jit_build("ctgs_cpu", CPU_SOURCES, what="CPU", fallback="reference", verbose=verbose,
+                                first_use="~1 min", extra_cflags=CPU_CFLAGS, extra_ldflags=CPU_LDFLAGS)
         return _cpu_module
-
-
-def load_cuda(verbose: bool = False) -> ModuleType:
-    """The compiled CUDA backend; built by ctgs.render._ext_cuda (only where a GPU is visible)."""
-    from ctgs.render._ext_cuda import load_cuda as _load_cuda
-
-    return _load_cuda(verbose)

@@ -2,18 +2,19 @@
 
 Nothing here runs at import time, and nothing is attempted without a GPU: `load_cuda()` first checks that
 PyTorch sees a CUDA device and that the CUDA toolkit (nvcc) is installed, and says what to do if not. The
-build (a few minutes: cub's radix sort is heavy to compile) goes next to the CPU one
-(`$TORCH_EXTENSIONS_DIR/ctgs_cuda` or `<repo>/build/torch_extensions/ctgs_cuda`) and torch rebuilds when a
-source or flag changes. Architectures: torch's default (the visible GPUs), or TORCH_CUDA_ARCH_LIST.
+build (a few minutes: cub's radix sort is heavy to compile) goes next to the CPU one, in the per-user
+cache (`$TORCH_EXTENSIONS_DIR/ctgs_cuda`, else `~/.cache/ctgs/torch_extensions/ctgs_cuda-<key>`; see
+ctgs.render._ext). Architectures: torch's default (the visible GPUs), or TORCH_CUDA_ARCH_LIST.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from types import ModuleType
 
 from ctgs.errors import UserError
-from ctgs.render._ext import jit_build
+from ctgs.render._ext import jit_build, require_compiler
 
 CUDA_SOURCES = ["bindings_cuda.cpp", "cuda/preprocess.cu", "cuda/binning.cu", "cuda/forward.cu", "cuda/backward.cu"]
 # The C++ standard is torch's own (it adds it): its headers need it, and the kernels are C++17-clean
@@ -25,6 +26,18 @@ CUDA_NVCC_FLAGS = ["-O3", "-DCTGS_WITH_CUDA", "-fmad=false", "-lineinfo"]
 
 _lock = threading.Lock()
 _cuda_module: ModuleType | None = None
+
+
+def nvcc_path(cuda_home: str | None) -> str | None:
+    """The nvcc torch's build will run ($CUDA_HOME/bin/nvcc), or None when it is not there."""
+    if not cuda_home:
+        return None
+    path = os.path.join(cuda_home, "bin", "nvcc")
+    return path if os.path.isfile(path) and os.access(path, os.X_OK) else None
+
+
+def nvcc_where(cuda_home: str | None) -> str:
+    return f"not in $CUDA_HOME/bin, CUDA_HOME={cuda_home}" if cuda_home else "not on PATH and CUDA_HOME unset"
 
 
 def load_cuda(verbose: bool = False) -> ModuleType:
@@ -41,9 +54,13 @@ def load_cuda(verbose: bool = False) -> ModuleType:
                             "(or reference), or install a CUDA build of torch on a machine with a GPU")
         from torch.utils import cpp_extension
 
-        if cpp_extension.CUDA_HOME is None:
-            raise UserError("the CUDA toolkit (nvcc) was not found: install it or set CUDA_HOME to build the cuda "
-                            "renderer, or pass --backend cpu")
-        _cuda_module = jit_build("ctgs_cuda", CUDA_SOURCES, what="cuda", fallback="cpu", verbose=verbose,
-                                 extra_cflags=CUDA_CFLAGS, extra_cuda_cflags=CUDA_NVCC_FLAGS)
+        nvcc = nvcc_path(cpp_extension.CUDA_HOME)
+        if nvcc is None:
+            raise UserError(f"CUDA compiler nvcc not found ({nvcc_where(cpp_extension.CUDA_HOME)}): the cuda renderer "
+                            "is compiled on first use; install the CUDA toolkit or set CUDA_HOME to it, or pass "
+                            "--backend cpu")
+        require_compiler("CUDA", "cpu")  # nvcc compiles host code and links with it
+        _cuda_module = jit_build("ctgs_cuda", CUDA_SOURCES, what="CUDA", fallback="cpu", verbose=verbose,
+                                 first_use="a few minutes", extra_cflags=CUDA_CFLAGS,
+                                 extra_cuda_cflags=CUDA_NVCC_FLAGS)
         return _cuda_module

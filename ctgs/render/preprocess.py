@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ctgs.model.geometry import quat_to_rotmat
 from ctgs.render.camera import Camera
 from ctgs.render.sh import sh_to_color, view_dirs
 
@@ -19,17 +20,6 @@ class CameraSpacePrims:
     mu_c: torch.Tensor  # [N, 3] centres, camera space, world units
     Rc: torch.Tensor  # [N, 3, 3] camera-space rotation, columns tangent u, tangent v, normal
     colors: torch.Tensor  # [N, 3] SH(view dir) + 0.5, unclamped
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 4] (w, x, y, z), any non-zero norm -> [N, 3, 3] rotation (normalised here)."""
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
 
 
 def to_camera_space(means: torch.Tensor, quats: torch.Tensor, sh: torch.Tensor, camera: Camera,

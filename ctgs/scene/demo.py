@@ -14,12 +14,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
-import tempfile
 
 import numpy as np
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.images import write_image
 from ctgs.scene.colmap_write import PinholeCamera, write_colmap_model
 from ctgs.scene.raycast import Rect, render
@@ -259,11 +258,7 @@ def make_demo_scene(out_dir: str, *, num_views: int = 40, width: int = 256, heig
     _prefilter(rects, centers, camera.fx)
     pts, cols = sample_points(rects, points, seed)
 
-    parent = os.path.dirname(out_dir)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(out_dir)}.tmp-", dir=parent)
-    os.chmod(tmp, 0o755)  # mkdtemp makes it private; the scene is an ordinary output folder
-    try:
+    with atomic.atomic_dir(out_dir) as tmp:
         names = [f"{i:03d}.png" for i in range(num_views)]
         for name, viewmat in zip(names, viewmats):
             image = render(rects, viewmat, camera.fx, camera.fy, camera.cx, camera.cy, width, height,
@@ -280,14 +275,7 @@ def make_demo_scene(out_dir: str, *, num_views: int = 40, width: int = 256, heig
             "surfaces": [_surface_meta(r) for r in rects],
             "cameras": [{"name": n, "center": c.tolist()} for n, c in zip(names, centers)],
         }
-        with open(os.path.join(tmp, META_NAME), "w") as f:
-            json.dump(meta, f, indent=1)
-        if os.path.isdir(out_dir):
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        atomic.write_json(os.path.join(tmp, META_NAME), meta, indent=1)
     return out_dir
 
 

@@ -8,17 +8,17 @@ marked with `.ctgs-fetched.json`; a re-run skips marked scenes without touching 
 
 from __future__ import annotations
 
-import json
+import contextlib
 import os
 import shutil
 import tarfile
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from urllib.parse import urlparse
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.download import download
 from ctgs.scene.manifests import data_root, load_manifest
 
@@ -117,9 +117,10 @@ def fetch_dataset(dataset: str, scenes: list[str] | None = None, *, root: str | 
         archive = manifest["archives"][archive_name]
         dest = base / ".downloads" / _archive_file(archive["url"], archive_name, archive["format"])
         fetched = download(archive["url"], str(dest), size=archive["size"], sha256=archive["sha256"], quiet=quiet)
-        dataset_dir.mkdir(parents=True, exist_ok=True)
-        staging = {s: Path(tempfile.mkdtemp(prefix=f".{s}.tmp-", dir=dataset_dir)) for s in archive_scenes}
-        try:
+        # Each scene is built in a temporary sibling and renamed into place only if every scene of this
+        # archive extracted and checked out (an unmarked leftover of an interrupted older run is replaced).
+        with contextlib.ExitStack() as stack:
+            staging = {s: Path(stack.enter_context(atomic.atomic_dir(str(dataset_dir / s)))) for s in archive_scenes}
             prefixes = {s: manifest["scenes"][s]["path"] for s in archive_scenes}
             found = _extract(str(dest), archive["format"], prefixes, staging, quiet)
             for scene in archive_scenes:
@@ -131,17 +132,9 @@ def fetch_dataset(dataset: str, scenes: list[str] | None = None, *, root: str | 
                 if not (staging[scene] / images).is_dir():
                     raise UserError(f"{dest}: {prefix}/{images}/ is missing from the archive; fix "
                                     f"scenes.{scene}.images in {manifest['path']}")
-                with open(staging[scene] / MARKER, "w") as f:
-                    json.dump({"dataset": manifest["name"], "scene": scene, "url": archive["url"],
-                               "sha256": fetched.sha256, "size": fetched.size}, f, indent=1)
-                os.chmod(staging[scene], 0o755)
-                target = dataset_dir / scene
-                if target.exists():  # an unmarked leftover (interrupted older run): replace it
-                    shutil.rmtree(target)
-                os.replace(staging[scene], target)
-        finally:
-            for path in staging.values():
-                shutil.rmtree(path, ignore_errors=True)
+                atomic.write_json(str(staging[scene] / MARKER), {
+                    "dataset": manifest["name"], "scene": scene, "url": archive["url"], "sha256": fetched.sha256,
+                    "size": fetched.size}, indent=1)
         if delete_archive:
             for path in (dest, Path(str(dest) + ".sha256")):
                 if path.exists():

@@ -1,8 +1,9 @@
 """Dataset manifests (data_manifests/<name>.toml): archives, sizes, checksums, scenes, image folder, holdout.
 
-The manifest folder is, in order: the `manifest_dir` argument, $CTGS_MANIFEST_DIR, or the repository's
-data_manifests/. A `name` ending in .toml is read as a path. `load_manifest` returns a plain dict with
-every scene's `images` and `holdout` filled in from the dataset defaults.
+The manifest folder is, in order: the `manifest_dir` argument, $CTGS_MANIFEST_DIR, or the manifests
+ctgs ships (ctgs.resources: the repository's data_manifests/, in an installed package ctgs/_manifests/).
+A `name` ending in .toml is read as a path. `load_manifest` returns a plain dict with every scene's
+`images` and `holdout` filled in from the dataset defaults.
 """
 
 from __future__ import annotations
@@ -12,17 +13,17 @@ import tomllib
 from pathlib import Path
 
 from ctgs.errors import UserError
+from ctgs.resources import manifests_dir
 
 MANIFEST_ENV = "CTGS_MANIFEST_DIR"
 DATA_ROOT_ENV = "CTGS_DATA_ROOT"
-DEFAULT_MANIFEST_DIR = Path(__file__).resolve().parents[2] / "data_manifests"
 _ARCHIVE_KEYS = {"url", "size", "sha256", "format"}
 _SCENE_KEYS = {"archive", "path", "images", "holdout"}
 _TOP_KEYS = {"name", "description", "holdout", "images", "archives", "scenes"}
 
 
 def manifest_dir(override: str | None = None) -> Path:
-    return Path(override or os.environ.get(MANIFEST_ENV) or DEFAULT_MANIFEST_DIR)
+    return Path(override or os.environ.get(MANIFEST_ENV) or manifests_dir())
 
 
 def data_root(override: str | None = None) -> Path:

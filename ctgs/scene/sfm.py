@@ -16,10 +16,10 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
-import numpy as np
-
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.images import image_info, list_images, read_image, resize_image, stderr_silenced, write_image
+from ctgs.scene.align import umeyama  # noqa: F401  (moved to ctgs.scene.align; kept importable from here)
 
 MIN_IMAGES = 3
 # Fewer registered images than this fraction means SfM failed on this input (too little overlap or
@@ -109,8 +109,7 @@ def _done(work: str, step: str) -> bool:
 
 
 def _mark(work: str, step: str, seconds: float) -> None:
-    with open(os.path.join(work, f"{step}.done"), "w") as f:
-        f.write(f"{seconds:.3f}\n")
+    atomic.write_text(os.path.join(work, f"{step}.done"), f"{seconds:.3f}\n")
 
 
 def _invalidate_from(work: str, step: str) -> None:
@@ -142,8 +141,7 @@ def _prepare_work(work: str, fingerprint: dict, force: bool) -> None:
     else:
         shutil.rmtree(work, ignore_errors=True)
         os.makedirs(work)
-    with open(path, "w") as f:
-        json.dump(fingerprint, f)
+    atomic.write_json(path, fingerprint, indent=None)
 
 
 def _extract(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> None:
@@ -341,8 +339,7 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
             fn()
             _mark(work, step, time.perf_counter() - start)
         report = _report(work, images_dir, scene_dir, names, opts)
-        with open(os.path.join(work, "scene", REPORT_NAME), "w") as f:
-            json.dump(asdict(report), f, indent=1)
+        atomic.write_json(os.path.join(work, "scene", REPORT_NAME), asdict(report), indent=1)
         _install(os.path.join(work, "scene"), scene_dir)
     except UserError:
         shutil.rmtree(work, ignore_errors=True)  # the same input would fail the same way: nothing to resume
@@ -350,18 +347,3 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
     shutil.rmtree(work, ignore_errors=True)
     return report, True
 
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R [3,3], t [3]) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991); src, dst [N, 3]."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)
-    U, S, Vt = np.linalg.svd(cov)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    var_s = (xs ** 2).sum() / len(src)
-    s = float(np.trace(np.diag(S) @ D) / var_s)
-    t = mu_d - s * R @ mu_s
-    return s, R, t

@@ -11,7 +11,7 @@ from ctgs.errors import UserError
 
 @click.command(name="compress")
 @click.argument("model_dir", type=click.Path(file_okay=False))
-@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+@click.option("-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output model folder (replaced atomically).")
 @click.option("--codebook-size", "-k", default=256, show_default=True,
               help="K, number of codebook colours (<= 256: uint8 indices, <= 65536: uint16).")

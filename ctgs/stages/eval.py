@@ -19,7 +19,8 @@ def _metrics_path(path: str) -> str:
 
 
 def _table(paths: tuple[str, ...], out: str) -> None:
-    from ctgs.metrics.report import METRICS_SCHEMA, build_table, write_text_atomic
+    from ctgs.io import atomic
+    from ctgs.metrics.report import METRICS_SCHEMA, build_table
 
     metrics = []
     for p in paths:
@@ -30,9 +31,8 @@ def _table(paths: tuple[str, ...], out: str) -> None:
             raise UserError(f"{mp}: not a ctgs metrics.json; pass run folders evaluated by `ctgs eval`")
         metrics.append(m)
     md, csv_text = build_table(metrics)
-    os.makedirs(out, exist_ok=True)
-    write_text_atomic(os.path.join(out, "table.md"), md)
-    write_text_atomic(os.path.join(out, "table.csv"), csv_text)
+    atomic.write_text(os.path.join(out, "table.md"), md)
+    atomic.write_text(os.path.join(out, "table.csv"), csv_text)
     click.echo(md)
 
 
@@ -40,7 +40,7 @@ def _table(paths: tuple[str, ...], out: str) -> None:
 @click.argument("run_dirs", nargs=-1, required=True, type=click.Path())
 @click.option("--model", "model_dir", default=None, type=click.Path(file_okay=False),
               help="Evaluate this exported/compressed model folder instead of RUN_DIR/model.pt.")
-@click.option("-o", "--out", "out_dir", default=None, type=click.Path(file_okay=False),
+@click.option("-o", "--output", "out_dir", default=None, type=click.Path(file_okay=False),
               help="Output folder (default RUN_DIR/eval, or RUN_DIR/eval-<model folder name> with --model; "
                    "with --table: where table.md and table.csv go).")
 @click.option("--backend", default=None, type=click.Choice(["auto", "cpu", "cuda", "reference"]),

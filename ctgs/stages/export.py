@@ -1,28 +1,132 @@
-"""`ctgs export RUN_DIR [-o MODEL_DIR]`: a trained run -> model folder (docs/model_format.md)."""
+"""`ctgs export SOURCE [-o OUT] [--format F]`: a trained run (or a model folder) -> a model file or folder.
+
+Formats (docs/model_format.md): `ctgs` (default, lossless: primitives.ply + textures.bin + manifest.json,
+plus plain_3dgs.ply), `ply` (3DGS PLY for Gaussian viewers), `splat` (32 bytes per splat, web viewers),
+`glb` (textured quads for Blender and three.js), `web` (the ctgs folder plus the bundle `ctgs view`
+serves, in its web/ subfolder). Adding a format is one entry in FORMATS.
+"""
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
+from typing import Callable
 
 import click
 
 
-@click.command(name="export")
-@click.argument("run_dir", type=click.Path(file_okay=False))
-@click.option("-o", "--out", "out_dir", default=None, type=click.Path(file_okay=False),
-              help="Model folder to write (default RUN_DIR/model); replaced atomically.")
-@click.option("--plain-ply/--no-plain-ply", default=True, show_default=True,
-              help="Also write plain_3dgs.ply, an untextured approximation for existing 3DGS viewers.")
-def command(run_dir: str, out_dir: str | None, plain_ply: bool) -> None:
-    """Write RUN_DIR's model as primitives.ply + textures.bin + manifest.json (+ plain_3dgs.ply)."""
+@dataclass(frozen=True)
+class Export:
+    """What a format's writer gets: the model, where to write, where it came from, the CLI options."""
+
+    model: object  # ctgs.model.surfels.SurfelModel
+    out: str
+    source: dict
+    plain_ply: bool
+    texel_bits: int = 8  # web: bits per texel channel in the atlas
+
+
+def _ctgs(e: Export) -> str:
     from ctgs.io.model_format import write_model
+
+    manifest = write_model(e.model, e.out, plain_ply=e.plain_ply, extra={"source": e.source})
+    size = sum(v for k, v in manifest["file_bytes"].items() if k != manifest["plain_ply"])
+    return (f"{manifest['num_primitives']} primitives, {manifest['num_texels']} texels, {size / 1e6:.3f} MB "
+            f"(+ plain PLY: {e.plain_ply})")
+
+
+def _ply(e: Export) -> str:
+    from ctgs.io.plain_ply import write_plain_ply
+
+    write_plain_ply(e.model, e.out)
+    return f"{e.model.num_primitives} Gaussians (textures folded into the DC colour), " \
+           f"{os.path.getsize(e.out) / 1e6:.3f} MB"
+
+
+def _splat(e: Export) -> str:
+    from ctgs.io.splat import write_splat
+
+    return f"{e.model.num_primitives} splats, {write_splat(e.model, e.out) / 1e6:.3f} MB"
+
+
+def _glb(e: Export) -> str:
+    from ctgs.io.gltf import write_glb
+
+    return f"{e.model.num_primitives} textured quads, {write_glb(e.model, e.out) / 1e6:.3f} MB"
+
+
+def _web(e: Export) -> str:
+    from ctgs.io.web_bundle import WEB_SUBDIR, scene_cameras, write_web_bundle
+
+    summary = _ctgs(e)
+    scene = e.source.get("scene_dir")
+    cameras = scene_cameras(scene, e.source.get("images", "images"), int(e.source.get("holdout", 8))) \
+        if scene and os.path.isdir(scene) else []
+    web = write_web_bundle(e.model, os.path.join(e.out, WEB_SUBDIR), cameras, texel_bits=e.texel_bits)
+    return (f"{summary}; {WEB_SUBDIR}/: web bundle, {web['bytes_per_surfel']:.0f} B/surfel, "
+            f"{web['bytes_per_texel']:.2f} B/texel, {len(cameras)} cameras (`ctgs view {e.out}`)")
+
+
+@dataclass(frozen=True)
+class Format:
+    write: Callable[[Export], str]  # writes e.out, returns a one-line summary
+    suffix: str  # default output: RUN_DIR/model<suffix> ("" = a folder)
+    help: str
+
+
+FORMATS: dict[str, Format] = {
+    "ctgs": Format(_ctgs, "", "lossless model folder (primitives.ply + textures.bin + manifest.json)"),
+    "ply": Format(_ply, ".ply", "3DGS PLY for Gaussian viewers (textures folded into one colour per surfel)"),
+    "splat": Format(_splat, ".splat", ".splat, 32 bytes per splat, for web viewers (DC colour, 8-bit opacity "
+                                      "and rotation)"),
+    "glb": Format(_glb, ".glb", "glTF binary, one textured quad per surfel (Blender, three.js)"),
+    "web": Format(_web, "", "the ctgs folder plus web/, the bundle `ctgs view` serves (WebGL2, textures kept)"),
+}
+
+
+def load_source(path: str):
+    """(model, source info) from a run folder (model.pt) or a model folder (manifest.json)."""
+    from ctgs.io.model_format import MANIFEST, read_model
+
+    if os.path.isfile(os.path.join(path, MANIFEST)):
+        model, files = read_model(path)
+        return model, {"model_dir": os.path.abspath(path), **files.manifest.get("source", {})}
     from ctgs.io.run_model import load_run
 
-    run = load_run(run_dir)
-    out_dir = out_dir or os.path.join(run_dir, "model")
-    source = {"run_dir": run.run_dir, "scene_dir": run.scene_dir, "images": run.images,
-              "holdout": run.holdout, "iteration": run.iteration}
-    manifest = write_model(run.model, out_dir, plain_ply=plain_ply, extra={"source": source})
-    size = sum(v for k, v in manifest["file_bytes"].items() if k != manifest["plain_ply"])
-    click.echo(f"{out_dir}: {manifest['num_primitives']} primitives, {manifest['num_texels']} texels, "
-               f"{size / 1e6:.3f} MB (+ plain PLY: {plain_ply})")
+    run = load_run(path)
+    return run.model, {"run_dir": run.run_dir, "scene_dir": run.scene_dir, "images": run.images,
+                       "holdout": run.holdout, "iteration": run.iteration}
+
+
+def default_out(source: str, fmt: str) -> str:
+    from ctgs.io.model_format import MANIFEST
+
+    if os.path.isfile(os.path.join(source, MANIFEST)):  # a model folder: a file next to it
+        base = os.path.normpath(source)
+        return base + (FORMATS[fmt].suffix or "-export")
+    return os.path.join(source, "model" + FORMATS[fmt].suffix)
+
+
+@click.command(name="export")
+@click.argument("source", metavar="RUN_DIR", type=click.Path(file_okay=False))
+@click.option("-o", "--output", "out", default=None, type=click.Path(),
+              help="Output (default RUN_DIR/model for ctgs, RUN_DIR/model.<format> otherwise); replaced atomically.")
+@click.option("--format", "fmt", type=click.Choice(list(FORMATS)), default="ctgs", show_default=True,
+              help="; ".join(f"{name}: {f.help}" for name, f in FORMATS.items()) + ".")
+@click.option("--plain-ply/--no-plain-ply", default=True, show_default=True,
+              help="With --format ctgs: also write plain_3dgs.ply into the folder.")
+@click.option("--texel-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
+              help="With --format web: bits per texel channel in the atlas (8: signed bytes, 16: half floats).")
+def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits: str) -> None:
+    """Write RUN_DIR's model (or a model folder's, e.g. a compressed one) in the chosen format."""
+    model, info = load_source(source)
+    out = out or default_out(source, fmt)
+    if FORMATS[fmt].suffix and os.path.isdir(out):  # formats with a suffix write one file
+        from ctgs.errors import UserError
+
+        raise UserError(f"{out}: is a folder; --format {fmt} writes one file, pass a file name with -o")
+    parent = os.path.dirname(os.path.abspath(out))
+    os.makedirs(parent, exist_ok=True)
+    summary = FORMATS[fmt].write(Export(model=model, out=out, source=info, plain_ply=plain_ply,
+                                        texel_bits=int(texel_bits)))
+    click.echo(f"{out}: {summary}")

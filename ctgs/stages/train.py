@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import sys
 
 import click
 
@@ -10,51 +12,111 @@ from ctgs.errors import UserError
 
 
 def _load_scene(cfg):
-    try:
-        from ctgs.scene import load_scene
-    except ImportError:
-        from ctgs.scene.loader import load_scene
+    from ctgs.scene.loader import load_scene
+
     holdout = cfg.holdout if cfg.holdout > 0 else None
-    return load_scene(cfg.scene_dir, images=cfg.images, holdout=holdout)
+    scene = load_scene(cfg.scene_dir, images=cfg.images, holdout=holdout)
+    k = cfg.validation_holdout
+    if k > 0:
+        # Tuning mode: the protocol's test views are never seen; validation views come from the training set.
+        views = scene.train
+        scene.test = [v for i, v in enumerate(views) if i % k == k // 2]
+        scene.train = [v for i, v in enumerate(views) if i % k != k // 2]
+    return scene
 
 
-def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed):
+# Without --preset/--config: the authors' recipe where a GPU is present; on a CPU, the preset that measured
+# best for the time (benchmarks/results/trade_*.md).
+CPU_DEFAULT_PRESET = "fast"
+GPU_DEFAULT_PRESET = "paper"
+
+
+def default_preset() -> str:
+    import torch
+
+    return GPU_DEFAULT_PRESET if torch.cuda.is_available() else CPU_DEFAULT_PRESET
+
+
+def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset=None,
+                   time_budget=None):
     from ctgs.train.config import load_config, parse_set
 
     overrides = parse_set(list(sets))
-    for key, value in (("iterations", iterations), ("images", images), ("backend", backend), ("seed", seed)):
+    for key, value in (("iterations", iterations), ("images", images), ("backend", backend), ("seed", seed),
+                       ("time_budget", time_budget)):
         if value is not None:
             overrides[key] = value
     saved = os.path.join(run_dir, "config.toml")
-    if resume and config is None and os.path.exists(saved):
-        cfg = load_config(saved, overrides)  # the run's own resolved config
+    if resume and config is None and preset is None and os.path.exists(saved):
+        cfg = load_config(saved, overrides)  # the run's own config
     else:
-        cfg = load_config(config, overrides)
+        cfg = load_config(config, overrides, preset=preset)
     cfg.scene_dir = os.path.abspath(scene_dir)
     return cfg
 
 
 def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images=None, resume=False,
-               backend=None, seed=None, quiet=False) -> dict:
+               backend=None, seed=None, quiet=False, preset=None, time_budget=None, start_time=None) -> dict:
+    """Train; returns the summary. Without preset and config the machine's default preset is used (said on
+    stderr unless quiet). A failure before the first checkpoint leaves no run folder behind."""
+    import time
+
     from ctgs.train.progress import run_with_progress
     from ctgs.train.run import write_config
     from ctgs.train.trainer import Trainer
 
+    start_time = time.monotonic() if start_time is None else start_time
     if not os.path.isdir(scene_dir):
         raise UserError(f"{scene_dir}: scene folder not found; pass a folder made by `ctgs sfm` or `ctgs demo-scene`")
     if not resume and os.path.exists(os.path.join(run_dir, "model.pt")):
         raise UserError(f"{run_dir}: already holds a finished run; choose another -o folder or delete it")
-    cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed)
-    scene = _load_scene(cfg)
-    trainer = Trainer(cfg, scene, run_dir, resume=resume)
-    write_config(run_dir, cfg.to_dict())
-    return run_with_progress(trainer, quiet=quiet)
+    if preset is None and config is None and not (resume and os.path.exists(os.path.join(run_dir, "config.toml"))):
+        preset = default_preset()
+        if not quiet:
+            import torch
+
+            where = "a CUDA GPU is present" if torch.cuda.is_available() else "no GPU: CPU training"
+            print(f"ctgs train: preset '{preset}' ({where}; --preset preview|fast|balanced|paper to choose, "
+                  f"--time-budget MINUTES to fit a time)", file=sys.stderr)
+    cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
+                         time_budget)
+    created = not os.path.exists(run_dir)
+    try:
+        scene = _load_scene(cfg)
+        trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
+        write_config(run_dir, cfg.to_dict())
+        return run_with_progress(trainer, quiet=quiet)
+    except BaseException:
+        # Nothing half-written: a run folder this invocation created goes if no checkpoint made it resumable.
+        if created and not os.path.exists(os.path.join(run_dir, "checkpoints", "last.pt")):
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise
+
+
+def list_keys() -> str:
+    from ctgs.train.config import describe_keys
+
+    lines = []
+    for key, default, help_text in describe_keys():
+        lines.append(f"{key} = {default!r}\n    {help_text}")
+    return "\n".join(lines)
+
+
+def _list_keys(ctx, _param, value):
+    if value and not ctx.resilient_parsing:
+        click.echo(list_keys())
+        ctx.exit()
 
 
 @click.command(name="train")
 @click.argument("scene_dir", type=click.Path(file_okay=False))
 @click.option("-o", "--output", "run_dir", required=True, type=click.Path(file_okay=False), help="Run folder.")
-@click.option("--config", type=click.Path(dir_okay=False), default=None, help="TOML config (configs/*.toml).")
+@click.option("--preset", type=click.Choice(["preview", "fast", "balanced", "paper"]), default=None,
+              help="Recipe: paper = the authors' exactly (default with a GPU); fast (default on a CPU), "
+                   "preview and balanced trade time for quality (docs/training.md).")
+@click.option("--time-budget", "time_budget", type=float, default=None, metavar="MINUTES",
+              help="Plan the iteration count so the whole run ends within MINUTES on this machine.")
+@click.option("--config", default=None, help="Config overlay: a TOML file or a shipped name (default, 2dgs, ...).")
 @click.option("--iterations", type=int, default=None, help="Override the number of iterations.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")
 @click.option("--images", default=None, help="Image sub-folder (images, images_2, images_4, ...).")
@@ -63,9 +125,19 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
               help="Renderer backend.")
 @click.option("--seed", type=int, default=None, help="Random seed.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress display.")
-def command(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, quiet):
+@click.option("--list-keys", is_flag=True, expose_value=False, is_eager=True, callback=_list_keys,
+              help="Print every config key with its default and help, then exit.")
+def command(scene_dir, run_dir, preset, time_budget, config, iterations, sets, images, resume, backend, seed, quiet):
     """Train on SCENE_DIR, writing model.pt, config.toml, log.jsonl and train_summary.json to RUN_DIR."""
-    summary = train_main(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, quiet)
+    import time
+
+    start = time.monotonic()
+    summary = train_main(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, quiet,
+                         preset=preset, time_budget=time_budget, start_time=start)
     click.echo(f"done: {summary['iterations']} iterations in {summary['train_seconds']:.0f} s, "
                f"test PSNR {summary['final_test_psnr']:.2f} dB, {summary['num_primitives']} primitives, "
                f"{summary['num_texels']} texels, {summary['num_params']} params -> {run_dir}")
+    if "time_budget_s" in summary:
+        click.echo(f"time budget {summary['time_budget_s'] / 60:.1f} min: planned {summary['planned_iterations_initial']} "
+                   f"iterations at start, ran {summary['iterations']} ({summary['replans']} re-plans), wall "
+                   f"{summary['wall_seconds'] / 60:.2f} min")

@@ -85,3 +85,62 @@ def texel_density_by_kind(model, meta: dict) -> dict[str, float]:
     tex = (model.tex_res[:, 0].long() * model.tex_res[:, 1].long()).cpu().numpy()
     kind = _surface_kind(means, meta)
     return _per_area({k: int(tex[kind == k].sum()) for k in set(kind.tolist()) if k}, meta)
+
+
+# The paper's parameter count: 59 per primitive (58 of 2DGS + the texel-size exponent) + 3 per texel
+# (SurfelModel.num_params: fewer per primitive at a lower SH degree).
+PARAMS_PER_PRIMITIVE = 59
+PARAMS_PER_TEXEL = 3
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    if len(values) == 0 or weights.sum() <= 0:
+        return float("nan")
+    order = np.argsort(values)
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+def allocation_measures(model, meta: dict) -> dict:
+    """What the paper claims, per surface kind of the demo scene (primitives assigned by their centre):
+
+    {kind: {"primitives", "texels", "area", "texel_size_prim" (median over primitives of the world-space texel
+    size: k_min * 2**t2p_exp, or the fixed_texture grid spacing), "texel_size_texel" (the same, median over
+    texels), "params_per_area" (59 per primitive + 3 per texel, per unit area), "texels_per_area"}}
+    plus "ratios": texel size flat : photo (per primitive and per texel) and params per area photo : flat.
+    Texel sizes are NaN for a model without textures.
+    """
+    means = model.means.detach().cpu().numpy().astype(np.float64)
+    kind = _surface_kind(means, meta)
+    tex = (model.tex_res[:, 0].long() * model.tex_res[:, 1].long()).cpu().numpy().astype(np.float64)
+    textured = model.texture_mode != "none" and model.num_texels > 0
+    if textured:
+        ts = model.texel_size.detach().cpu().numpy().astype(np.float64)  # [N, 2]
+        size = np.sqrt(ts[:, 0] * ts[:, 1])  # isotropic for content-aware; geometric mean for fixed grids
+    n = model.num_primitives
+    per_prim = (model.num_params() - PARAMS_PER_TEXEL * model.num_texels) / n if n else float(PARAMS_PER_PRIMITIVE)
+    out: dict = {}
+    for k in sorted({s["kind"] for s in meta["surfaces"]}):
+        area = sum(s["area"] for s in meta["surfaces"] if s["kind"] == k)
+        sel = kind == k
+        rec = {"primitives": int(sel.sum()), "texels": int(tex[sel].sum()), "area": float(area)}
+        has = sel & (tex > 0) if textured else np.zeros_like(sel)
+        rec["texel_size_prim"] = float(np.median(size[has])) if has.any() else float("nan")
+        rec["texel_size_texel"] = _weighted_median(size[has], tex[has]) if has.any() else float("nan")
+        params = per_prim * rec["primitives"] + PARAMS_PER_TEXEL * rec["texels"]
+        rec["params_per_area"] = params / area if area > 0 else float("nan")
+        rec["texels_per_area"] = rec["texels"] / area if area > 0 else float("nan")
+        out[k] = rec
+    photo, flat = out.get("photo", {}), out.get("flat", {})
+
+    def ratio(a, b):
+        return float(a / b) if a == a and b == b and b > 0 else float("nan")  # NaN-safe
+
+    out["ratios"] = {
+        "texel_size_prim_flat_over_photo": ratio(flat.get("texel_size_prim", np.nan), photo.get("texel_size_prim", np.nan)),
+        "texel_size_texel_flat_over_photo": ratio(flat.get("texel_size_texel", np.nan),
+                                                  photo.get("texel_size_texel", np.nan)),
+        "params_per_area_photo_over_flat": ratio(photo.get("params_per_area", np.nan), flat.get("params_per_area", np.nan)),
+        "texels_per_area_photo_over_flat": ratio(photo.get("texels_per_area", np.nan), flat.get("texels_per_area", np.nan)),
+    }
+    return out

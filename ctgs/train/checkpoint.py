@@ -1,4 +1,4 @@
-"""Atomic checkpoints with everything needed to resume bit-for-bit (up to kernel non-determinism)."""
+"""Checkpoints with everything needed to resume bit-for-bit (written atomically by ctgs.io.atomic.torch_save)."""
 
 from __future__ import annotations
 
@@ -9,16 +9,6 @@ import numpy as np
 import torch
 
 CKPT_NAME = "last.pt"
-
-
-def atomic_torch_save(obj, path: str) -> None:
-    """Write to a temporary name in the same folder, fsync, rename: never a half-written file."""
-    tmp = f"{path}.tmp.{os.getpid()}"
-    with open(tmp, "wb") as fh:
-        torch.save(obj, fh)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def rng_state(gen: torch.Generator) -> dict:

@@ -1,8 +1,9 @@
-"""Training configuration: one dataclass, TOML files override defaults, `--set key=value` overrides those.
+"""Training configuration: one dataclass whose defaults are the paper's recipe; a preset (configs/<name>.toml),
+then a config file, then `--set key=value` override them.
 
-Iteration counts are given at the paper's 30k-iteration scale and multiplied by `schedule_scale`, so a
-short CPU run (configs/demo.toml: 3000 iterations, scale 0.1) keeps every routine at the same relative
-point of training.
+Values are written at the paper's scale (about 1 Mpx images, 30k iterations) and resolved for the run by
+ctgs/train/rules.py (pixels, texels) and ctgs/train/schedule.py (iterations: a schedule is a fraction of
+the run), so no config needs retuning when the image size or the iteration count changes.
 """
 
 from __future__ import annotations
@@ -28,15 +29,26 @@ class TrainConfig:
     scene_dir: str = _f("", "scene folder (COLMAP layout); set by the CLI")
     images: str = _f("images", "image sub-folder to train on (e.g. images_4)")
     holdout: int = _f(8, "every holdout-th image (sorted by name, idx % holdout == 0) is a test view; 0 = none")
+    validation_holdout: int = _f(0, "> 0: tuning mode: the test views are left out entirely and every "
+                                 "validation_holdout-th remaining view (offset by half) is held out and evaluated "
+                                 "instead; choose settings this way, never on test views")
     backend: str = _f("auto", "renderer backend: auto | cpu | cuda | reference")
     device: str = _f("auto", "torch device: auto (cuda if available) | cpu | cuda")
     seed: int = _f(0, "seed of every random number generator")
     threads: int = _f(0, "CPU threads for torch and the CPU backend (0 = torch's default; 1 on a shared machine)")
     method: str = _f("content_aware", "content_aware (the paper) | 2dgs | fixed_texture (baselines)")
     iterations: int = _f(30000, "training iterations")
-    schedule_scale: float = _f(1.0, "multiplies every iteration count below (paper scale = 1)")
+    schedule_scale: float = _f(0.0, "0: every iteration count below is a fraction of the run (x iterations / 30000); "
+                               "> 0: expert override, multiply them by this instead")
+    scale_rules: bool = _f(True, "resolve pixel/texel settings for the training image size (ctgs/train/rules.py); "
+                           "false: use them as written (the paper preset)")
+    time_budget: float = _f(0.0, "> 0: plan (and re-plan) the iteration count so `ctgs train` ends within this "
+                            "many minutes on this machine (overrides iterations)")
+    preset: str = _f("", "the preset this config was built on (set by `ctgs train --preset`; informational)")
     # ---- initialisation ----
     max_init_points: int = _f(0, "farthest-point subsample SfM points above this count (0 = keep all)")
+    primitives_per_pixel: float = _f(0.0, "> 0: at most this many primitives per pixel of a training image, at "
+                                     "initialisation and through splits (caps max_primitives; 0 = no cap, the paper)")
     init_opacity: float = _f(0.1, "initial opacity")
     random_rotation: bool = _f(True, "random initial rotations (else identity)")
     init_normals: bool = _f(False, "orient initial surfels in the PCA plane of their 16 nearest SfM points "
@@ -62,8 +74,8 @@ class TrainConfig:
     lambda_ssim: float = _f(0.2, "weight of 1 - SSIM (L1 gets 1 - this)")
     lambda_opacity: float = _f(0.01, "opacity regulariser weight on mean(opacity)")
     lambda_texture: float = _f(1e-8, "texture sparsity weight on sum |texel| of visible primitives")
-    texture_reg_pixels: float = _f(0.0, "> 0: lambda_texture was tuned on images of this many pixels; it is "
-                                   "multiplied by this / (H*W) of the training image (0 = use it as is)")
+    texture_reg_transmittance: bool = _f(False, "weight each primitive's texel L1 by 1 - its mean transmittance in "
+                                        "the view (the authors' README variant; the paper and their code use plain L1)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
@@ -81,6 +93,10 @@ class TrainConfig:
     prune_opacity_late: float = _f(1.0 / 255.0, "prune threshold after routine_until")
     max_primitives: int = _f(0, "primitive budget: no splits beyond it (0 = unlimited)")
     max_texture_res: int = _f(256, "hard cap on texels per axis")
+    texture_alloc: str = _f("pow2", "texture allocation rounding: pow2 (authors' code) | mult4 (a multiple of 4: "
+                            "fewer padding texels, every downscaled size still even)")
+    texture_sigma: float = _f(3.0, "textures cover at most +-this many standard deviations (the renderer's cutoff "
+                              "is 3; beyond the texture a surfel shows its SH colour)")
     min_t2p_exp: int = _f(1, "smallest texel-size exponent: texel >= 2**this pixels of the closest camera")
     # ---- baselines (2dgs, fixed_texture): 3DGS-style densification ----
     fixed_texture_res: int = _f(16, "texels per axis of the fixed_texture baseline")
@@ -97,28 +113,89 @@ class TrainConfig:
     checkpoint_every: int = _f(1000, "iterations between atomic checkpoints (0 = only at the end)")
     debug_nan_at: int = _f(0, "testing hook: poison the loss with NaN at this iteration (0 = off)")
 
-    def scaled(self, iters: int) -> int:
-        """An iteration count at the paper scale -> this run's scale (>= 1)."""
-        return max(1, int(round(iters * self.schedule_scale)))
-
     def validate(self) -> None:
+        """Raise UserError naming the first key whose value is out of range."""
         if self.method not in METHODS:
             raise UserError(f"config method={self.method!r}: use one of {', '.join(METHODS)}")
         if self.backend not in ("auto", "cpu", "cuda", "reference"):
             raise UserError(f"config backend={self.backend!r}: use auto, cpu, cuda or reference")
-        if self.iterations < 1:
-            raise UserError("config iterations must be >= 1")
-        if not 0 <= self.max_sh_degree <= 3:
-            raise UserError("config max_sh_degree must be in 0..3")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise UserError(f"config device={self.device!r}: use auto, cpu or cuda")
+        if self.texture_alloc not in ("pow2", "mult4"):
+            raise UserError(f"config texture_alloc={self.texture_alloc!r}: use pow2 or mult4")
         if len(self.background) != 3:
             raise UserError("config background must be a list of 3 numbers")
+        for key, ok, what in _RANGES:
+            value = getattr(self, key)
+            if not ok(value):
+                raise UserError(f"config {key}={value!r}: must be {what}")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
+# (key, check, what the value must be): every numeric key has a range.
+def _ge(lo):
+    return lambda v: v >= lo
+
+
+def _gt(lo):
+    return lambda v: v > lo
+
+
+def _unit_open_closed(v):
+    return 0 < v <= 1
+
+
+def _prob(v):
+    return 0 <= v < 1
+
+
+_RANGES = [
+    ("iterations", _ge(1), ">= 1"), ("schedule_scale", _ge(0), ">= 0 (0 = iterations / 30000)"),
+    ("time_budget", _ge(0), ">= 0 minutes (0 = none)"), ("holdout", _ge(0), ">= 0"), ("validation_holdout", _ge(0), ">= 0"), ("threads", _ge(0), ">= 0"),
+    ("max_init_points", _ge(0), ">= 0"), ("primitives_per_pixel", _ge(0), ">= 0 (0 = no cap)"), ("init_opacity", lambda v: 0 < v < 1, "in (0, 1)"),
+    ("max_sh_degree", lambda v: 0 <= v <= 3, "in 0..3"), ("sh_every", _gt(0), "> 0"),
+    ("lr_position_init", _ge(0), ">= 0"), ("lr_position_final", _gt(0), "> 0 (exponential decay)"),
+    ("lr_sh_dc", _ge(0), ">= 0"), ("lr_sh_rest", _ge(0), ">= 0"), ("lr_opacity", _ge(0), ">= 0"),
+    ("lr_scale", _ge(0), ">= 0"), ("lr_rotation", _ge(0), ">= 0"), ("lr_texture", _gt(0), "> 0"),
+    ("lr_texture_final", _ge(0), ">= 0 (0 = constant lr_texture)"), ("adam_eps", _gt(0), "> 0"),
+    ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
+    ("lambda_texture", _ge(0), ">= 0"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
+    ("routine_every", _gt(0), "> 0"), ("routine_until", _ge(0), ">= 0"), ("routine_margin", _ge(0), ">= 0"),
+    ("late_downscale_every", _gt(0), "> 0"), ("realloc_every", _gt(0), "> 0"),
+    ("top_fraction", _unit_open_closed, "in (0, 1]"), ("tau_ds", _gt(0), "> 0"),
+    ("tau_tr_start", _gt(0), "> 0 texels"), ("tau_tr_end", _gt(0), "> 0 texels"), ("tau_tr_iters", _gt(0), "> 0"),
+    ("prune_opacity", _prob, "in [0, 1)"), ("prune_opacity_late", _prob, "in [0, 1)"),
+    ("max_primitives", _ge(0), ">= 0 (0 = unlimited)"),
+    ("max_texture_res", lambda v: v >= 2 and (v & (v - 1)) == 0, "a power of two >= 2"),
+    ("min_t2p_exp", lambda v: 0 <= v <= 30, "in 0..30"),
+    ("texture_sigma", lambda v: 0 < v <= 3, "in (0, 3] standard deviations"), ("fixed_texture_res", _ge(1), ">= 1"),
+    ("densify_from", _ge(0), ">= 0"), ("densify_until", _ge(0), ">= 0"), ("densify_every", _gt(0), "> 0"),
+    ("densify_grad_threshold", _gt(0), "> 0"), ("percent_dense", _gt(0), "> 0"),
+    ("opacity_reset_every", _gt(0), "> 0"), ("prune_opacity_2dgs", _prob, "in [0, 1)"),
+    ("log_every", _ge(1), ">= 1"), ("test_every", _ge(0), ">= 0 (0 = only at the end)"),
+    ("checkpoint_every", _ge(0), ">= 0 (0 = only at the end)"), ("debug_nan_at", _ge(0), ">= 0"),
+]
+
+
 def field_names() -> dict[str, object]:
     return {f.name: f for f in fields(TrainConfig)}
+
+
+def describe_keys() -> list[tuple[str, object, str]]:
+    """(key, default, help) for every config key, in declaration order (`ctgs train --list-keys`)."""
+    d = TrainConfig()
+    return [(f.name, getattr(d, f.name), f.metadata.get("help", "")) for f in fields(TrainConfig)
+            if f.name not in ("scene_dir", "debug_nan_at")]
+
+
+def _unknown_key(key: str, source: str) -> UserError:
+    import difflib
+
+    close = difflib.get_close_matches(key, list(field_names()), n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return UserError(f"{source}: unknown config key {key!r}{hint} (`ctgs train --list-keys` lists every key)")
 
 
 def apply_overrides(cfg: TrainConfig, values: dict, source: str) -> TrainConfig:
@@ -126,7 +203,7 @@ def apply_overrides(cfg: TrainConfig, values: dict, source: str) -> TrainConfig:
     known = field_names()
     for key, value in values.items():
         if key not in known:
-            raise UserError(f"{source}: unknown config key {key!r} (known keys: see configs/default.toml)")
+            raise _unknown_key(key, source)
         current = getattr(cfg, key)
         setattr(cfg, key, _coerce(key, value, current, source))
     return cfg
@@ -185,23 +262,43 @@ def load_toml(path: str) -> dict:
     return data
 
 
-def load_config(path: str | None = None, overrides: dict | None = None) -> TrainConfig:
-    """Defaults <- TOML file (with optional `base`, relative to the file) <- overrides."""
+PRESETS = ("preview", "fast", "balanced", "paper")
+
+
+def config_path(name_or_path: str) -> str:
+    """A path stays a path; a bare name (`default`, `2dgs`, `fast`) is the shipped configs/<name>.toml."""
+    from ctgs.resources import resolve_config
+
+    return resolve_config(name_or_path)
+
+
+def _apply_file(cfg: TrainConfig, path: str) -> None:
+    """Apply a TOML file and the chain of `base` files it names (relative to the file), base first."""
     import os
 
+    chain = []
+    p = path
+    while p:
+        data = load_toml(p)
+        chain.append((p, data))
+        base = data.pop("base", None)
+        p = os.path.join(os.path.dirname(p), base) if base else None
+        if len(chain) > 8:
+            raise UserError(f"{path}: config `base` chain too deep (a cycle?)")
+    for src, data in reversed(chain):
+        apply_overrides(cfg, data, src)
+
+
+def load_config(path: str | None = None, overrides: dict | None = None, preset: str | None = None) -> TrainConfig:
+    """Defaults (the paper) <- preset configs/<preset>.toml <- config file (with optional `base`) <- overrides."""
     cfg = TrainConfig()
+    if preset:
+        if preset not in PRESETS:
+            raise UserError(f"--preset {preset}: use one of {', '.join(PRESETS)}")
+        _apply_file(cfg, config_path(preset))
+        cfg.preset = preset
     if path:
-        chain = []
-        p = path
-        while p:
-            data = load_toml(p)
-            chain.append((p, data))
-            base = data.pop("base", None)
-            p = os.path.join(os.path.dirname(p), base) if base else None
-            if len(chain) > 8:
-                raise UserError(f"{path}: config `base` chain too deep (a cycle?)")
-        for src, data in reversed(chain):
-            apply_overrides(cfg, data, src)
+        _apply_file(cfg, config_path(path))
     if overrides:
         apply_overrides(cfg, overrides, "--set")
     cfg.validate()

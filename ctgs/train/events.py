@@ -23,6 +23,13 @@ class Routine:
 
 
 @dataclass
+class Planned:
+    it: int
+    iterations: int  # the planned run length (`--time-budget`)
+    budget_s: float
+
+
+@dataclass
 class Eval:
     it: int
     test_psnr: float

@@ -5,7 +5,7 @@ from __future__ import annotations
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from ctgs.train.events import Checkpoint, Done, Eval, Routine, Step
+from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
 
 
 def run_with_progress(trainer, quiet: bool = False) -> dict:
@@ -21,6 +21,7 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                TextColumn("{task.fields[speed]:>6.1f} it/s"), TimeElapsedColumn(), TextColumn("ETA"),
                TimeRemainingColumn(), TextColumn("{task.fields[info]}")]
     test = "-"
+    planned_once = False
     with Progress(*columns, console=console, refresh_per_second=4) as progress:
         task = progress.add_task("train", total=trainer.cfg.iterations, completed=trainer.it, speed=0.0, info="")
         start_it, start_s = trainer.it, trainer.train_seconds
@@ -36,6 +37,12 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
             elif isinstance(ev, Routine) and ev.kind in ("texture_start", "full"):
                 progress.console.log(f"it {ev.it} {ev.kind}: " + ", ".join(
                     f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in ev.stats.items()))
+            elif isinstance(ev, Planned):
+                progress.update(task, total=ev.iterations)
+                if ev.it == trainer.it and not planned_once:
+                    planned_once = True
+                    progress.console.log(f"time budget {ev.budget_s / 60:.1f} min: planned {ev.iterations} iterations "
+                                         f"(re-planned as the model grows)")
             elif isinstance(ev, Checkpoint):
                 pass
             elif isinstance(ev, Done):

@@ -22,7 +22,7 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras) -> dict:
     down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
     n_pruned = prune(model, opt, cfg.prune_opacity)
     model.k_min = compute_k_min(model.means.detach(), cameras)
-    texels.realloc(model, opt, cfg.max_texture_res)
+    texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
     return {"E_mean": float(E.mean()) if E.numel() else 0.0, "E_p90": float(E.quantile(0.9)) if E.numel() else 0.0,
             "tau_tr": schedule.tau_tr(cfg, it), "n_before": n0, "split": n_split, "upscaled": int(up.sum()),
             "downscaled": int(down.sum()), "pruned": n_pruned}
@@ -35,5 +35,5 @@ def late_routine(model, opt, cfg, cameras) -> dict:
                                                          device=model.means.device), cfg.tau_ds)
     n_pruned = prune(model, opt, cfg.prune_opacity_late)
     model.k_min = compute_k_min(model.means.detach(), cameras)
-    texels.realloc(model, opt, cfg.max_texture_res)
+    texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
     return {"downscaled": int(down.sum()), "pruned": n_pruned}

@@ -1,6 +1,10 @@
 """What happens at which iteration: learning rates, tau_tr, SH degree, routine calendar.
 
-All iteration counts in the config are at the paper's scale and pass through `cfg.scaled`.
+Every iteration count in the config is at the paper's scale (30k iterations) and is a fraction of the run:
+`at(cfg, n)` = n x cfg.iterations / 30000 (or x cfg.schedule_scale when that expert override is > 0).
+Periodic events fire when a multiple of their (fractional) period falls in (it - 1, it], so a run whose
+planned length changes while it runs (`--time-budget` re-plans cfg.iterations) keeps every event at the
+same fraction of the run. With a fixed length this is the plain `it % period == 0` calendar.
 """
 
 from __future__ import annotations
@@ -10,6 +14,34 @@ import math
 import torch
 
 from ctgs.train.config import TrainConfig
+
+PAPER_ITERATIONS = 30000
+_EPS = 1e-9  # float periods like 250 * 0.12 must still fire at their integer multiples
+
+
+def factor(cfg: TrainConfig) -> float:
+    """This run's iterations per paper iteration."""
+    return cfg.schedule_scale if cfg.schedule_scale > 0 else cfg.iterations / PAPER_ITERATIONS
+
+
+def at(cfg: TrainConfig, paper_iterations: float) -> float:
+    """A paper-scale iteration count -> this run's (not rounded)."""
+    return paper_iterations * factor(cfg)
+
+
+def at_int(cfg: TrainConfig, paper_iterations: float) -> int:
+    """`at`, rounded, at least 1 (a start iteration or a window bound)."""
+    return max(1, int(round(at(cfg, paper_iterations))))
+
+
+def every(cfg: TrainConfig, paper_period: float, it: int) -> bool:
+    """True if a multiple of the scaled period lies in (it - 1, it] (every iteration if the period <= 1)."""
+    if paper_period <= 0:
+        return False
+    period = at(cfg, paper_period)
+    if period <= 1:
+        return True
+    return math.floor(it / period + _EPS) > math.floor((it - 1) / period + _EPS)
 
 
 def position_lr(cfg: TrainConfig, it: int, extent: float) -> float:
@@ -21,16 +53,22 @@ def position_lr(cfg: TrainConfig, it: int, extent: float) -> float:
 
 def tau_tr(cfg: TrainConfig, it: int) -> float:
     """Split threshold (texels): linear from tau_tr_start to tau_tr_end over tau_tr_iters, then constant."""
-    t = min(it / cfg.scaled(cfg.tau_tr_iters), 1.0)
+    t = min(it / max(at(cfg, cfg.tau_tr_iters), 1e-9), 1.0)
     return cfg.tau_tr_start + (cfg.tau_tr_end - cfg.tau_tr_start) * t
 
 
 def sh_degree(cfg: TrainConfig, it: int) -> int:
-    return min(cfg.max_sh_degree, it // cfg.scaled(cfg.sh_every))
+    return min(cfg.max_sh_degree, int(math.floor(it / max(at(cfg, cfg.sh_every), 1e-9) + _EPS)))
 
 
 def texture_start(cfg: TrainConfig) -> int:
-    return cfg.scaled(cfg.texture_start)
+    return at_int(cfg, cfg.texture_start)
+
+
+def routine_window(cfg: TrainConfig) -> tuple[int, int]:
+    """[first, last] iteration of full routines: texture start .. min(routine_until, iterations - margin)."""
+    end = min(at(cfg, cfg.routine_until), cfg.iterations - at(cfg, cfg.routine_margin))
+    return texture_start(cfg), int(math.floor(end + _EPS))
 
 
 def routine_kind(cfg: TrainConfig, it: int) -> str | None:
@@ -41,13 +79,21 @@ def routine_kind(cfg: TrainConfig, it: int) -> str | None:
     """
     if cfg.method != "content_aware" or it <= 0 or it >= cfg.iterations:
         return None
-    start = texture_start(cfg)
-    end = min(cfg.scaled(cfg.routine_until), cfg.iterations - cfg.scaled(cfg.routine_margin))
-    if start <= it <= end and it % cfg.scaled(cfg.routine_every) == 0:
+    start, end = routine_window(cfg)
+    if start <= it <= end and every(cfg, cfg.routine_every, it):
         return "full"
-    if it > max(end, start) and it % cfg.scaled(cfg.late_downscale_every) == 0:
+    if it > max(end, start) and every(cfg, cfg.late_downscale_every, it):
         return "late"
     return None
+
+
+def densify_active(cfg: TrainConfig, it: int) -> bool:
+    """Baselines: a densification step at this iteration."""
+    return at(cfg, cfg.densify_from) < it <= at(cfg, cfg.densify_until) and every(cfg, cfg.densify_every, it)
+
+
+def opacity_reset(cfg: TrainConfig, it: int) -> bool:
+    return it <= at(cfg, cfg.densify_until) and every(cfg, cfg.opacity_reset_every, it)
 
 
 def texture_lr(cfg: TrainConfig, it: int) -> float:

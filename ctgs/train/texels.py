@@ -10,10 +10,11 @@ import math
 import torch
 import torch.nn.functional as F
 
+from ctgs.render.constants import CUTOFF_RHO, MIN_ALPHA
 from ctgs.train import edit
 
-ALPHA_MIN = 1.0 / 255.0  # renderer's MIN_ALPHA: beyond this falloff a surfel is invisible
-CUTOFF_SIGMA = 3.0  # renderer's CUTOFF_RHO = 9 -> 3 sigma
+# The renderer's cutoffs: alpha < MIN_ALPHA is skipped, and nothing is drawn past rho = CUTOFF_RHO (3 sigma).
+CUTOFF_SIGMA = math.sqrt(CUTOFF_RHO)
 LOGIT_EPS = 1e-4  # activated texels are stored as logits; keep them finite at +-1
 
 
@@ -21,7 +22,7 @@ def active_half_extent(model) -> torch.Tensor:
     """[N, 2] half extent (world units) where the surfel can reach alpha >= 1/255: the official code's
     sqrt(2 ln(255 o)) sigma, capped at 3 sigma (0 if the opacity can never reach 1/255)."""
     o = model.opacities.detach()
-    r = torch.sqrt(2 * torch.log((o / ALPHA_MIN).clamp_min(1.0))).clamp(max=CUTOFF_SIGMA)  # [N] sigmas
+    r = torch.sqrt(2 * torch.log((o / MIN_ALPHA).clamp_min(1.0))).clamp(max=CUTOFF_SIGMA)  # [N] sigmas
     return r[:, None] * model.scales.detach()
 
 
@@ -35,30 +36,46 @@ def active_resolution(model) -> torch.Tensor:
     return 2 * active_half_extent(model) / texel_size(model)[:, None]
 
 
-def needed_res(model, cap: int) -> torch.Tensor:
-    """[N, 2] int32 allocation: active extent + 1 texel of bilinear padding, next power of two, in [2, cap]."""
-    n = torch.ceil(active_resolution(model) + 1).clamp(min=2, max=cap)
-    p = torch.pow(2.0, torch.ceil(torch.log2(n)))
+ALLOC_MODES = ("pow2", "mult4")
+
+
+def needed_res(model, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA) -> torch.Tensor:
+    """[N, 2] int32 allocation: the active extent (at most +-sigma standard deviations) + 1 texel of bilinear
+    padding, rounded up, in [2, cap] (cap is a power of two).
+
+    mode "pow2" rounds up to a power of two (the authors' code); "mult4" to a multiple of 4 (2 below 3), which
+    keeps every size even after a x2 downscale - so texel centres never move by half a texel when a
+    texture is re-centred - with at most 3 padding texels per axis instead of up to 2x the needed size.
+    """
+    half = torch.minimum(active_half_extent(model), sigma * model.scales.detach())
+    n = torch.ceil(2 * half / texel_size(model)[:, None] + 1).clamp(min=2, max=cap)
+    if mode == "pow2":
+        p = torch.pow(2.0, torch.ceil(torch.log2(n)))
+    elif mode == "mult4":
+        p = torch.where(n <= 2, torch.full_like(n, 2.0), 4 * torch.ceil(n / 4))
+    else:
+        raise ValueError(f"texture allocation mode must be one of {ALLOC_MODES}, got {mode!r}")
     return p.clamp(max=cap).to(torch.int32)
 
 
 @torch.no_grad()
-def start_textures(model, opt, start_texels: float, min_exp: int, cap: int) -> None:
+def start_textures(model, opt, start_texels: float, min_exp: int, cap: int, mode: str = "pow2",
+                   sigma: float = CUTOFF_SIGMA) -> None:
     """Texture start: t2p_exp so the smaller active extent spans ~start_texels texels (paper: "smallest axis is
     8 texels wide", nearest power of two; exponent >= min_exp), then
     allocate zero-offset textures (activated 0: the image does not change)."""
     extent = 2 * active_half_extent(model).min(1).values.clamp_min(1e-12)
     e = torch.round(torch.log2(extent / (start_texels * model.k_min)))
     model.t2p_exp = e.clamp(min=min_exp, max=60).to(torch.int32)
-    realloc(model, opt, cap)
+    realloc(model, opt, cap, mode, sigma)
 
 
 @torch.no_grad()
-def realloc(model, opt, cap: int) -> int:
-    """Resize every texture to its needed resolution, content centred; returns the texel count."""
+def realloc(model, opt, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA) -> int:
+    """Resize every texture to its needed resolution (needed_res), content centred; returns the texel count."""
     if model.texture_mode != "content_aware":
         return model.num_texels
-    edit.relayout(model, opt, needed_res(model, cap))
+    edit.relayout(model, opt, needed_res(model, cap, mode, sigma))
     return model.num_texels
 
 
@@ -102,7 +119,7 @@ def texel_weights(model, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
     xu = (torch.arange(ru, device=k.device, dtype=k.dtype) - (ru - 1) / 2)[None, None, :] * k[:, None, None]
     xv = (torch.arange(rv, device=k.device, dtype=k.dtype) - (rv - 1) / 2)[None, :, None] * k[:, None, None]
     rho = (xu / s[:, 0, None, None]) ** 2 + (xv / s[:, 1, None, None]) ** 2
-    return torch.exp(-0.5 * rho) * (rho <= CUTOFF_SIGMA ** 2)
+    return torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
 
 
 @torch.no_grad()

@@ -17,14 +17,16 @@ import torch
 
 from ctgs import fused
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.train import checkpoint as ckpt
-from ctgs.train import schedule, texels
+from ctgs.train import rules, schedule, texels
 from ctgs.train.adam import ALL_PARAMS, SurfelAdam
+from ctgs.train.budget import BudgetPlanner
 from ctgs.train.config import TrainConfig
 from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
-from ctgs.train.events import Checkpoint, Done, Eval, Routine, Step
+from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
 from ctgs.train.init import init_model
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
@@ -67,16 +69,15 @@ def make_views(views, device) -> list[TrainView]:
     return out
 
 
-def machine_name() -> str:
-    import platform
-
-    return f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
-
-
 class Trainer:
-    def __init__(self, cfg: TrainConfig, scene, run_dir: str, resume: bool = False):
-        self.cfg = cfg
+    """cfg: the config as given (saved with the run); self.cfg is its copy resolved for this scene's image size
+    (ctgs/train/rules.py) whose `iterations` is the planned run length (`--time-budget` re-plans it).
+    start_time: time.monotonic() when the command started (the time budget counts from there)."""
+
+    def __init__(self, cfg: TrainConfig, scene, run_dir: str, resume: bool = False, start_time: float | None = None):
+        self.user_cfg = cfg
         self.run_dir = run_dir
+        self.start_time = time.monotonic() if start_time is None else start_time
         self.device = pick_device(cfg)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)  # OpenMP spin-waiting on an oversubscribed CPU costs ~5x
@@ -88,6 +89,10 @@ class Trainer:
         if not self.train_views:
             raise UserError(f"{scene.root}: no training images (check --images and holdout)")
         self.cameras = [v.camera for v in self.train_views]
+        self.pixels = float(np.median([v.camera.width * v.camera.height for v in self.train_views]))
+        self.cfg = rules.resolve(cfg, self.pixels)
+        self.planner = None
+        self.wall_before = 0.0  # wall seconds of earlier sessions of this run (resume)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         os.makedirs(os.path.join(run_dir, "checkpoints"), exist_ok=True)
@@ -99,7 +104,7 @@ class Trainer:
         np.random.seed(cfg.seed % 2**32)
         if state is None:
             mode = {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}[cfg.method]
-            self.model = init_model(scene.points, scene.point_colors, max_points=cfg.max_init_points,
+            self.model = init_model(scene.points, scene.point_colors, max_points=rules.init_point_cap(cfg, self.pixels),
                                     opacity=cfg.init_opacity, max_sh_degree=cfg.max_sh_degree,
                                     random_rotation=cfg.random_rotation, normals=cfg.init_normals, texture_mode=mode,
                                     fixed_res=cfg.fixed_texture_res, seed=cfg.seed)
@@ -111,9 +116,15 @@ class Trainer:
             self.perm, self.perm_pos = None, 0
             self.acc = GradAccumulator(self.model.num_primitives, self.device)
             self.log_lines = 0
+            self.textures_started = False
             open(self.log_path, "w").close()
         else:
             self._restore(state)
+        if cfg.time_budget > 0:
+            self.planner = BudgetPlanner(self.cfg, cfg.time_budget * 60.0, self.start_time - self.wall_before,
+                                         len(self.train_views), len(self.test_views))
+            if state is not None and "planner" in state:
+                self.planner.load_state_dict(state["planner"])
 
     # ---- state -----------------------------------------------------------------------------------
     def _to_device(self) -> None:
@@ -128,6 +139,9 @@ class Trainer:
         self.opt = SurfelAdam(self.model, self.cfg.adam_eps)
         self.opt.load_state_dict(state["opt"], self.device)
         self.it = int(state["iteration"])
+        self.cfg.iterations = int(state.get("planned_iterations", self.cfg.iterations))
+        self.wall_before = float(state.get("wall_seconds", 0.0))
+        self.textures_started = bool(state.get("textures_started", self.it >= schedule.texture_start(self.cfg)))
         self.train_seconds = float(state["train_seconds"])
         self.perm = state["perm"]
         self.perm_pos = int(state["perm_pos"])
@@ -144,12 +158,22 @@ class Trainer:
         return {"model": self.model.state_dict(), "opt": self.opt.state_dict(), "iteration": self.it,
                 "train_seconds": self.train_seconds, "perm": self.perm, "perm_pos": self.perm_pos,
                 "acc": {k: v.cpu() for k, v in self.acc.state_dict().items()}, "rng": ckpt.rng_state(self.gen),
-                "log_lines": self.log_lines, "config": self.cfg.to_dict()}
+                "log_lines": self.log_lines, "config": self.user_cfg.to_dict(), "planned_iterations": self.cfg.iterations,
+                "textures_started": self.textures_started, "wall_seconds": self.wall_seconds(),
+                **({"planner": self.planner.state_dict()} if self.planner else {})}
+
+    def observed_values(self) -> int:
+        """Values the model is fitted to: RGB of every training pixel."""
+        return int(sum(3 * v.camera.width * v.camera.height for v in self.train_views))
+
+    def wall_seconds(self) -> float:
+        """Wall-clock seconds of this run so far, earlier sessions included."""
+        return self.wall_before + time.monotonic() - self.start_time
 
     def _save_checkpoint(self) -> str:
         self._check_finite(None, full=True)
         path = ckpt.checkpoint_path(self.run_dir)
-        ckpt.atomic_torch_save(self._state(), path)
+        atomic.torch_save(self._state(), path)
         return path
 
     def _log(self, record: dict) -> None:
@@ -211,11 +235,42 @@ class Trainer:
         raise TrainingDiverged(f"{self.run_dir}: NaN/Inf in {bad} at iteration {self.it}; {where}")
 
     # ---- loop ------------------------------------------------------------------------------------
+    def _calibrate(self) -> tuple[float, float]:
+        """Median seconds of a forward+backward and of a forward of the current model on a training view."""
+        view = self.train_views[0]
+        fb, fw = [], []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            out = self.render_fn(self.model.render_inputs(), view.camera)
+            training_loss(out.rgb, view.image_t, self.model, view.camera, self.cfg).total.backward()
+            fb.append(time.perf_counter() - t0)
+            with torch.no_grad():
+                t0 = time.perf_counter()
+                self.render_fn(self.model.render_inputs(), view.camera)
+                fw.append(time.perf_counter() - t0)
+        for name in ALL_PARAMS:
+            getattr(self.model, name).grad = None
+        return float(np.median(fb)), float(np.median(fw))
+
+    def _plan_start(self) -> None:
+        if self.planner is None:
+            return
+        if self.planner.plan.iterations == 0:  # a fresh run (a resumed one keeps its plan)
+            step_s, render_s = self._calibrate()
+            self.cfg.iterations = self.planner.calibrate(step_s, render_s)
+        plan = self.planner.plan
+        self._log({"type": "plan", "it": self.it, "time_budget_s": plan.budget_s, "iterations": self.cfg.iterations,
+                   "calibration_step_s": plan.calib_step_s, "calibration_render_s": plan.calib_render_s,
+                   "budget_left_s": round(self.planner.budget_s_left(), 2)})
+
     def run(self):
         cfg = self.cfg
         if self.it == 0:
             self._log({"type": "start", "n": self.model.num_primitives, "method": cfg.method,
-                       "device": str(self.device), "backend": cfg.backend})
+                       "device": str(self.device), "backend": cfg.backend, "pixels": self.pixels})
+        self._plan_start()
+        if self.planner is not None:
+            yield Planned(self.it, cfg.iterations, self.planner.plan.budget_s)
         while self.it < cfg.iterations:
             t0 = time.perf_counter()
             self.it += 1
@@ -234,30 +289,50 @@ class Trainer:
             for name in ALL_PARAMS:
                 getattr(self.model, name).grad = None
             loss.backward()
-            if cfg.method != "content_aware" and it <= cfg.scaled(cfg.densify_until):
+            if cfg.method != "content_aware" and it <= schedule.at(cfg, cfg.densify_until):
                 self.acc.add_view(self.model.means, self.model.means.grad, view.camera)
             lrs = schedule.learning_rates(cfg, it, self.extent, self.model.sh.shape[1], self.device)
             self.opt.step(self.model, lrs)
             self._check_finite(loss.detach())
+            t1 = time.perf_counter()
             events = list(self._adapt(it))
-            self.train_seconds += time.perf_counter() - t0
+            t2 = time.perf_counter()
+            self.train_seconds += t2 - t0
+            if self.planner is not None:
+                self.planner.observe_step(t1 - t0)
+                if any(ev.kind in ("full", "late") for ev in events):
+                    self.planner.observe_routine(t2 - t1)
             if it % cfg.log_every == 0 or it == 1:
                 self._log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                            "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
                            "sh_degree": self.model.sh_degree, "lr_pos": lrs["means"],
-                           "seconds": round(self.train_seconds, 3)})
+                           "seconds": round(self.train_seconds, 3), "wall": round(self.wall_seconds(), 3)})
             yield Step(it, float(loss.detach()), terms.psnr, self.model.num_primitives, self.model.num_texels,
                        self.train_seconds)
             for ev in events:
                 self._log({"type": "routine", "it": ev.it, "kind": ev.kind, **ev.stats,
                            "n": self.model.num_primitives, "texels": self.model.num_texels})
                 yield ev
-            if cfg.test_every and it % cfg.scaled(cfg.test_every) == 0 and it < cfg.iterations:
+            if cfg.test_every and schedule.every(cfg, cfg.test_every, it) and it < cfg.iterations:
+                t0 = time.perf_counter()
                 p, s = self.evaluate()
+                if self.planner is not None:
+                    self.planner.observe_eval(time.perf_counter() - t0)
                 self._log({"type": "test", "it": it, "psnr": p, "ssim": s})
                 yield Eval(it, p, s)
-            if cfg.checkpoint_every and it % cfg.scaled(cfg.checkpoint_every) == 0 and it < cfg.iterations:
-                yield Checkpoint(it, self._save_checkpoint())
+            if cfg.checkpoint_every and schedule.every(cfg, cfg.checkpoint_every, it) and it < cfg.iterations:
+                t0 = time.perf_counter()
+                path = self._save_checkpoint()
+                if self.planner is not None:
+                    self.planner.observe_checkpoint(time.perf_counter() - t0)
+                yield Checkpoint(it, path)
+            if self.planner is not None:
+                planned = self.planner.maybe_replan(it)
+                if planned is not None and planned != cfg.iterations:
+                    cfg.iterations = planned
+                    self._log({"type": "plan", "it": it, "iterations": planned,
+                               "budget_left_s": round(self.planner.budget_s_left(), 2)})
+                    yield Planned(it, planned, self.planner.plan.budget_s)
         p, s = self.evaluate()
         self._log({"type": "test", "it": self.it, "psnr": p, "ssim": s})
         yield Eval(self.it, p, s)
@@ -268,9 +343,11 @@ class Trainer:
     def _adapt(self, it: int):
         cfg, model, opt = self.cfg, self.model, self.opt
         if cfg.method == "content_aware":
-            if it == schedule.texture_start(cfg):
+            if not self.textures_started and it >= schedule.texture_start(cfg):
+                self.textures_started = True
                 model.k_min = compute_k_min(model.means.detach(), self.cameras)
-                texels.start_textures(model, opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res)
+                texels.start_textures(model, opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
+                                      cfg.texture_alloc, cfg.texture_sigma)
                 yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean())})
             kind = schedule.routine_kind(cfg, it)
             if kind == "full":
@@ -278,15 +355,15 @@ class Trainer:
                                                        self.cameras))
             elif kind == "late":
                 yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras))
-            elif it > schedule.texture_start(cfg) and it % cfg.scaled(cfg.realloc_every) == 0:
-                texels.realloc(model, opt, cfg.max_texture_res)
+            elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it):
+                texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
             return
         # Baselines: 3DGS adaptive density control.
-        if cfg.scaled(cfg.densify_from) < it <= cfg.scaled(cfg.densify_until) and it % cfg.scaled(cfg.densify_every) == 0:
-            prune_big = it > cfg.scaled(cfg.opacity_reset_every)
+        if schedule.densify_active(cfg, it):
+            prune_big = it > schedule.at(cfg, cfg.opacity_reset_every)
             stats = densify_and_prune(model, opt, self.acc, cfg, self.extent, self.gen, prune_big)
             yield Routine(it, "densify", stats)
-        if it <= cfg.scaled(cfg.densify_until) and it % cfg.scaled(cfg.opacity_reset_every) == 0:
+        if schedule.opacity_reset(cfg, it):
             reset_opacity(model, opt)
             yield Routine(it, "opacity_reset", {})
 

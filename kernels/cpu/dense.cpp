@@ -3,8 +3,8 @@
 // the profile):
 //  - adam_step: Adam on one parameter tensor in place (p, m, v), counting non-finite results so the
 //    trainer's NaN guard needs no scan of its own;
-//  - texel_l1: sum over the texels of visible primitives of |2 sigmoid(raw) - 1| (the activated texel
-//    offsets, ctgs/model/surfels.py) and its gradient w.r.t. raw.
+//  - texel_l1: sum over primitives of weight[i] x the sum over i's texels of |2 sigmoid(raw) - 1| (the
+//    activated texel offsets, ctgs/model/surfels.py) and its gradient w.r.t. raw.
 #include <omp.h>
 
 #include <algorithm>
@@ -52,8 +52,9 @@ namespace {
 
 // |tanh(x/2)| = |2 sigmoid(x) - 1| = (1 - e) / (1 + e) and d/dx = sign(x) 2e / (1 + e)^2 with
 // e = exp(-|x|) in (0, 1]: no cancellation, exp's argument always <= 0 (lanes.h vexp's range).
+// wgt: the primitive's weight; gradients are scaled by `scale` (= upstream gradient x wgt).
 template <typename S>
-CTGS_INLINE void l1_lanes(const S* x, S* grad, S scale, typename Lanes<S>::V& acc) {
+CTGS_INLINE void l1_lanes(const S* x, S* grad, S wgt, S scale, typename Lanes<S>::V& acc) {
   using V = typename Lanes<S>::V;
   const V xv = vload<V>(x);
   const V ax = vabs<S>(xv);
@@ -61,7 +62,7 @@ CTGS_INLINE void l1_lanes(const S* x, S* grad, S scale, typename Lanes<S>::V& ac
   const V e = vexp(arg);
   const V one = splat(S(1));
   if (grad == nullptr) {
-    acc += (one - e) / (one + e);
+    acc += wgt * ((one - e) / (one + e));
   } else {
     const V d = S(2) * e / ((one + e) * (one + e));
     const V s = sel(xv > S(0), one, sel(xv < S(0), -one, splat(S(0))));
@@ -69,9 +70,9 @@ CTGS_INLINE void l1_lanes(const S* x, S* grad, S scale, typename Lanes<S>::V& ac
   }
 }
 
-// For the primitives in [i0, i1) with vis[i]: grad (if given) or the sum of |tanh(raw/2)| over their texels.
+// For the primitives in [i0, i1): grad (if given) or the sum of weight[i] |tanh(raw/2)| over their texels.
 template <typename S>
-CTGS_INLINE double texel_l1_range(const S* raw, const uint8_t* vis, const long long* tex_offset,
+CTGS_INLINE double texel_l1_range(const S* raw, const S* weight, const long long* tex_offset,
                                   const int* tex_res, int i0, int i1, S* grad, S scale) {
   using L = Lanes<S>;
   constexpr int W = L::W;
@@ -81,16 +82,18 @@ CTGS_INLINE double texel_l1_range(const S* raw, const uint8_t* vis, const long l
     const int64_t cnt = 3 * int64_t(tex_res[2 * i]) * tex_res[2 * i + 1];
     if (cnt <= 0) continue;
     const int64_t off = 3 * tex_offset[i];
-    if (!vis[i]) {
+    const S wi = weight[i];
+    if (wi == S(0)) {
       if (grad) std::fill(grad + off, grad + off + cnt, S(0));
       continue;
     }
     int64_t k = 0;
-    for (; k + W <= cnt; k += W) l1_lanes<S>(raw + off + k, grad ? grad + off + k : nullptr, scale, acc);
+    const S gs_i = scale * wi;  // the gradient's factor for this primitive (w = 1: exactly `scale`)
+    for (; k + W <= cnt; k += W) l1_lanes<S>(raw + off + k, grad ? grad + off + k : nullptr, wi, gs_i, acc);
     if (k < cnt) {  // tail through a zero-padded copy (|tanh(0)| = 0, its gradient is dropped)
       alignas(32) S xs[W] = {}, gs[W];
       std::copy(raw + off + k, raw + off + cnt, xs);
-      l1_lanes<S>(xs, grad ? gs : nullptr, scale, acc);
+      l1_lanes<S>(xs, grad ? gs : nullptr, wi, gs_i, acc);
       if (grad) std::copy(gs, gs + (cnt - k), grad + off + k);
     }
     if (!grad && (i & 63) == 63) {  // flush to double now and then: float lanes would drift over 1e6 terms
@@ -101,19 +104,19 @@ CTGS_INLINE double texel_l1_range(const S* raw, const uint8_t* vis, const long l
   return total + double(hsum<S>(acc));
 }
 
-CTGS_LANE_CLONES double texel_l1_part(const float* raw, const uint8_t* vis, const long long* off, const int* res,
+CTGS_LANE_CLONES double texel_l1_part(const float* raw, const float* weight, const long long* off, const int* res,
                                       int i0, int i1, float* grad, float scale) {
-  return texel_l1_range<float>(raw, vis, off, res, i0, i1, grad, scale);
+  return texel_l1_range<float>(raw, weight, off, res, i0, i1, grad, scale);
 }
-CTGS_LANE_CLONES double texel_l1_part(const double* raw, const uint8_t* vis, const long long* off, const int* res,
+CTGS_LANE_CLONES double texel_l1_part(const double* raw, const double* weight, const long long* off, const int* res,
                                       int i0, int i1, double* grad, double scale) {
-  return texel_l1_range<double>(raw, vis, off, res, i0, i1, grad, scale);
+  return texel_l1_range<double>(raw, weight, off, res, i0, i1, grad, scale);
 }
 
 }  // namespace
 
 template <typename S>
-double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, const int* tex_res, int n_prims,
+double texel_l1(const S* raw, const S* weight, const long long* tex_offset, const int* tex_res, int n_prims,
                 S* grad, S scale, int threads) {
   const int nt = std::max(1, threads);
   // Fixed blocks of primitives summed in block order: the result does not depend on the thread count.
@@ -122,7 +125,7 @@ double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, c
   std::vector<double> part(nb, 0.0);
 #pragma omp parallel for schedule(dynamic, 4) num_threads(nt)
   for (int b = 0; b < nb; ++b)
-    part[b] = texel_l1_part(raw, vis, tex_offset, tex_res, b * BLOCK, std::min(n_prims, (b + 1) * BLOCK), grad,
+    part[b] = texel_l1_part(raw, weight, tex_offset, tex_res, b * BLOCK, std::min(n_prims, (b + 1) * BLOCK), grad,
                             scale);
   double total = 0.0;
   for (double v : part) total += v;
@@ -236,9 +239,9 @@ template int64_t adam_step<float>(float*, const float*, float*, float*, int64_t,
                                   double, double, double, double, int);
 template int64_t adam_step<double>(double*, const double*, double*, double*, int64_t, const double*, double,
                                    double, double, double, double, double, int);
-template double texel_l1<float>(const float*, const uint8_t*, const long long*, const int*, int, float*, float,
+template double texel_l1<float>(const float*, const float*, const long long*, const int*, int, float*, float,
                                 int);
-template double texel_l1<double>(const double*, const uint8_t*, const long long*, const int*, int, double*,
+template double texel_l1<double>(const double*, const double*, const long long*, const int*, int, double*,
                                  double, int);
 
 }  // namespace cpu

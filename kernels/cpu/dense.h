@@ -14,11 +14,12 @@ template <typename S>
 int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, double lr, double beta1,
                   double beta2, double bc1, double bc2, double eps, int threads);
 
-// Texel L1 over the primitives i with vis[i] != 0 (texels of i: rows tex_offset[i] .. + res_u*res_v of
-// raw [T, 3], packed): grad == null -> returns sum |2 sigmoid(raw) - 1|; else writes
-// grad = scale * d/draw of that sum (0 for the texels of invisible primitives) and returns 0.
+// Weighted texel L1 (texels of i: rows tex_offset[i] .. + res_u*res_v of raw [T, 3], packed):
+// grad == null -> returns sum_i weight[i] sum over i's texels of |2 sigmoid(raw) - 1|; else writes
+// grad = scale * d/draw of that sum (0 for the texels of primitives with weight 0) and returns 0.
+// The weights (the loss's visibility mask, times 1 - transmittance on option) are constants here.
 template <typename S>
-double texel_l1(const S* raw, const uint8_t* vis, const long long* tex_offset, const int* tex_res, int n_prims,
+double texel_l1(const S* raw, const S* weight, const long long* tex_offset, const int* tex_res, int n_prims,
                 S* grad, S scale, int threads);
 
 // Texel activation y = 2 sigmoid(x) - 1 = tanh(x / 2) on n elements, and its backward

@@ -69,14 +69,16 @@ def test_eval_exported_and_compressed_models(run_dir, tmp_path):
     runner = CliRunner()
     assert runner.invoke(main, ["export", run_dir, "-o", str(tmp_path / "model")]).exit_code == 0
     assert runner.invoke(main, ["compress", str(tmp_path / "model"), "-o", str(tmp_path / "small"), "-k", "16"]).exit_code == 0
+    _eval(run_dir, "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e0"))  # the run's own model.pt
     _eval(run_dir, "--model", str(tmp_path / "model"), "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e1"))
     _eval(run_dir, "--model", str(tmp_path / "small"), "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e2"))
+    base = json.load(open(tmp_path / "e0" / "metrics.json"))
     raw = json.load(open(tmp_path / "e1" / "metrics.json"))
     cmp = json.load(open(tmp_path / "e2" / "metrics.json"))
-    base = json.load(open(os.path.join(run_dir, "eval", "metrics.json"))) if os.path.isfile(
-        os.path.join(run_dir, "eval", "metrics.json")) else None
-    if base is not None:  # the export is bit-exact, so its render is too
-        assert raw["psnr"] == base["psnr"]
+    # The export is bit-exact, so its renders are too: same PSNR per view, same PNG bytes.
+    assert [r["psnr"] for r in raw["per_image"]] == [r["psnr"] for r in base["per_image"]]
+    for name in os.listdir(tmp_path / "e0" / "renders"):
+        assert (tmp_path / "e1" / "renders" / name).read_bytes() == (tmp_path / "e0" / "renders" / name).read_bytes()
     assert raw["lpips"] is None and "skipped" in raw["lpips_status"]
     assert cmp["texture_encoding"] == "codebook" and cmp["codebook_size"] == 16
     assert cmp["bytes_on_disk"] < raw["bytes_on_disk"]

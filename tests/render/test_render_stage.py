@@ -1,5 +1,5 @@
-"""`ctgs render`: user errors are one line and a non-zero exit (a full render needs a trained run,
-which the end-to-end test covers)."""
+"""`ctgs render`: user errors are one line and a non-zero exit (a full render of a finished run, and
+failures part-way, are in tests/eval/test_stage_outputs.py)."""
 
 from click.testing import CliRunner
 

@@ -71,30 +71,38 @@ def _jagged(dtype, seed=0):
     off = torch.cumsum(sizes, 0) - sizes
     raw = torch.randn(int(sizes.sum()), 3, generator=torch.Generator().manual_seed(seed), dtype=dtype) * 3
     raw[0, 0] = 0.0  # sign(0): no gradient, like abs()
-    vis = torch.tensor([True, True, False, True, True, True])
-    return SimpleNamespace(textures_raw=raw.requires_grad_(True), tex_offset=off, tex_res=res), vis, sizes
+    # Per-primitive weights as the loss makes them: 0 (not rasterized), 1, and 1 - transmittance in between.
+    weight = torch.tensor([1.0, 1.0, 0.0, 0.375, 1.0, 0.8], dtype=dtype)
+    return SimpleNamespace(textures_raw=raw.requires_grad_(True), tex_offset=off, tex_res=res), weight, sizes
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_texel_l1_matches_pytorch(dtype):
-    model, vis, sizes = _jagged(dtype)
-    a = fused.texel_l1(model, vis)
+    model, weight, sizes = _jagged(dtype)
+    a = fused.texel_l1(model, weight)
     textures = 2.0 * torch.sigmoid(model.textures_raw) - 1.0
-    b = (textures.abs().sum(1) * torch.repeat_interleave(vis, sizes)).sum()
+    b = (textures.abs().sum(1) * torch.repeat_interleave(weight, sizes)).sum()
     ga, = torch.autograd.grad(a * 0.7, model.textures_raw)
     gb, = torch.autograd.grad(b * 0.7, model.textures_raw)
     tol = 1e-5 if dtype == torch.float32 else 1e-13
     torch.testing.assert_close(a, b, atol=tol * float(b.detach()), rtol=0)
     torch.testing.assert_close(ga, gb, atol=tol, rtol=0)
     assert ga[int(sizes[:2].sum()):int(sizes[:3].sum())].abs().max() == 0  # the invisible primitive
+    # A bool mask is the 0/1 weight.
+    mask = weight > 0.5
+    torch.testing.assert_close(fused.texel_l1(model, mask), fused.texel_l1(model, mask.to(dtype)), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="weight must be"):
+        fused.texel_l1(model, weight[:-1])
 
 
 def test_texel_l1_gradcheck_and_layout_check():
-    model, vis, _ = _jagged(torch.float64, seed=2)
-    f = lambda r: fused._TexelL1.apply(r, vis, model.tex_offset, model.tex_res)  # noqa: E731
+    model, weight, _ = _jagged(torch.float64, seed=2)
+    f = lambda r: fused._TexelL1.apply(r, weight, model.tex_offset, model.tex_res)  # noqa: E731
     assert torch.autograd.gradcheck(f, (model.textures_raw,))
     with pytest.raises(RuntimeError, match="packed"):
-        fused._TexelL1.apply(model.textures_raw, vis, model.tex_offset + 1, model.tex_res)
+        fused._TexelL1.apply(model.textures_raw, weight, model.tex_offset + 1, model.tex_res)
+    with pytest.raises(RuntimeError, match="weight"):  # the kernel takes weights of raw's dtype only
+        fused._TexelL1.apply(model.textures_raw, weight.float(), model.tex_offset, model.tex_res)
 
 
 def test_jagged_remap_matches_pytorch(monkeypatch):

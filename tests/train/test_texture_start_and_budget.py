@@ -104,3 +104,36 @@ def test_init_normals_lie_in_the_local_plane():
                    texture_mode="content_aware", fixed_res=16, seed=0, normals=True)
     z = quat_to_rotmat(m.quats.detach())[:, :, 2].numpy()
     assert np.median(np.abs(z[:300, 2])) > 0.99 and np.median(np.abs(z[300:, 0])) > 0.99
+
+
+def test_mult4_allocation_pads_less_and_keeps_downscaled_sizes_even():
+    m = model(means=[[0.0, 0.0, 3.0], [0.5, 0.0, 3.0]], scales=[[0.2, 0.2], [0.02, 0.21]], opacities=[0.9, 0.9],
+              tex_res=[[0, 0]] * 2, textures=torch.zeros(0, 3), k_min=[0.002, 0.002])
+    m.t2p_exp = torch.tensor([4, 3], dtype=torch.int32)  # texels 0.032 and 0.016
+    # Active extents: 1.2 / 0.032 = 37.5 and (0.12, 1.26) / 0.016 = (7.5, 78.75) texels (+1 padding).
+    assert texels.needed_res(m, 256, "pow2").tolist() == [[64, 64], [16, 128]]
+    assert texels.needed_res(m, 256, "mult4").tolist() == [[40, 40], [12, 80]]
+    # Every mult4 size halves to an even size, so re-centring after a downscale moves texels by whole texels.
+    assert all(v % 4 == 0 for v in texels.needed_res(m, 256, "mult4").flatten().tolist())
+    # texture_sigma bounds the allocated extent: +-2 sigma instead of +-3.
+    assert texels.needed_res(m, 256, "mult4", sigma=2.0).tolist() == [[28, 28], [8, 56]]
+
+
+def test_mult4_realloc_and_downscale_keep_the_image(tmp_path=None):
+    m = model(means=[[0.0, 0.0, 3.0]], scales=[[0.2, 0.15]], opacities=[0.9], tex_res=[[0, 0]],
+              textures=torch.zeros(0, 3), k_min=[0.004])
+    opt = optimiser(m)
+    texels.start_textures(m, opt, start_texels=8, min_exp=1, cap=256, mode="mult4")
+    assert all(v % 4 == 0 for v in m.tex_res[0].tolist())
+    # A smooth texture (passes E_d) downscales, then re-allocates (mult4) with its content still centred.
+    ru, rv = m.tex_res[0].tolist()
+    u = torch.linspace(-1, 1, ru)[None, :].expand(rv, ru)
+    with torch.no_grad():
+        act = (0.3 * u)[..., None].expand(rv, ru, 3).reshape(-1, 3)
+        m.textures_raw.copy_(torch.logit((act + 1) / 2))
+    before = image(m)
+    down, _ = texels.downscale(m, opt, torch.ones(1, dtype=torch.bool), tau_ds=0.05)
+    assert bool(down[0]) and m.tex_res[0].tolist() == [ru // 2, rv // 2]
+    texels.realloc(m, opt, 256, "mult4")
+    assert all(v % 4 == 0 or v == 2 for v in m.tex_res[0].tolist())
+    assert torch.abs(image(m) - before).max() < 0.03  # a linear ramp survives x2 downsampling

@@ -1,0 +1,202 @@
+"""The speed/accuracy trade (issue: presets and the time budget), measured on the demo scene and on real photos.
+
+For every scene and image scale it trains, through the `ctgs` CLI:
+  - each preset (preview, fast, balanced) at its own length, and the 2dgs baseline with `--time-budget` set
+    to the wall time that preset took (the same wall-clock time);
+  - the content-aware method and the 2dgs baseline with `--time-budget` at each of the given budgets;
+then exports and evaluates each run (test views: PSNR / SSIM / LPIPS, FPS, bytes) and writes
+results/trade_<tag>.json + .md and two plots (PSNR vs train time, PSNR vs params).
+
+Usage (each run is skipped when already done; several invocations with disjoint --only may share --work):
+    .venv/bin/python benchmarks/trade.py --work /work/runs/trade [--scenes demo herzjesu]
+        [--herzjesu /work/data/herzjesu25] [--budgets 5 15 45] [--presets preview fast balanced]
+        [--only SUBSTRING ...] [--table-only] [--threads 1]
+The herzjesu scene must exist (`ctgs sfm ../shared/data/herzjesu25/images -o SCENE`). Test views follow the
+protocol (every 8th); nothing here chooses a setting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+# Two image scales per scene: (label, demo size | herzjesu image folder).
+DEMO_SCALES = [("192x144", (192, 144)), ("384x288", (384, 288))]
+HERZ_SCALES = [("images_8", "images_8"), ("images_4", "images_4")]
+
+
+def ctgs(*args: str, log: str) -> None:
+    cmd = [sys.executable, "-m", "ctgs", *args]
+    with open(log, "a") as fh:
+        fh.write("$ " + " ".join(cmd) + "\n")
+        fh.flush()
+        r = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT)
+    if r.returncode != 0:
+        raise RuntimeError(f"failed ({r.returncode}): {' '.join(cmd)}; see {log}")
+
+
+def scenes(args) -> list[dict]:
+    out = []
+    if "demo" in args.scenes:
+        from ctgs.scene.demo import make_demo_scene
+
+        for label, (w, h) in DEMO_SCALES:
+            d = make_demo_scene(os.path.join(args.work, f"demo_{label}"), num_views=24, width=w, height=h,
+                                points=3000)
+            out.append({"scene": "demo", "scale": label, "dir": d, "images": "images", "pixels": w * h})
+    if "herzjesu" in args.scenes:
+        for label, folder in HERZ_SCALES:
+            from ctgs.io.images import image_info
+
+            first = sorted(os.listdir(os.path.join(args.herzjesu, folder)))[0]
+            info = image_info(os.path.join(args.herzjesu, folder, first))
+            out.append({"scene": "herzjesu", "scale": label, "dir": args.herzjesu, "images": folder,
+                        "pixels": info.width * info.height})
+    return out
+
+
+def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
+    run = os.path.join(args.work, "runs", f"{s['scene']}_{s['scale']}_{name}")
+    rec_path = os.path.join(run, "trade_record.json")
+    if os.path.exists(rec_path):
+        return json.load(open(rec_path))
+    if args.table_only or (args.only and not any(o in os.path.basename(run) for o in args.only)):
+        return None
+    os.makedirs(os.path.dirname(run), exist_ok=True)
+    log = run + ".log"
+    resume = ["--resume"] if os.path.exists(os.path.join(run, "checkpoints", "last.pt")) else []
+    t0 = time.time()
+    ctgs("train", s["dir"], "-o", run, "--images", s["images"], "-q", "--set", f"threads={args.threads}",
+         *train_args, *resume, log=log)
+    wall = time.time() - t0
+    ctgs("export", run, "-o", os.path.join(run, "model"), log=log)
+    ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"), log=log)
+    summary = json.load(open(os.path.join(run, "train_summary.json")))
+    metrics = json.load(open(os.path.join(run, "eval", "metrics.json")))
+    rec = {"scene": s["scene"], "scale": s["scale"], "name": name, "run": run, "train_args": train_args,
+           "command_wall_s": wall, "summary": summary,
+           "metrics": {k: metrics[k] for k in ("psnr", "ssim", "lpips", "points", "texels", "params", "fps",
+                                               "bytes_on_disk", "resolution")}}
+    if s["scene"] == "demo":
+        rec["allocation"] = allocation(run, s["dir"])
+    with open(rec_path, "w") as fh:
+        json.dump(rec, fh, indent=1)
+    return rec
+
+
+def allocation(run: str, scene_dir: str) -> dict:
+    from ctgs.train.allocation import allocation_measures
+    from ctgs.io.run_model import load_run
+
+    model = load_run(run).model
+    meta = json.load(open(os.path.join(scene_dir, "demo_meta.json")))
+    return allocation_measures(model, meta)["ratios"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--work", default="/tmp/ctgs_trade")
+    ap.add_argument("--scenes", nargs="*", default=["demo", "herzjesu"])
+    ap.add_argument("--herzjesu", default=os.path.join(ROOT, "..", "data", "herzjesu25"))
+    ap.add_argument("--presets", nargs="*", default=["preview", "fast", "balanced"])
+    ap.add_argument("--budgets", nargs="*", type=float, default=[5.0, 15.0, 45.0])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--table-only", action="store_true")
+    ap.add_argument("--tag", default=platform.node())
+    args = ap.parse_args()
+    rows = []
+    for s in scenes(args):
+        for p in args.presets:
+            rec = run_one(s, f"ca_{p}", ["--preset", p], args)
+            if rec:
+                rows.append(rec)
+                rows_2 = run_one(s, f"2dgs_{p}", ["--preset", p, "--config", "2dgs", "--time-budget",
+                                                  f"{rec['summary']['wall_seconds'] / 60:.3f}"], args)
+                if rows_2:
+                    rows.append(rows_2)
+        for b in args.budgets:
+            for method, extra in (("ca", []), ("2dgs", ["--config", "2dgs"])):
+                rec = run_one(s, f"{method}_budget{b:g}", ["--preset", "fast", "--time-budget", f"{b:g}", *extra], args)
+                if rec:
+                    rows.append(rec)
+    write(rows, args)
+
+
+def write(rows: list[dict], args) -> None:
+    out = os.path.join(ROOT, "benchmarks", "results", f"trade_{args.tag}")
+    machine = {"host": platform.node(), "machine": platform.machine(), "cpus": os.cpu_count(),
+               "python": platform.python_version(), "load_avg_end": os.getloadavg()}
+    with open(out + ".json", "w") as fh:
+        json.dump({"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine,
+                   "rows": rows}, fh, indent=1)
+    lines = [f"# Speed/accuracy trade ({machine['host']}, {machine['machine']}, {machine['cpus']} cpus, "
+             f"CPU backend, {args.threads} thread(s) per training)", "",
+             f"Command: `{' '.join(sys.argv)}`. Test views: every 8th (protocol). Wall = the whole `ctgs train` "
+             "command; budget runs state the budget asked for.", "",
+             "| scene | scale | run | budget min | wall min | iterations | test PSNR | SSIM | LPIPS | points | texels | "
+             "params | params/value | MB | FPS | texel size flat:photo | params/area photo:flat |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        s, m = r["summary"], r["metrics"]
+        al = r.get("allocation", {})
+        bud = s.get("time_budget_s")
+        lp = "-" if m["lpips"] is None else f"{m['lpips']:.3f}"
+        lines.append(
+            f"| {r['scene']} | {r['scale']} | {r['name']} | {'-' if not bud else f'{bud / 60:.1f}'} | "
+            f"{s['wall_seconds'] / 60:.1f} | {s['iterations']} | {m['psnr']:.2f} | {m['ssim']:.3f} | {lp} | "
+            f"{m['points']} | {m['texels']} | {m['params']} | {s['params_per_observed_value']:.2f} | "
+            f"{m['bytes_on_disk'] / 1e6:.2f} | {m['fps']:.1f} | "
+            f"{al.get('texel_size_prim_flat_over_photo', float('nan')):.1f} | "
+            f"{al.get('params_per_area_photo_over_flat', float('nan')):.1f} |")
+    with open(out + ".md", "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+    plot(rows, out)
+
+
+def plot(rows: list[dict], out: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = sorted({(r["scene"], r["scale"]) for r in rows})
+    if not groups:
+        return
+    fig, axes = plt.subplots(2, len(groups), figsize=(4.2 * len(groups), 7), squeeze=False)
+    for j, (scene, scale) in enumerate(groups):
+        for method, color in (("ca", "tab:red"), ("2dgs", "tab:blue")):
+            pts = [r for r in rows if r["scene"] == scene and r["scale"] == scale and r["name"].startswith(method + "_")]
+            for r in pts:
+                marker = "o" if "budget" in r["name"] else "s"
+                x_t = r["summary"]["wall_seconds"] / 60
+                axes[0][j].scatter(x_t, r["metrics"]["psnr"], c=color, marker=marker)
+                axes[1][j].scatter(r["metrics"]["params"] / 1e6, r["metrics"]["psnr"], c=color, marker=marker)
+                label = r["name"].split("_", 1)[1]
+                axes[0][j].annotate(label, (x_t, r["metrics"]["psnr"]), fontsize=6)
+        axes[0][j].set_title(f"{scene} {scale}")
+        axes[0][j].set_xlabel("wall time (min)")
+        axes[1][j].set_xlabel("parameters (M)")
+        axes[0][j].set_ylabel("test PSNR (dB)")
+        axes[1][j].set_ylabel("test PSNR (dB)")
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color="tab:red", marker="o", ls="", label="content-aware (ours)"),
+               Line2D([], [], color="tab:blue", marker="o", ls="", label="2dgs"),
+               Line2D([], [], color="k", marker="s", ls="", label="preset at its length"),
+               Line2D([], [], color="k", marker="o", ls="", label="--time-budget")]
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    fig.savefig(out + ".png", dpi=110)
+
+
+if __name__ == "__main__":
+    main()

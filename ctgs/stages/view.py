@@ -1,0 +1,86 @@
+"""`ctgs view MODEL_DIR [--scene SCENE_DIR] [--port N] [--no-browser]`: the WebGL2 viewer on 127.0.0.1."""
+
+from __future__ import annotations
+
+import os
+import signal
+import tempfile
+
+import click
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def resolve_bundle(model_dir: str, scene_dir: str | None, tmp_root: str) -> tuple[str, list[dict] | None, str]:
+    """(bundle folder, cameras to serve instead of the bundle's or None, how it was found).
+
+    MODEL_DIR may be a bundle folder, a model folder with a web/ bundle (`ctgs export --format web`), or
+    a plain model folder, whose bundle is then built into tmp_root (the model folder is left untouched).
+    """
+    from ctgs.errors import UserError
+    from ctgs.io.model_format import MANIFEST, read_manifest, read_model
+    from ctgs.io.web_bundle import BUNDLE_JSON, WEB_SUBDIR, read_bundle_json, scene_cameras, write_web_bundle
+
+    cameras = scene_cameras(scene_dir) if scene_dir else None
+    if os.path.isfile(os.path.join(model_dir, BUNDLE_JSON)):
+        read_bundle_json(model_dir)
+        return model_dir, cameras, "bundle"
+    web = os.path.join(model_dir, WEB_SUBDIR)
+    if os.path.isfile(os.path.join(web, BUNDLE_JSON)):
+        read_bundle_json(web)
+        return web, cameras, "model/web"
+    if not os.path.isfile(os.path.join(model_dir, MANIFEST)):
+        raise UserError(f"{model_dir}: neither a model folder nor a web bundle; pass a folder written by "
+                        "`ctgs export` (ideally with --format web)")
+    manifest = read_manifest(model_dir)
+    model, _ = read_model(model_dir)
+    if cameras is None:
+        src = manifest.get("source") or {}
+        sd = src.get("scene_dir")
+        if sd and os.path.isdir(sd):
+            cameras = scene_cameras(sd, src.get("images", "images"), int(src.get("holdout", 8)))
+        else:
+            cameras = []
+            click.echo(f"note: the model's scene ({sd or 'unknown'}) is not on disk; pass --scene SCENE_DIR "
+                       "to jump to its cameras", err=True)
+    out = os.path.join(tmp_root, "web")
+    write_web_bundle(model, out, cameras)
+    return out, None, "built from the model folder"
+
+
+@click.command(name="view")
+@click.argument("model_dir", type=click.Path(file_okay=False))
+@click.option("--scene", "scene_dir", default=None, type=click.Path(file_okay=False),
+              help="Scene folder whose training and test cameras the viewer can jump to "
+                   "(default: the cameras stored in the bundle, i.e. of the scene the model was trained on).")
+@click.option("--port", default=8765, show_default=True, type=click.IntRange(0, 65535),
+              help="Port on 127.0.0.1 (0 = any free port).")
+@click.option("--no-browser", is_flag=True, help="Only serve; do not open a browser window.")
+def command(model_dir: str, scene_dir: str | None, port: int, no_browser: bool) -> None:
+    """Serve MODEL_DIR's web viewer on http://127.0.0.1:PORT/ (WebGL2; every script ships with ctgs)."""
+    import webbrowser
+
+    from ctgs.errors import UserError
+    from ctgs.viewer.server import ViewerServer
+
+    if not os.path.isdir(model_dir):
+        raise UserError(f"{model_dir}: model folder not found; write one with `ctgs export RUN_DIR --format web`")
+    with tempfile.TemporaryDirectory(prefix="ctgs-view-") as tmp:
+        bundle_dir, cameras, how = resolve_bundle(model_dir, scene_dir, tmp)
+        try:
+            server = ViewerServer(bundle_dir, port=port, cameras=cameras, quiet=True)
+        except OSError as exc:
+            raise UserError(f"127.0.0.1:{port}: cannot listen ({exc.strerror}); pass another --port "
+                            "(0 = any free port)") from exc
+        click.echo(f"serving {bundle_dir} ({how}) at {server.url}  (Ctrl-C stops)")
+        if not no_browser:
+            webbrowser.open(server.url)
+        signal.signal(signal.SIGTERM, _interrupt)  # `kill` too removes a temporary bundle
+        try:
+            server.serve_forever()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            server.close()

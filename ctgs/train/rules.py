@@ -1,0 +1,120 @@
+"""Scene-relative settings: every value written in pixels, texels or iterations is resolved from the
+training images' size and the run's length, so one recipe fits any scene size and any run length.
+
+Configs hold every value at the paper's scale: images of about PAPER_PIXELS (1 Mpx, Mip-NeRF 360 images_4,
+Deep Blending) and PAPER_ITERATIONS (30k). At that scale every rule below is the identity, so the paper's
+recipe is reproduced exactly; elsewhere:
+
+- iterations (texture start, routine cadence and window, tau_tr decay, SH bands, reallocation,
+  densification, logging): x iterations / 30000 - a schedule is a fraction of the run (ctgs/train/schedule.py),
+  which is also what lets `--time-budget` re-plan the run length while it runs;
+- the texture cap (max_texture_res, texels per axis, a memory guard): x sqrt(pixels / 1e6), next power of
+  two, at least MIN_TEXTURE_CAP: the widest texture stays the same fraction of the image;
+- the split threshold (tau_tr_start, tau_tr_end, texels across a primitive): no rule, deliberately. A texel
+  is at least 2**min_t2p_exp pixels of the closest camera, so tau_tr is already a size in pixels: a primitive
+  splits when its texture needs more than tau_tr texels of >= 2 px, at any image size. Geometric detail is
+  visible only down to a pixel, so primitives should shrink with the pixels: the model's size then follows
+  the observed values. Scaling tau_tr with sqrt(pixels) instead (keeping split decisions at the same world
+  size) was measured on 192x128 real photos: 3000 primitives became 24,652 by 50% of a 1000-iteration run
+  (tau_tr 5 texels: 13% of the primitives split at every routine), against 3,185 at the end with the paper's
+  32 texels (benchmarks/results/train_findings.md);
+- lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
+  over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
+- the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a
+  training image, at initialisation (farthest-point subsample of the SfM points) and through splits
+  (max_primitives). SfM points are found at the photos' full resolution: on downsampled images they are
+  far denser than a pixel (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's
+  Mip-NeRF 360 models hold 0.1-0.3 primitives per pixel);
+- settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
+  texel values (tau_ds), learning rates (x scene extent for positions), the 2DGS baseline's densification
+  threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
+  image size), start_texels (texels across the primitive itself).
+
+`scale_rules = false` (the `paper` preset) keeps the pixel rules off and uses every value as written: the
+authors' recipe exactly, whatever the image size. The iteration rule always applies (at 30k it is exact).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from ctgs.train.config import TrainConfig
+
+PAPER_PIXELS = 1.0e6  # "about 1 Mpx": M360 images_4 1237x822 (1.02 Mpx), Deep Blending 1332x876 (1.17 Mpx)
+PAPER_ITERATIONS = 30000
+
+# Keys holding an iteration count at the paper's scale (ctgs/train/schedule.py scales them).
+ITERATION_KEYS = ("texture_start", "sh_every", "routine_every", "routine_until", "routine_margin",
+                  "late_downscale_every", "realloc_every", "tau_tr_iters", "densify_from", "densify_until",
+                  "densify_every", "opacity_reset_every", "test_every", "checkpoint_every")
+# Smallest texture cap the rule may produce (texels per axis): above the split threshold (tau_tr_end = 32), so
+# a primitive always splits before its texture reaches the cap.
+MIN_TEXTURE_CAP = 64
+
+
+@dataclass(frozen=True)
+class Scale:
+    """How this run relates to the paper's scale."""
+
+    pixels: float  # training image size, H*W (median over training views)
+    linear: float  # sqrt(pixels / PAPER_PIXELS), 1 when the pixel rules are off
+    area: float  # pixels / PAPER_PIXELS, 1 when the pixel rules are off
+
+
+def scale_of(cfg: TrainConfig, pixels: float) -> Scale:
+    if not cfg.scale_rules:
+        return Scale(pixels=pixels, linear=1.0, area=1.0)
+    area = pixels / PAPER_PIXELS
+    return Scale(pixels=pixels, linear=math.sqrt(area), area=area)
+
+
+def _pow2_at_least(x: float, floor: int) -> int:
+    return max(floor, 2 ** math.ceil(math.log2(max(x, 1.0))))
+
+
+def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
+    """A copy of `cfg` whose pixel- and texel-based values are resolved for images of `pixels` (H*W).
+
+    Iteration counts stay at the paper's scale: the schedule scales them by the planned run length
+    (which `--time-budget` may change while training).
+    """
+    s = scale_of(cfg, pixels)
+    cap = int(round(cfg.primitives_per_pixel * pixels)) if cfg.primitives_per_pixel > 0 else 0
+    caps = [c for c in (cfg.max_primitives, cap) if c > 0]
+    cfg = replace(cfg, max_primitives=min(caps) if caps else 0)
+    if not cfg.scale_rules:
+        return cfg
+    return replace(
+        cfg,
+        max_texture_res=min(cfg.max_texture_res, _pow2_at_least(cfg.max_texture_res * s.linear, MIN_TEXTURE_CAP)),
+        lambda_texture=cfg.lambda_texture / s.area,
+    )
+
+
+def init_point_cap(cfg: TrainConfig, pixels: float) -> int:
+    """Initial primitives: max_init_points, and at most primitives_per_pixel per training-image pixel (0 = all)."""
+    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels))) if c > 0]
+    return min(caps) if caps else 0
+
+
+def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: dict[str, int]) -> list[dict]:
+    """Rows (setting, rule, value per named image size / run length) for docs and benchmarks.
+
+    sizes: {"label": (width, height)}; iterations: {"label": iterations}.
+    """
+    from ctgs.train import schedule
+
+    rows = []
+    for key, rule in (("tau_tr_start", "none: texels are >= 2 px already"),
+                      ("tau_tr_end", "none: texels are >= 2 px already"),
+                      ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
+                      ("lambda_texture", "x 1e6 / HW")):
+        vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
+        rows.append({"setting": key, "unit": "texels" if key != "lambda_texture" else "per texel",
+                     "rule": rule, "paper": getattr(cfg, key), "values": vals})
+    for key in ITERATION_KEYS:
+        vals = {label: schedule.at(replace(cfg, iterations=n), getattr(cfg, key)) for label, n in iterations.items()}
+        rows.append({"setting": key, "unit": "iterations", "rule": "x iterations / 30000",
+                     "paper": getattr(cfg, key), "values": vals})
+    return rows

@@ -1,0 +1,103 @@
+"""The viewer's static HTTP server: the page and its scripts from the package, the bundle from disk.
+
+Bound to 127.0.0.1 only. Nothing is fetched from the internet: every script is in ctgs/viewer/static.
+URL layout: /  -> static/index.html and its assets; /bundle/<file> -> the web bundle folder, with
+bundle.json's cameras replaced when the server was given other cameras (`ctgs view --scene`).
+"""
+
+from __future__ import annotations
+
+import json
+import mimetypes
+import os
+import threading
+from functools import partial
+from http import HTTPStatus
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+from urllib.parse import unquote, urlsplit
+
+from ctgs.io.web_bundle import BUNDLE_JSON
+
+STATIC_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "static")
+HOST = "127.0.0.1"
+# Types the page needs that Python's table may lack (module scripts must be served as JavaScript).
+EXTRA_TYPES = {".js": "text/javascript", ".vert": "text/plain", ".frag": "text/plain", ".bin": "application/octet-stream",
+               ".json": "application/json", ".css": "text/css", ".html": "text/html"}
+
+
+class _Handler(SimpleHTTPRequestHandler):
+    def __init__(self, *args, bundle_dir: str, bundle_json: bytes, quiet: bool, **kwargs):
+        self.bundle_dir = bundle_dir
+        self.bundle_json = bundle_json
+        self.quiet = quiet
+        super().__init__(*args, directory=STATIC_DIR, **kwargs)
+
+    def guess_type(self, path):
+        ext = os.path.splitext(str(path))[1].lower()
+        return EXTRA_TYPES.get(ext) or mimetypes.guess_type(str(path))[0] or "application/octet-stream"
+
+    def end_headers(self):
+        # The bundle and scripts change between exports: never let the browser reuse a stale copy.
+        self.send_header("Cache-Control", "no-store")
+        super().end_headers()
+
+    def translate_path(self, path):
+        rel = unquote(urlsplit(path).path)
+        if rel.startswith("/bundle/"):
+            name = rel[len("/bundle/"):]
+            if "/" in name or name.startswith("."):
+                return os.path.join(self.bundle_dir, ".invalid")  # the bundle is flat: nothing else to serve
+            return os.path.join(self.bundle_dir, name)
+        return super().translate_path(path)
+
+    def do_GET(self):
+        if urlsplit(self.path).path == "/bundle/" + BUNDLE_JSON:
+            self.send_response(HTTPStatus.OK)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(self.bundle_json)))
+            self.end_headers()
+            self.wfile.write(self.bundle_json)
+            return
+        super().do_GET()
+
+    def log_message(self, format, *args):
+        if not self.quiet:
+            super().log_message(format, *args)
+
+
+class ViewerServer:
+    """Serves the viewer for one bundle folder. port=0 picks a free port. Use as a context manager or
+    call serve_forever(); `url` is the page's address."""
+
+    def __init__(self, bundle_dir: str, *, port: int = 0, cameras: list[dict] | None = None, quiet: bool = True):
+        with open(os.path.join(bundle_dir, BUNDLE_JSON)) as f:
+            bundle = json.load(f)
+        if cameras is not None:
+            bundle["cameras"] = cameras
+        handler = partial(_Handler, bundle_dir=os.path.abspath(bundle_dir),
+                          bundle_json=json.dumps(bundle).encode(), quiet=quiet)
+        self.httpd = ThreadingHTTPServer((HOST, port), handler)
+        self.httpd.daemon_threads = True
+        self.port = self.httpd.server_address[1]
+        self.url = f"http://{HOST}:{self.port}/"
+        self._thread: threading.Thread | None = None
+
+    def serve_forever(self) -> None:
+        self.httpd.serve_forever()
+
+    def start(self) -> "ViewerServer":
+        self._thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self.httpd.shutdown()
+            self._thread.join()
+        self.httpd.server_close()
+
+    def __enter__(self) -> "ViewerServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()

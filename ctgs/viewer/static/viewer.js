@@ -1,0 +1,347 @@
+// ctgs viewer: UI, camera state, the sort worker and the render loop. `window.viewer` is also the
+// scripting interface the tests use (ready, show, benchmark, info).
+
+import {loadBundle} from "./bundle.js";
+import {Controls, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm, column} from "./camera.js";
+import {Renderer} from "./renderer.js";
+
+const $ = (id) => document.getElementById(id);
+const SHADERS = {surfelVert: "surfel.vert", surfelFrag: "surfel.frag", compositeVert: "composite.vert",
+  compositeFrag: "composite.frag"};
+// Smoothing of the frame-time readout (exponential moving average weight of a new frame).
+const READOUT_EMA = 0.2;
+
+async function fetchText(url) {
+  const r = await fetch(url);
+  if (!r.ok) throw new Error(`${url}: HTTP ${r.status}`);
+  return r.text();
+}
+
+class Viewer {
+  constructor() {
+    this.params = new URLSearchParams(location.search);
+    this.textures = this.params.get("textures") !== "0";
+    this.fit = this.params.get("fit") === "1";
+    this.camIndex = -1;
+    this.dirty = true;
+    this.sortId = 0;
+    this.sortInFlight = null;  // {id, key}
+    this.sortedKey = null;
+    this.sortWaiters = [];
+    this.readout = {frame: null, sort: null};  // ms
+    this.pendingFences = [];
+    this.ready = this.start().catch((err) => { this.fail(err); throw err; });
+  }
+
+  fail(err) {
+    const box = $("error");
+    box.textContent = `Viewer error: ${err.message || err}`;
+    box.hidden = false;
+    console.error(err);
+  }
+
+  async start() {
+    const bundleBase = this.params.get("bundle") || "bundle";
+    const canvas = $("canvas");
+    this.renderer = new Renderer(canvas, this.params.get("accum") || "auto");
+    const status = (s) => { $("status").textContent = s; };
+    const [loaded, ...sources] = await Promise.all([
+      loadBundle(bundleBase, status), ...Object.values(SHADERS).map(fetchText)]);
+    const shaders = Object.fromEntries(Object.keys(SHADERS).map((k, i) => [k, sources[i]]));
+    const {bundle, arrays, pages} = loaded;
+    this.bundle = bundle;
+    this.renderer.init(bundle, arrays, pages, shaders);
+    this.cameras = bundle.cameras || [];
+    this.center = bundle.center;
+    this.up = sceneUp(this.cameras);
+    this.radius = this.sceneRadius(arrays.means);
+    this.worker = new Worker("sort_worker.js");
+    this.worker.onmessage = (e) => this.onSorted(e.data);
+    this.worker.onerror = (e) => this.fail(new Error(`sort worker: ${e.message}`));
+    this.worker.postMessage({type: "init", means: arrays.means.slice()});
+    this.controls = new Controls(canvas, this);
+    this.buildUi();
+    const want = this.params.get("camera");
+    let idx = this.cameras.findIndex((c) => c.split === "test");
+    if (want !== null) idx = /^\d+$/.test(want) ? Number(want) : this.cameras.findIndex((c) => c.name === want);
+    if (this.cameras.length) this.setCamera(Math.max(0, Math.min(this.cameras.length - 1, idx)));
+    else this.defaultPose();
+    new ResizeObserver(() => this.cameraMoved()).observe($("view"));
+    status("");
+    await this.waitSorted(this.key(this.currentCam()));
+    this.drawNow();
+    this.renderer.finish();
+    this.last = performance.now();
+    requestAnimationFrame((t) => this.loop(t));
+  }
+
+  sceneRadius(means) {
+    // Median distance of the surfels from the centre: robust to floaters far away.
+    const n = means.length / 3, step = Math.max(1, Math.floor(n / 4096)), d = [];
+    for (let i = 0; i < n; i += step) d.push(norm(sub([means[3 * i], means[3 * i + 1], means[3 * i + 2]], this.center)));
+    d.sort((a, b) => a - b);
+    return d.length ? Math.max(1e-6, d[d.length >> 1]) : 1;
+  }
+
+  defaultPose() {
+    const eye = add(this.center, scale([0, 0, -1], 3 * this.radius));
+    this.pose = lookAt(eye, this.center, this.up);
+    this.target = this.center.slice();
+    this.refCam = {fx: 500, fy: 500, cx: 400, cy: 300, width: 800, height: 600, near: 0.01 * this.radius};
+    this.cameraMoved();
+  }
+
+  // ---- cameras -------------------------------------------------------------------------------------
+  setCamera(i) {
+    const c = this.cameras[i];
+    this.camIndex = i;
+    this.refCam = c;
+    this.pose = poseFromViewmat(c.viewmat);
+    // Orbit target: the point on the optical axis nearest the scene centre (at least 10% of the radius out).
+    const fwd = column(this.pose.rot, 2), toCenter = sub(this.center, this.pose.pos);
+    const along = Math.max(0.1 * this.radius, toCenter[0] * fwd[0] + toCenter[1] * fwd[1] + toCenter[2] * fwd[2]);
+    this.target = add(this.pose.pos, scale(fwd, along));
+    $("camera").value = String(i);
+    this.cameraMoved();
+  }
+
+  cameraMoved() {
+    if (this.controls && (this.controls.drag || this.controls.keys.size) && this.camIndex >= 0) {
+      this.camIndex = -1;  // left the recorded camera
+      $("camera").value = "-1";
+    }
+    this.dirty = true;
+  }
+
+  // Fit: the reference camera's own intrinsics and image size (exactly what `ctgs render` uses).
+  // Otherwise the canvas fills the view, with the reference camera's vertical field of view.
+  intrinsics() {
+    const c = this.refCam;
+    if (this.fit) return {fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, width: c.width, height: c.height};
+    const view = $("view"), dpr = window.devicePixelRatio || 1;
+    const width = Math.max(1, Math.round(view.clientWidth * dpr)), height = Math.max(1, Math.round(view.clientHeight * dpr));
+    const fy = c.fy * height / c.height;
+    return {fx: fy * c.fx / c.fy, fy, cx: width / 2, cy: height / 2, width, height};
+  }
+
+  currentCam() {
+    const intr = this.intrinsics();
+    return {...intr, viewmat: viewmatFromPose(this.pose), campos: this.pose.pos, near: this.refCam.near ?? 0.01};
+  }
+
+  key(cam) {
+    return cam.viewmat.map((v) => v.toPrecision(9)).join(",") + "|" + cam.near;
+  }
+
+  // ---- sorting -------------------------------------------------------------------------------------
+  requestSort(cam) {
+    const key = this.key(cam);
+    if (this.sortInFlight) { this.sortWanted = true; return; }
+    this.sortInFlight = {id: ++this.sortId, key};
+    this.worker.postMessage({type: "sort", id: this.sortId, view: new Float64Array(cam.viewmat), near: cam.near});
+  }
+
+  onSorted(msg) {
+    const job = this.sortInFlight;
+    this.sortInFlight = null;
+    this.renderer.setOrder(msg.order, msg.count);
+    this.sortedKey = job.key;
+    this.readout.sort = msg.ms;
+    this.lastSortMs = msg.ms;
+    this.dirty = true;
+    this.sortWaiters = this.sortWaiters.filter((w) => {
+      if (w.key === job.key) { w.resolve(msg.ms); return false; }
+      return true;
+    });
+    if (this.sortWanted || this.sortWaiters.length) {
+      this.sortWanted = false;
+      const cam = this.currentCam();
+      if (this.key(cam) !== this.sortedKey) this.requestSort(cam);
+    }
+  }
+
+  waitSorted(key) {
+    if (this.sortedKey === key && !this.sortInFlight) return Promise.resolve(this.lastSortMs);
+    const p = new Promise((resolve) => this.sortWaiters.push({key, resolve}));
+    this.requestSort(this.currentCam());
+    return p;
+  }
+
+  // ---- drawing -------------------------------------------------------------------------------------
+  drawNow() {
+    const cam = this.currentCam();
+    const canvas = $("canvas");
+    if (canvas.width !== cam.width || canvas.height !== cam.height) {
+      canvas.width = cam.width;
+      canvas.height = cam.height;
+    }
+    const dpr = window.devicePixelRatio || 1;
+    canvas.style.width = `${cam.width / dpr}px`;
+    canvas.style.height = `${cam.height / dpr}px`;
+    this.renderer.draw(cam, this.textures);
+    return cam;
+  }
+
+  loop(now) {
+    requestAnimationFrame((t) => this.loop(t));
+    const dt = Math.min(0.1, (now - this.last) / 1000);
+    this.last = now;
+    this.controls.update(dt);
+    this.pollFences(now);
+    if (!this.dirty || this.holdLoop) return;
+    const cam = this.currentCam();
+    const key = this.key(cam);
+    if (key !== this.sortedKey) this.requestSort(cam);
+    const gl = this.renderer.gl;
+    const t0 = performance.now();
+    this.drawNow();
+    this.pendingFences.push({sync: gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0), t0});
+    gl.flush();
+    this.dirty = key !== this.sortedKey;
+  }
+
+  // Frame time = from issuing the draw to the GPU signalling its fence (resolution: one animation frame).
+  pollFences(now) {
+    const gl = this.renderer.gl;
+    while (this.pendingFences.length) {
+      const f = this.pendingFences[0];
+      if (gl.getSyncParameter(f.sync, gl.SYNC_STATUS) !== gl.SIGNALED) break;
+      gl.deleteSync(f.sync);
+      this.pendingFences.shift();
+      const ms = now - f.t0;
+      this.readout.frame = this.readout.frame === null ? ms : (1 - READOUT_EMA) * this.readout.frame + READOUT_EMA * ms;
+    }
+    const fmt = (v) => (v === null ? "-" : `${v.toFixed(1)} ms`);
+    $("frametime").textContent = `frame ${fmt(this.readout.frame)} · sort ${fmt(this.readout.sort)} (worker)`;
+  }
+
+  // ---- scripting interface (tests, benchmarks) ---------------------------------------------------------
+  info() {
+    const r = this.renderer;
+    return {glRenderer: r.glRenderer, accumFormat: r.accumFormat.name, numSurfels: this.bundle.num_surfels,
+      numTexels: this.bundle.num_texels, texelFormat: this.bundle.atlas.texel_format, cameras: this.cameras.length,
+      webgl2: true};
+  }
+
+  // Render recorded camera i exactly (fit: its image size and intrinsics, or resized to size = [W, H]
+  // with the intrinsics scaled; fit = false: the view's size), wait until the GPU is done, and return
+  // the canvas rectangle in CSS pixels for a screenshot.
+  async show({camera, textures = true, size = null, fit = true}) {
+    await this.ready;
+    const held = this.holdLoop;
+    this.holdLoop = true;  // no animation-frame draw meanwhile: it would queue ahead of ours
+    try {
+      return await this.showHeld({camera, textures, size, fit});
+    } finally {
+      this.holdLoop = held;
+    }
+  }
+
+  async showHeld({camera, textures, size, fit}) {
+    this.textures = textures;
+    $("textures").checked = textures;
+    this.fit = fit;
+    $("fit").checked = fit;
+    this.setCamera(camera);
+    if (size) {
+      const c = this.refCam, sx = size[0] / c.width, sy = size[1] / c.height;
+      this.refCam = {...c, fx: c.fx * sx, fy: c.fy * sy, cx: c.cx * sx, cy: c.cy * sy, width: size[0], height: size[1]};
+    }
+    await this.waitSorted(this.key(this.currentCam()));
+    const t0 = performance.now();
+    const cam = this.drawNow();
+    this.renderer.finish();
+    this.readout.frame = performance.now() - t0;
+    this.dirty = false;
+    const r = $("canvas").getBoundingClientRect();
+    return {x: r.x, y: r.y, width: r.width, height: r.height, imageWidth: cam.width, imageHeight: cam.height,
+      count: this.renderer.count};
+  }
+
+  // Orbit `frames` steps (a quarter turn in all) about the target from recorded camera i; per frame:
+  // the worker's sort time and the draw time (issue to GPU completion, forced by a one-pixel read
+  // back), both in ms.
+  // tight = false draws bounds.h's pixel boxes instead of the tight quads (same image, more fragments).
+  async benchmark({camera = 0, frames = 20, textures = true, size = null, tight = true}) {
+    this.renderer.tightQuads = tight;
+    await this.show({camera, textures, size});
+    const drawMs = [], sortMs = [];
+    const mode = this.controls.mode;
+    this.controls.mode = "orbit";
+    this.holdLoop = true;  // no animation-frame draws in between: they would be timed with ours
+    try {
+      for (let f = 0; f < frames; ++f) {
+        this.controls.rotate(0.5 * Math.PI / frames / 0.005, 0);  // rotate() turns 0.005 rad per pixel
+        sortMs.push(await this.waitSorted(this.key(this.currentCam())));
+        const t0 = performance.now();
+        this.drawNow();
+        this.renderer.finish();
+        drawMs.push(performance.now() - t0);
+      }
+    } finally {
+      this.renderer.tightQuads = true;
+      this.controls.mode = mode;
+      this.holdLoop = false;
+      this.dirty = true;
+    }
+    const cam = this.currentCam();
+    return {drawMs, sortMs, width: cam.width, height: cam.height, count: this.renderer.count};
+  }
+
+  // ---- UI ----------------------------------------------------------------------------------------------
+  buildUi() {
+    const b = this.bundle, sel = $("camera");
+    sel.innerHTML = "";
+    const free = document.createElement("option");
+    free.value = "-1";
+    free.textContent = "(free camera)";
+    sel.appendChild(free);
+    for (const split of ["train", "test"]) {
+      const group = document.createElement("optgroup");
+      group.label = split === "train" ? "Training cameras" : "Test cameras";
+      this.cameras.forEach((c, i) => {
+        if (c.split !== split) return;
+        const o = document.createElement("option");
+        o.value = String(i);
+        o.textContent = `${c.name} (${c.width}x${c.height})`;
+        group.appendChild(o);
+      });
+      if (group.children.length) sel.appendChild(group);
+    }
+    sel.onchange = () => { const i = Number(sel.value); if (i >= 0) this.setCamera(i); };
+    const step = (d) => {
+      if (!this.cameras.length) return;
+      const i = this.camIndex < 0 ? 0 : (this.camIndex + d + this.cameras.length) % this.cameras.length;
+      this.setCamera(i);
+    };
+    $("prev").onclick = () => step(-1);
+    $("next").onclick = () => step(1);
+    $("textures").checked = this.textures;
+    $("textures").onchange = (e) => { this.textures = e.target.checked; this.dirty = true; };
+    $("fit").checked = this.fit;
+    $("fit").onchange = (e) => { this.fit = e.target.checked; this.dirty = true; };
+    for (const r of document.querySelectorAll("input[name=mode]")) {
+      r.onchange = () => { this.controls.mode = r.value; };
+      r.checked = r.value === (this.params.get("mode") || "orbit");
+    }
+    this.controls.mode = this.params.get("mode") === "fly" ? "fly" : "orbit";
+    window.addEventListener("keydown", (e) => {
+      if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
+      if (e.key === "t") { $("textures").click(); }
+      if (e.key === "f") {
+        const next = this.controls.mode === "orbit" ? "fly" : "orbit";
+        document.querySelector(`input[name=mode][value=${next}]`).click();
+      }
+      if (e.key === "]") step(1);
+      if (e.key === "[") step(-1);
+    });
+    const mb = (x) => (x / 1e6).toFixed(1);
+    $("stats").innerHTML =
+      `${b.num_surfels.toLocaleString()} surfels · ${b.num_texels.toLocaleString()} texels<br>` +
+      `SH degree ${b.sh_degree} · atlas ${b.atlas.pages.length} × ${b.atlas.page_size}² ${b.atlas.texel_format}<br>` +
+      `bundle ${mb(b.surfels.bytes + b.atlas.bytes)} MB<br>` +
+      `<span class="dim">${this.renderer.glRenderer}<br>accumulation ${this.renderer.accumFormat.name}</span>`;
+  }
+}
+
+window.viewer = new Viewer();

@@ -1,0 +1,78 @@
+"""ctgs.io.atomic: complete or absent, never half-written, and nothing left behind on failure."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import pytest
+import torch
+
+from ctgs.io import atomic
+
+
+class Boom(Exception):
+    pass
+
+
+def _names(folder) -> list[str]:
+    return sorted(os.listdir(folder))
+
+
+def test_files_appear_whole_with_ordinary_permissions(tmp_path):
+    atomic.write_text(str(tmp_path / "a.txt"), "x\r\ny")
+    atomic.write_bytes(str(tmp_path / "b.bin"), b"\x00\x01")
+    atomic.write_json(str(tmp_path / "sub" / "c.json"), {"k": [1, 2]})
+    atomic.torch_save({"t": torch.arange(3)}, str(tmp_path / "d.pt"))
+    assert (tmp_path / "a.txt").read_bytes() == b"x\r\ny"  # written as given, no newline translation
+    assert (tmp_path / "b.bin").read_bytes() == b"\x00\x01"
+    assert (tmp_path / "sub" / "c.json").read_text() == '{\n  "k": [\n    1,\n    2\n  ]\n}\n'
+    assert torch.equal(torch.load(tmp_path / "d.pt", weights_only=True)["t"], torch.arange(3))
+    assert stat.S_IMODE(os.stat(tmp_path / "a.txt").st_mode) == atomic.FILE_MODE
+    assert _names(tmp_path) == ["a.txt", "b.bin", "d.pt", "sub"]  # no temporaries left
+
+
+def test_failed_file_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
+    path = tmp_path / "report.json"
+    atomic.write_text(str(path), "old")
+    with pytest.raises(Boom):
+        with atomic.atomic_path(str(path)) as tmp:
+            assert tmp.endswith(".json") and os.path.dirname(tmp) == str(tmp_path)
+            open(tmp, "w").write("half")
+            raise Boom
+    assert path.read_text() == "old" and _names(tmp_path) == ["report.json"]
+
+
+def test_folder_is_built_aside_and_swapped_in(tmp_path):
+    out = tmp_path / "model"
+    with atomic.atomic_dir(str(out)) as tmp:
+        open(os.path.join(tmp, "one"), "w").write("1")
+        assert not out.exists()  # nothing under the final name until the block succeeds
+    assert _names(out) == ["one"] and stat.S_IMODE(os.stat(out).st_mode) == atomic.DIR_MODE
+    with atomic.atomic_dir(str(out)) as tmp:  # replace: the new content only, the old folder deleted
+        open(os.path.join(tmp, "two"), "w").write("2")
+    assert _names(out) == ["two"] and _names(tmp_path) == ["model"]
+
+
+def test_failed_folder_leaves_the_old_one_and_no_temporary(tmp_path):
+    out = tmp_path / "eval"
+    with atomic.atomic_dir(str(out)) as tmp:
+        open(os.path.join(tmp, "metrics.json"), "w").write("{}")
+    with pytest.raises(Boom):
+        with atomic.atomic_dir(str(out)) as tmp:
+            os.makedirs(os.path.join(tmp, "renders"))
+            raise Boom
+    assert _names(out) == ["metrics.json"] and _names(tmp_path) == ["eval"]
+    with pytest.raises(Boom):
+        with atomic.atomic_dir(str(tmp_path / "new")):
+            raise Boom
+    assert _names(tmp_path) == ["eval"]
+
+
+def test_no_replace_refuses_an_existing_folder(tmp_path):
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "keep").write_text("k")
+    with pytest.raises(FileExistsError):
+        with atomic.atomic_dir(str(tmp_path / "x"), replace=False) as tmp:
+            open(os.path.join(tmp, "new"), "w").write("n")
+    assert _names(tmp_path / "x") == ["keep"] and _names(tmp_path) == ["x"]
