@@ -12,10 +12,19 @@ the worktree first on PYTHONPATH and OMP_NUM_THREADS=1), so nothing here depends
 two sides of one (scene, seed) pair run at the same time, one process each (two cores), so load from
 other jobs on a shared machine hits both alike; --serial alternates them instead (base, head, base, ...).
 
-Config: configs/demo.toml of the BASE commit (its `base` chain resolved), written to one flat file with
-only the keys both commits' TrainConfig know, plus --set overrides. With --iterations below the
-config's, schedule_scale is multiplied by iterations / config iterations, so every routine (texture
+Config, default: configs/demo.toml of the BASE commit (its `base` chain resolved), written to one flat
+file with only the keys both commits' TrainConfig know, plus --set overrides. With --iterations below
+the config's, schedule_scale is multiplied by iterations / config iterations, so every routine (texture
 start, full routines, late downscales, reallocation) keeps its place in the run.
+
+Config with --preset NAME (commits that have configs/NAME.toml and scene-relative rules, ctgs/train/
+rules.py, e.g. `fast`): the HEAD side trains with the preset (plus --set), its iteration counts at the
+schedule of the preset's full run (schedule_scale = preset iterations / 30000) unless --set
+schedule_scale=... says otherwise, so --iterations N trains the first N iterations of that run. The BASE
+side, which predates presets and rules, gets the same settings resolved by the HEAD's code for the
+scene's image size (rules.resolve: lambda_texture, max_texture_res, max_primitives; init_point_cap ->
+max_init_points; texture_reg_pixels = 0 since lambda_texture is already resolved), restricted to the keys
+the base knows, with the same schedule_scale.
 
 Measured per side: it/s = iterations / train_seconds (train_summary.json: the training loop including
 routines, excluding evaluation and checkpoints), final test PSNR, peak RSS of the training process
@@ -120,6 +129,60 @@ def write_config(base_tree: str, head_tree: str, iterations: int, sets: list[str
     return cfg
 
 
+def image_pixels(scene: str, images: str | None) -> float:
+    """H*W of the scene's first training image (the scenes here hold one image size)."""
+    import cv2
+
+    folder = os.path.join(scene, images or "images")
+    name = sorted(f for f in os.listdir(folder) if not f.startswith("."))[0]
+    img = cv2.imread(os.path.join(folder, name), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SystemExit(f"cannot read {os.path.join(folder, name)}")
+    return float(img.shape[0] * img.shape[1])
+
+
+_RESOLVE = """
+import json, sys
+from dataclasses import asdict
+from ctgs.train.config import TrainConfig
+from ctgs.train import rules
+d, pixels = json.loads(sys.argv[1]), float(sys.argv[2])
+cfg = TrainConfig(**d)
+out = asdict(rules.resolve(cfg, pixels))
+out["max_init_points"] = rules.init_point_cap(cfg, pixels)
+print(json.dumps(out))
+"""
+
+
+def write_preset_configs(base_tree: str, head_tree: str, preset: str, iterations: int, sets: list[str],
+                         pixels: float, head_path: str, base_path: str) -> tuple[dict, dict]:
+    """Head: configs/<preset>.toml of the head + sets; base: the same resolved by the head's rules."""
+    cfg = resolved_toml(os.path.join(head_tree, "configs", f"{preset}.toml"))
+    full = int(cfg.get("iterations", 30000))
+    cfg["schedule_scale"] = full / 30000.0
+    for item in sets:
+        k, v = item.split("=", 1)
+        try:
+            cfg[k] = tomllib.loads(f"x = {v}")["x"]
+        except tomllib.TOMLDecodeError:
+            cfg[k] = v
+    cfg["iterations"] = iterations
+    cfg["threads"] = 1
+    r = subprocess.run([sys.executable, "-c", _RESOLVE, json.dumps(cfg), str(pixels)], cwd=head_tree,
+                       env=side_env(head_tree), capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"resolving the preset in {head_tree} failed:\n{r.stderr[-3000:]}")
+    resolved = json.loads(r.stdout)
+    keys = config_keys(base_tree)
+    base_cfg = {k: v for k, v in resolved.items() if k in keys and v is not None}
+    if "texture_reg_pixels" in keys:
+        base_cfg["texture_reg_pixels"] = 0.0
+    for path, c in ((head_path, cfg), (base_path, base_cfg)):
+        with open(path, "wb") as fh:
+            tomli_w.dump(c, fh)
+    return cfg, base_cfg
+
+
 def train_cmd(scene: str, run: str, cfg_path: str, iterations: int, seed: int, images: str | None) -> list[str]:
     cmd = [sys.executable, "-m", "ctgs", "train", scene, "-o", run, "--config", cfg_path, "--iterations",
            str(iterations), "--set", "threads=1", "--set", f"seed={seed}", "-q"]
@@ -171,7 +234,7 @@ def routine_share(run: str) -> float | None:
     return extra / total if total > 0 else None
 
 
-def run_pair(sides: dict, scene: str, images: str | None, cfg_path: str, iterations: int, seed: int,
+def run_pair(sides: dict, scene: str, images: str | None, cfg_paths: dict, iterations: int, seed: int,
              work: str, tag: str, serial: bool) -> dict:
     out = {}
     procs = {}
@@ -180,7 +243,7 @@ def run_pair(sides: dict, scene: str, images: str | None, cfg_path: str, iterati
         tree = sides[name]
         run = os.path.join(work, "runs", f"{tag}_{name}_seed{seed}")
         shutil.rmtree(run, ignore_errors=True)
-        cmd = train_cmd(scene, run, cfg_path, iterations, seed, images)
+        cmd = train_cmd(scene, run, cfg_paths[name], iterations, seed, images)
         t0 = time.time()
         p = subprocess.Popen(cmd, cwd=tree, env=side_env(tree))
         procs[name] = (p, run, t0, cmd)
@@ -229,8 +292,9 @@ def write(res: dict, path: str) -> None:
              f"{res['loadavg_start'][0]:.2f} at start, {res['loadavg_end'][0]:.2f} at the end (a shared "
              f"machine: absolute it/s move with the load; the two sides ran "
              f"{'one after the other' if res['serial'] else 'at the same time, one core each'}).", "",
-             f"Scene {res['scene']} ({res['images'] or 'images'}); config {res['config_source']} resolved "
-             f"at the base commit, keys both commits know, {res['iterations']} iterations, schedule_scale "
+             f"Scene {res['scene']} ({res['images'] or 'images'}); config {res['config_source']}"
+             f"{'' if 'preset' in res['config_source'] else ' resolved at the base commit, keys both commits know'}"
+             f", {res['iterations']} iterations, schedule_scale "
              f"{res['config']['schedule_scale']:.4g}; 1 thread per training. base = {res['base']}, "
              f"head = {res['head']}.", "",
              "| seed | side | it/s | train s | test PSNR | primitives | texels | peak RSS MiB | routines' share |",
@@ -263,6 +327,7 @@ def main() -> None:
     ap.add_argument("--head", default="HEAD")
     ap.add_argument("--iterations", type=int, default=3000)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--preset", default=None, help="head trains with configs/PRESET.toml (see Config above)")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--work", default="/tmp/ctgs_speed")
     ap.add_argument("--serial", action="store_true", help="alternate the sides instead of running them together")
@@ -275,19 +340,29 @@ def main() -> None:
     shas = {name: worktree(getattr(args, name), path) for name, path in sides.items()}
     for tree in sides.values():
         build(tree)
-    cfg_path = os.path.join(args.work, f"config_{tag}.toml")
-    cfg = write_config(sides["base"], sides["head"], args.iterations, args.sets, cfg_path)
     scene = os.path.abspath(args.scene)
+    if args.preset:
+        cfg_paths = {name: os.path.join(args.work, f"config_{tag}_{name}.toml") for name in sides}
+        cfg, base_cfg = write_preset_configs(sides["base"], sides["head"], args.preset, args.iterations, args.sets,
+                                             image_pixels(scene, args.images), cfg_paths["head"],
+                                             cfg_paths["base"])
+    else:
+        cfg_path = os.path.join(args.work, f"config_{tag}.toml")
+        cfg = write_config(sides["base"], sides["head"], args.iterations, args.sets, cfg_path)
+        base_cfg = cfg
+        cfg_paths = {name: cfg_path for name in sides}
     pairs = {}
     for seed in args.seeds:
-        pair = run_pair(sides, scene, args.images, cfg_path, args.iterations, seed, args.work, tag, args.serial)
+        pair = run_pair(sides, scene, args.images, cfg_paths, args.iterations, seed, args.work, tag, args.serial)
         pair["ratio"] = pair["head"]["it_per_s"] / pair["base"]["it_per_s"]
         pairs[str(seed)] = pair
         print(json.dumps({"seed": seed, "ratio": pair["ratio"],
                           **{k: pair[k]["it_per_s"] for k in ("base", "head")}}), flush=True)
     res = {"tag": tag, "scene": scene, "images": args.images, "iterations": args.iterations, "seeds": args.seeds,
            "base": f"{args.base} ({shas['base'][:10]})", "head": f"{args.head} ({shas['head'][:10]})",
-           "config_source": "configs/demo.toml", "config": cfg, "serial": args.serial, "pairs": pairs,
+           "config_source": (f"preset {args.preset} (head), resolved by the head's rules for the base"
+                             if args.preset else "configs/demo.toml"),
+           "config": cfg, "base_config": base_cfg, "serial": args.serial, "pairs": pairs,
            "mean_ratio": statistics.mean(p["ratio"] for p in pairs.values()), "machine": machine(),
            "loadavg_start": load0, "loadavg_end": os.getloadavg(),
            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
