@@ -174,7 +174,10 @@ def write_preset_configs(base_tree: str, head_tree: str, preset: str, iterations
         raise SystemExit(f"resolving the preset in {head_tree} failed:\n{r.stderr[-3000:]}")
     resolved = json.loads(r.stdout)
     keys = config_keys(base_tree)
-    base_cfg = {k: v for k, v in resolved.items() if k in keys and v is not None}
+    # Not settings of the method: where the scene is and what runs it come from the command line.
+    run_keys = {"scene_dir", "images", "backend", "device", "seed", "threads", "debug_nan_at"}
+    base_cfg = {k: v for k, v in resolved.items() if k in keys and k not in run_keys and v is not None}
+    base_cfg["threads"] = 1
     if "texture_reg_pixels" in keys:
         base_cfg["texture_reg_pixels"] = 0.0
     for path, c in ((head_path, cfg), (base_path, base_cfg)):

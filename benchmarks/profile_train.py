@@ -21,6 +21,9 @@ trainer calls (no trainer edits), so their names follow the code:
   adam            SurfelAdam.step
   routines        Trainer._adapt (full/late routines, reallocations; their renders are listed below them)
 
+To profile another commit (e.g. the one before this work), copy this script into a worktree of it and run
+it there with a config that commit understands; its kernels then show as one forward_cpu / backward_cpu.
+
 Timings are inclusive; a phase's children are listed under it ("a/b"). Every figure is seconds per
 iteration over the window (routines too: their total over the window / window). Results go to
 benchmarks/results/profile_<tag>_<label>.{json,md}; --label names the code state (e.g. before, after).
@@ -107,13 +110,16 @@ def install(timers: Timers, ext) -> None:
 
     fwd, bwd = ext.forward_cpu, ext.backward_cpu
 
+    # Commits before this work (e363f40) have no kernel counters: their forward/backward stay whole.
+    counters = getattr(ext, "profile_counters", lambda reset: {})
+
     def kernel_split(prefix: str) -> None:
-        for k, v in ext.profile_counters(True).items():
+        for k, v in counters(True).items():
             if k.startswith(prefix):
                 timers.add(k, v)
 
     def forward_cpu(*args):
-        ext.profile_counters(True)
+        counters(True)
         timers.stack.append("forward_cpu")
         t0 = time.perf_counter()
         try:
@@ -124,7 +130,7 @@ def install(timers: Timers, ext) -> None:
             timers.add("forward_cpu", time.perf_counter() - t0)
 
     def backward_cpu(*args):
-        ext.profile_counters(True)
+        counters(True)
         timers.stack.append("backward_cpu")
         t0 = time.perf_counter()
         try:
