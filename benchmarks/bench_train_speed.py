@@ -194,11 +194,12 @@ def train_cmd(scene: str, run: str, cfg_path: str, iterations: int, seed: int, i
     return cmd
 
 
-def wait_rss(proc: subprocess.Popen) -> tuple[int, float]:
-    """Wait for proc; (exit status, peak RSS in MiB) from the kernel's accounting of that process."""
+def wait_rss(proc: subprocess.Popen) -> tuple[int, float, float]:
+    """Wait for proc; (exit status, peak RSS in MiB, CPU seconds user + system) from the kernel's
+    accounting of that process."""
     _, status, ru = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, ru.ru_maxrss / 1024.0
+    return proc.returncode, ru.ru_maxrss / 1024.0, ru.ru_utime + ru.ru_stime
 
 
 def routine_share(run: str) -> float | None:
@@ -259,7 +260,7 @@ def run_pair(sides: dict, scene: str, images: str | None, cfg_paths: dict, itera
 
 def finish(item) -> dict:
     p, run, t0, cmd = item
-    code, rss = wait_rss(p)
+    code, rss, cpu = wait_rss(p)
     wall = time.time() - t0
     if code != 0:
         raise SystemExit(f"training failed ({code}): {' '.join(cmd)}")
@@ -268,7 +269,7 @@ def finish(item) -> dict:
     return {"run": run, "iterations": s["iterations"], "train_seconds": s["train_seconds"],
             "it_per_s": s["iterations"] / s["train_seconds"], "test_psnr": s["final_test_psnr"],
             "test_ssim": s["final_test_ssim"], "primitives": s["num_primitives"], "texels": s["num_texels"],
-            "peak_rss_mib": rss, "wall_seconds": wall, "routine_share": routine_share(run),
+            "peak_rss_mib": rss, "wall_seconds": wall, "cpu_seconds": cpu, "routine_share": routine_share(run),
             "loadavg_end": os.getloadavg()}
 
 
@@ -300,17 +301,25 @@ def write(res: dict, path: str) -> None:
              f", {res['iterations']} iterations, schedule_scale "
              f"{res['config']['schedule_scale']:.4g}; 1 thread per training. base = {res['base']}, "
              f"head = {res['head']}.", "",
-             "| seed | side | it/s | train s | test PSNR | primitives | texels | peak RSS MiB | routines' share |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| seed | side | it/s | train s | process CPU s | test PSNR | primitives | texels | peak RSS MiB | "
+             "routines' share |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for seed, pair in res["pairs"].items():
         for side in ("base", "head"):
             r = pair[side]
             share = f"{100 * r['routine_share']:.1f}%" if r["routine_share"] is not None else "-"
-            lines.append(f"| {seed} | {side} | {r['it_per_s']:.3f} | {r['train_seconds']:.0f} | {r['test_psnr']:.2f} | "
+            cpu = f"{r['cpu_seconds']:.0f}" if "cpu_seconds" in r else "-"
+            lines.append(f"| {seed} | {side} | {r['it_per_s']:.3f} | {r['train_seconds']:.0f} | {cpu} | "
+                         f"{r['test_psnr']:.2f} | "
                          f"{r['primitives']} | {r['texels']} | {r['peak_rss_mib']:.0f} | {share} |")
-        lines.append(f"| {seed} | **head / base** | **{pair['ratio']:.2f}x** | | "
+        cpu_r = f"base / head {pair['cpu_ratio']:.2f}x" if "cpu_ratio" in pair else ""
+        lines.append(f"| {seed} | **head / base** | **{pair['ratio']:.2f}x** | | {cpu_r} | "
                      f"{pair['head']['test_psnr'] - pair['base']['test_psnr']:+.2f} dB | | | | |")
     lines += ["", f"Mean it/s ratio head / base: **{res['mean_ratio']:.2f}x**."]
+    cpu_rs = [p["cpu_ratio"] for p in res["pairs"].values() if "cpu_ratio" in p]
+    if cpu_rs:
+        lines.append(f"Mean process CPU-seconds ratio base / head: {statistics.mean(cpu_rs):.2f}x (whole process: "
+                     f"start-up and final evaluation included).")
     if len(res["pairs"]) > 1:
         for side in ("base", "head"):
             ps = [p[side]["test_psnr"] for p in res["pairs"].values()]
@@ -358,6 +367,9 @@ def main() -> None:
     for seed in args.seeds:
         pair = run_pair(sides, scene, args.images, cfg_paths, args.iterations, seed, args.work, tag, args.serial)
         pair["ratio"] = pair["head"]["it_per_s"] / pair["base"]["it_per_s"]
+        # Load-robust cross-check: CPU seconds of the whole process (start-up and final evaluation
+        # included, so it understates the training loop's gain), base / head.
+        pair["cpu_ratio"] = pair["base"]["cpu_seconds"] / pair["head"]["cpu_seconds"]
         pairs[str(seed)] = pair
         print(json.dumps({"seed": seed, "ratio": pair["ratio"],
                           **{k: pair[k]["it_per_s"] for k in ("base", "head")}}), flush=True)
