@@ -24,6 +24,9 @@ trainer calls (no trainer edits), so their names follow the code:
 To profile another commit (e.g. the one before this work), copy this script into a worktree of it and run
 it there with a config that commit understands; its kernels then show as one forward_cpu / backward_cpu.
 
+--clock cpu times everything in process CPU seconds instead of wall seconds (with one thread, robust to
+other jobs on a shared machine); the result files then end in _cpu.
+
 Timings are inclusive; a phase's children are listed under it ("a/b"). Every figure is seconds per
 iteration over the window (routines too: their total over the window / window). Results go to
 benchmarks/results/profile_<tag>_<label>.{json,md}; --label names the code state (e.g. before, after).
@@ -51,7 +54,8 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 class Timers:
     """Inclusive wall time per call path ("backward/backward_cpu"), summed over calls."""
 
-    def __init__(self):
+    def __init__(self, clock=time.perf_counter):
+        self.clock = clock
         self.stack: list[str] = []
         self.total: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
@@ -63,14 +67,14 @@ class Timers:
         def wrapped(*args, **kwargs):
             timers.stack.append(name)
             path = "/".join(timers.stack)
-            t0 = time.perf_counter()
+            t0 = timers.clock()
             try:
                 out = orig(*args, **kwargs)
                 if generator:
                     out = iter(list(out))
                 return out
             finally:
-                timers.total[path] += time.perf_counter() - t0
+                timers.total[path] += timers.clock() - t0
                 timers.calls[path] += 1
                 timers.stack.pop()
 
@@ -113,33 +117,29 @@ def install(timers: Timers, ext) -> None:
     # Commits before this work (e363f40) have no kernel counters: their forward/backward stay whole.
     counters = getattr(ext, "profile_counters", lambda reset: {})
 
-    def kernel_split(prefix: str) -> None:
+    def kernel_split(prefix: str, scale: float) -> None:
+        # The kernel's counters are wall-clock; with the CPU clock they are scaled by the call's CPU / wall
+        # time (one thread: the share of the call during which the process was not preempted).
         for k, v in counters(True).items():
             if k.startswith(prefix):
-                timers.add(k, v)
+                timers.add(k, v * scale)
 
-    def forward_cpu(*args):
-        counters(True)
-        timers.stack.append("forward_cpu")
-        t0 = time.perf_counter()
-        try:
-            return fwd(*args)
-        finally:
-            kernel_split("fwd_")
-            timers.stack.pop()
-            timers.add("forward_cpu", time.perf_counter() - t0)
+    def timed(fn, name: str, prefix: str):
+        def call(*args):
+            counters(True)
+            timers.stack.append(name)
+            w0, c0 = time.perf_counter(), timers.clock()
+            try:
+                return fn(*args)
+            finally:
+                wall, spent = time.perf_counter() - w0, timers.clock() - c0
+                kernel_split(prefix, spent / wall if wall > 0 else 1.0)
+                timers.stack.pop()
+                timers.add(name, spent)
+        return call
 
-    def backward_cpu(*args):
-        counters(True)
-        timers.stack.append("backward_cpu")
-        t0 = time.perf_counter()
-        try:
-            return bwd(*args)
-        finally:
-            kernel_split("bwd_")
-            timers.stack.pop()
-            timers.add("backward_cpu", time.perf_counter() - t0)
-
+    forward_cpu = timed(fwd, "forward_cpu", "fwd_")
+    backward_cpu = timed(bwd, "backward_cpu", "bwd_")
     rz._load = lambda device: (forward_cpu, backward_cpu)
 
 
@@ -177,9 +177,11 @@ def profile(args) -> dict:
                          "cpu", args.seed)
     ext = load_cpu()
     tr = Trainer(cfg, _load_scene(cfg), run, resume=True)
-    timers = Timers()
+    # --clock cpu: process CPU time (user + system), robust to other jobs on a shared machine with one
+    # training thread; wall (default): what a user waits, the only clock that shows thread scaling.
+    timers = Timers(time.process_time if args.clock == "cpu" else time.perf_counter)
     install(timers, ext)
-    start_it, start_s = tr.it, tr.train_seconds
+    start_it, start_s, cpu0 = tr.it, tr.train_seconds, time.process_time()
     n0, t0_texels = tr.model.num_primitives, tr.model.num_texels
     load0 = os.getloadavg()
     faults0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -187,14 +189,14 @@ def profile(args) -> dict:
     for _ in gen:
         if tr.it >= start_it + args.window:
             break
-    seconds = tr.train_seconds - start_s
+    seconds = tr.train_seconds - start_s if args.clock == "wall" else time.process_time() - cpu0
     iters = tr.it - start_it
     faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults0) / iters
     per_it = {k: v / iters for k, v in sorted(timers.total.items())}
     routine = per_it.get("routines", 0.0)
     return {
         "tag": args.tag, "label": args.label, "scene": os.path.abspath(args.scene), "images": args.images,
-        "config": args.config, "threads": args.threads, "seed": args.seed, "state_at": start_it,
+        "config": args.config, "threads": args.threads, "clock": args.clock, "seed": args.seed, "state_at": start_it,
         "window": iters, "primitives_start": n0, "primitives_end": tr.model.num_primitives,
         "texels_start": t0_texels, "texels_end": tr.model.num_texels,
         "train_seconds": seconds, "it_per_s": iters / seconds, "seconds_per_it": seconds / iters,
@@ -230,7 +232,7 @@ def machine() -> dict:
 
 
 def write(res: dict, out_dir: str) -> None:
-    base = os.path.join(out_dir, f"profile_{res['tag']}_{res['label']}")
+    base = os.path.join(out_dir, f"profile_{res['tag']}_{res['label']}{'_cpu' if res.get('clock') == 'cpu' else ''}")
     with open(base + ".json", "w") as fh:
         json.dump(res, fh, indent=2)
     per = res["per_iteration_s"]
@@ -246,6 +248,8 @@ def write(res: dict, out_dir: str) -> None:
              f"{res['primitives_start']} -> {res['primitives_end']} primitives, {res['texels_start']} -> "
              f"{res['texels_end']} texels. Peak RSS {res['peak_rss_mib']:.0f} MiB; "
              f"{res['page_faults_per_it']:.0f} minor page faults per iteration.", "",
+             f"Clock: {res.get('clock', 'wall')} ("
+             f"{'process CPU seconds: iterations per CPU second' if res.get('clock') == 'cpu' else 'wall clock'}).", "",
              f"**{res['it_per_s']:.2f} it/s** ({1000 * total:.1f} ms per iteration, routines included); "
              f"routines' share {100 * res['routine_share']:.1f}%.", "",
              "| phase (inclusive; children indented) | ms / iteration | share | calls |",
@@ -273,6 +277,8 @@ def main() -> None:
     ap.add_argument("--state-at", type=int, default=1500)
     ap.add_argument("--window", type=int, default=240)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                    help="wall-clock time, or process CPU time (load-robust with one thread)")
     ap.add_argument("--work", default="/tmp/ctgs_prof")
     ap.add_argument("--out", default=os.path.join(REPO, "benchmarks", "results"))
     ap.add_argument("--make-snapshot", action="store_true", help="(internal) only write the snapshot")
