@@ -24,7 +24,8 @@ schedule_scale=... says otherwise, so --iterations N trains the first N iteratio
 side, which predates presets and rules, gets the same settings resolved by the HEAD's code for the
 scene's image size (rules.resolve: lambda_texture, max_texture_res, max_primitives; init_point_cap ->
 max_init_points; texture_reg_pixels = 0 since lambda_texture is already resolved), restricted to the keys
-the base knows, with the same schedule_scale.
+the base knows, with the same schedule_scale. A base that has the preset and the rules itself (e.g. main
+after presets) trains with the same config file as the head.
 
 Measured per side: it/s = iterations / train_seconds (train_summary.json: the training loop including
 routines, excluding evaluation and checkpoints), final test PSNR, peak RSS of the training process
@@ -176,10 +177,13 @@ def write_preset_configs(base_tree: str, head_tree: str, preset: str, iterations
     keys = config_keys(base_tree)
     # Not settings of the method: where the scene is and what runs it come from the command line.
     run_keys = {"scene_dir", "images", "backend", "device", "seed", "threads", "debug_nan_at"}
-    base_cfg = {k: v for k, v in resolved.items() if k in keys and k not in run_keys and v is not None}
-    base_cfg["threads"] = 1
-    if "texture_reg_pixels" in keys:
-        base_cfg["texture_reg_pixels"] = 0.0
+    if os.path.exists(os.path.join(base_tree, "configs", f"{preset}.toml")) and "scale_rules" in keys:
+        base_cfg = {k: v for k, v in cfg.items() if k in keys}  # a base with presets and rules: the same file
+    else:
+        base_cfg = {k: v for k, v in resolved.items() if k in keys and k not in run_keys and v is not None}
+        base_cfg["threads"] = 1
+        if "texture_reg_pixels" in keys:
+            base_cfg["texture_reg_pixels"] = 0.0
     for path, c in ((head_path, cfg), (base_path, base_cfg)):
         with open(path, "wb") as fh:
             tomli_w.dump(c, fh)
