@@ -2,9 +2,13 @@
 // outputs and dispatches float/double to the raw-pointer cores in kernels/cpu (and, later, kernels/cuda).
 #include <torch/extension.h>
 
+#include <cmath>
+#include <map>
+#include <string>
 #include <vector>
 
 #include "binding_common.h"
+#include "cpu/dense.h"
 #include "cpu/rasterize.h"
 
 namespace {
@@ -25,11 +29,11 @@ void check_tensor(const Tensor& t, const char* name, const char* shape, std::vec
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
 // [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (the last three empty
 // unless error_image [H,W] is given). With poison=true outputs start as NaN, so unwritten pixels show up.
-std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
-                                Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
-                                Tensor background, double fx, double fy, double cx, double cy, int64_t width,
-                                int64_t height, double near_plane, c10::optional<Tensor> error_image,
-                                int64_t num_threads, bool poison) {
+std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                 Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                 Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                 int64_t height, double near_plane, c10::optional<Tensor> error_image,
+                                 int64_t num_threads, bool poison, bool record_pairs) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, fx, fy, cx, cy, width, height, near_plane, num_threads,
                               at::kCPU, "cpu");
@@ -45,7 +49,9 @@ std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor op
   Tensor count = torch::zeros({stats ? N : 0}, fopt.dtype(at::kInt));
   Tensor contrib = torch::zeros({stats ? N : 0}, fopt), err = torch::zeros({stats ? N : 0}, fopt);
   ctgs::cpu::TileBins bins;
+  Tensor pix, prim, w;
   AT_DISPATCH_FLOATING_TYPES(mu_c.scalar_type(), "ctgs_forward_cpu", [&] {
+    ctgs::cpu::BlendPairs<scalar_t> pairs;
     ctgs::cpu::ForwardOut<scalar_t> o;
     o.rgb = rgb.data_ptr<scalar_t>();
     o.alpha = alpha.data_ptr<scalar_t>();
@@ -56,11 +62,39 @@ std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor op
     o.count = stats ? count.data_ptr<int32_t>() : nullptr;
     o.contrib = stats ? contrib.data_ptr<scalar_t>() : nullptr;
     o.err = stats ? err.data_ptr<scalar_t>() : nullptr;
+    o.pairs = record_pairs ? &pairs : nullptr;
     ctgs::cpu::forward<scalar_t>(scene_args<scalar_t>(s), o, &bins);
+    if (record_pairs) {
+      const int64_t P = int64_t(pairs.pix.size());
+      pix = torch::from_blob(pairs.pix.data(), {P}, at::kInt).clone();
+      prim = torch::from_blob(pairs.prim.data(), {P}, at::kInt).clone();
+      w = torch::from_blob(pairs.w.data(), {P}, fopt.dtype()).clone();
+    }
   });
+  if (record_pairs) return {rgb, alpha, depth, pix, prim, w};
   Tensor tile_offsets = torch::from_blob(bins.offsets.data(), {int64_t(bins.offsets.size())}, at::kLong).clone();
   Tensor tile_list = torch::from_blob(bins.list.data(), {int64_t(bins.list.size())}, at::kInt).clone();
   return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err};
+}
+
+std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                int64_t height, double near_plane, c10::optional<Tensor> error_image,
+                                int64_t num_threads, bool poison) {
+  return forward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+                      fx, fy, cx, cy, width, height, near_plane, error_image, num_threads, poison, false);
+}
+
+// Forward without gradient bookkeeping that also returns every blended pair: rgb [H,W,3], alpha [H,W],
+// depth [H,W], pix [P] int32 (y * W + x), prim [P] int32, w [P] (tile by tile, ctgs::cpu::BlendPairs).
+std::vector<Tensor> forward_pairs_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                      Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                      Tensor background, double fx, double fy, double cx, double cy,
+                                      int64_t width, int64_t height, double near_plane, int64_t num_threads,
+                                      bool poison) {
+  return forward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+                      fx, fy, cx, cy, width, height, near_plane, c10::nullopt, num_threads, poison, true);
 }
 
 // Returns v_mu_c [N,3], v_Rc [N,3,3], v_scales [N,2], v_opacities [N], v_colors [N,3], v_texel_size [N,2],
@@ -107,13 +141,188 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};
 }
 
+// Adam in place on p, m, v (all contiguous, same shape and dtype as g); lr: a float, or lr_tensor of p's
+// shape. Returns how many updated elements of p are NaN or infinite.
+int64_t adam_step_cpu(Tensor p, Tensor g, Tensor m, Tensor v, c10::optional<Tensor> lr_tensor, double lr,
+                      double beta1, double beta2, int64_t step, double eps, int64_t num_threads) {
+  TORCH_CHECK(p.device().is_cpu(), "adam_step_cpu: p must be a CPU tensor, got ", p.device());
+  const auto dt = p.scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "adam_step_cpu: p must be float32 or float64, got ", dt);
+  TORCH_CHECK(step >= 1, "adam_step_cpu: step must be >= 1, got ", step);
+  for (const Tensor* t : {&p, &g, &m, &v}) {
+    TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == dt && t->sizes() == p.sizes() && t->is_contiguous(),
+                "adam_step_cpu: p, grad, exp_avg, exp_avg_sq must be contiguous CPU tensors of one shape and "
+                "dtype, got ", t->sizes(), " ", t->scalar_type(), " vs p ", p.sizes(), " ", dt);
+  }
+  if (lr_tensor)
+    TORCH_CHECK(lr_tensor->scalar_type() == dt && lr_tensor->sizes() == p.sizes() && lr_tensor->is_contiguous(),
+                "adam_step_cpu: lr_tensor must be contiguous with p's shape ", p.sizes(), " and dtype, got ",
+                lr_tensor->sizes());
+  const double bc1 = 1.0 - std::pow(beta1, double(step)), bc2 = 1.0 - std::pow(beta2, double(step));
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  int64_t bad = 0;
+  AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_adam_step_cpu", [&] {
+    bad = ctgs::cpu::adam_step<scalar_t>(p.data_ptr<scalar_t>(), g.data_ptr<scalar_t>(), m.data_ptr<scalar_t>(),
+                                         v.data_ptr<scalar_t>(), p.numel(),
+                                         lr_tensor ? lr_tensor->data_ptr<scalar_t>() : nullptr, lr, beta1, beta2,
+                                         bc1, bc2, eps, threads);
+  });
+  return bad;
+}
+
+void check_texel_l1(const Tensor& raw, const Tensor& weight, const Tensor& tex_offset, const Tensor& tex_res) {
+  TORCH_CHECK(raw.device().is_cpu() && raw.dim() == 2 && raw.size(1) == 3 && raw.is_contiguous() &&
+              (raw.scalar_type() == at::kFloat || raw.scalar_type() == at::kDouble),
+              "texel_l1: raw must be a contiguous float CPU tensor [T, 3], got ", raw.sizes(), " ", raw.scalar_type());
+  const int64_t N = weight.numel();
+  check_tensor(weight, "weight", "[N] of raw's dtype", {N}, raw.scalar_type());
+  check_tensor(tex_offset, "tex_offset", "[N] int64", {N}, at::kLong);
+  check_tensor(tex_res, "tex_res", "[N, 2] int32", {N, 2}, at::kInt);
+  // Packed layout (ctgs.model.surfels.jagged_offsets): every texel belongs to exactly one primitive, so
+  // the gradient kernel writes every row.
+  const int64_t* off = tex_offset.data_ptr<int64_t>();
+  const int32_t* res = tex_res.data_ptr<int32_t>();
+  int64_t next = 0;
+  for (int64_t i = 0; i < N; ++i) {
+    TORCH_CHECK(res[2 * i] >= 0 && res[2 * i + 1] >= 0, "texel_l1: tex_res must be >= 0");
+    const int64_t size = int64_t(res[2 * i]) * res[2 * i + 1];
+    TORCH_CHECK(size == 0 || off[i] == next, "texel_l1: textures must be packed (tex_offset = exclusive cumsum "
+                "of res_u*res_v), primitive ", i, " starts at ", off[i], ", expected ", next);
+    next += size;
+  }
+  TORCH_CHECK(next == raw.size(0), "texel_l1: the primitives hold ", next, " texels, raw has ", raw.size(0));
+}
+
+// sum_i weight[i] x sum over primitive i's texels of |2 sigmoid(raw) - 1| (a 0-dim tensor of raw's dtype).
+Tensor texel_l1_forward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
+  check_texel_l1(raw, weight, tex_offset, tex_res);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  double total = 0.0;
+  AT_DISPATCH_FLOATING_TYPES(raw.scalar_type(), "ctgs_texel_l1_forward_cpu", [&] {
+    total = ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), weight.data_ptr<scalar_t>(),
+                                          reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
+                                          tex_res.data_ptr<int32_t>(), int(weight.numel()), nullptr, scalar_t(0), threads);
+  });
+  return torch::scalar_tensor(total, raw.options());
+}
+
+// scale * d/draw of texel_l1_forward_cpu, [T, 3].
+Tensor texel_l1_backward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, double scale,
+                             int64_t num_threads) {
+  check_texel_l1(raw, weight, tex_offset, tex_res);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  Tensor grad = torch::empty_like(raw);
+  AT_DISPATCH_FLOATING_TYPES(raw.scalar_type(), "ctgs_texel_l1_backward_cpu", [&] {
+    ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), weight.data_ptr<scalar_t>(),
+                                  reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
+                                  tex_res.data_ptr<int32_t>(), int(weight.numel()), grad.data_ptr<scalar_t>(),
+                                  scalar_t(scale), threads);
+  });
+  return grad;
+}
+
+// y = 2 sigmoid(x) - 1 of a contiguous float CPU tensor (any shape).
+Tensor texel_activation_cpu(Tensor x, int64_t num_threads) {
+  TORCH_CHECK(x.device().is_cpu() && x.is_contiguous() && (x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble),
+              "texel_activation: x must be a contiguous float CPU tensor, got ", x.sizes(), " ", x.scalar_type());
+  Tensor y = torch::empty_like(x);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ctgs_texel_activation_cpu", [&] {
+    ctgs::cpu::texel_activation<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), x.numel(), threads);
+  });
+  return y;
+}
+
+// grad_x = grad_y (1 - y^2) / 2 for y = texel_activation_cpu(x).
+Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_threads) {
+  TORCH_CHECK(y.device().is_cpu() && y.is_contiguous() && (y.scalar_type() == at::kFloat || y.scalar_type() == at::kDouble),
+              "texel_activation_backward: y must be a contiguous float CPU tensor");
+  TORCH_CHECK(grad_y.device().is_cpu() && grad_y.is_contiguous() && grad_y.scalar_type() == y.scalar_type() &&
+              grad_y.sizes() == y.sizes(), "texel_activation_backward: grad must match y ", y.sizes(), ", got ",
+              grad_y.sizes());
+  Tensor g = torch::empty_like(y);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  AT_DISPATCH_FLOATING_TYPES(y.scalar_type(), "ctgs_texel_activation_backward_cpu", [&] {
+    ctgs::cpu::texel_activation_backward<scalar_t>(y.data_ptr<scalar_t>(), grad_y.data_ptr<scalar_t>(),
+                                                   g.data_ptr<scalar_t>(), y.numel(), threads);
+  });
+  return g;
+}
+
+// New jagged buffers [T', C] where new primitive j holds src[j]'s texels re-centred (ctgs/model/jagged.py
+// remap, which checks the arguments): buffers [T, C] each, old_res [N, 2] int32, old_off [N] int64,
+// src [N'] int64, shift [N', 2] int64, new_res [N', 2] int32, new_off [N'] int64.
+std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res, Tensor old_off, Tensor src,
+                                     Tensor shift, Tensor new_res, Tensor new_off, int64_t num_threads) {
+  const int64_t N = old_res.size(0), M = src.size(0);
+  check_tensor(old_res, "old_res", "[N, 2] int32", {N, 2}, at::kInt);
+  check_tensor(old_off, "old_off", "[N] int64", {N}, at::kLong);
+  check_tensor(src, "src", "[N'] int64", {M}, at::kLong);
+  check_tensor(shift, "shift", "[N', 2] int64", {M, 2}, at::kLong);
+  check_tensor(new_res, "new_res", "[N', 2] int32", {M, 2}, at::kInt);
+  check_tensor(new_off, "new_off", "[N'] int64", {M}, at::kLong);
+  const int32_t* ores = old_res.data_ptr<int32_t>();
+  const int32_t* nres = new_res.data_ptr<int32_t>();
+  const int64_t* ooff = old_off.data_ptr<int64_t>();
+  const int64_t* noff = new_off.data_ptr<int64_t>();
+  const int64_t* srcp = src.data_ptr<int64_t>();
+  int64_t new_rows = 0;
+  for (int64_t j = 0; j < M; ++j) {
+    TORCH_CHECK(srcp[j] >= 0 && srcp[j] < N, "jagged_remap: src out of range");
+    TORCH_CHECK(nres[2 * j] >= 0 && nres[2 * j + 1] >= 0, "jagged_remap: new_res must be >= 0");
+    TORCH_CHECK(noff[j] >= 0, "jagged_remap: new_off must be >= 0");
+    new_rows = std::max<int64_t>(new_rows, noff[j] + int64_t(nres[2 * j]) * nres[2 * j + 1]);
+  }
+  int64_t packed_rows = 0;  // every row written iff the new layout has no gaps (jagged_offsets packs)
+  for (int64_t j = 0; j < M; ++j) packed_rows += int64_t(nres[2 * j]) * nres[2 * j + 1];
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  std::vector<Tensor> out;
+  for (const Tensor& b : buffers) {
+    TORCH_CHECK(b.device().is_cpu() && b.dim() == 2 && b.is_contiguous() &&
+                (b.scalar_type() == at::kFloat || b.scalar_type() == at::kDouble),
+                "jagged_remap: buffers must be contiguous float CPU tensors [T, C], got ", b.sizes());
+    for (int64_t j = 0; j < M && b.size(0) > 0; ++j) {
+      const int64_t s = srcp[j];
+      TORCH_CHECK(ores[2 * s] >= 0 && ores[2 * s + 1] >= 0 && ooff[s] >= 0 &&
+                  ooff[s] + int64_t(ores[2 * s]) * ores[2 * s + 1] <= b.size(0),
+                  "jagged_remap: old layout exceeds a buffer of ", b.size(0), " rows");
+    }
+    Tensor o = packed_rows == new_rows ? torch::empty({new_rows, b.size(1)}, b.options())
+                                       : torch::zeros({new_rows, b.size(1)}, b.options());
+    AT_DISPATCH_FLOATING_TYPES(b.scalar_type(), "ctgs_jagged_remap_cpu", [&] {
+      ctgs::cpu::jagged_remap<scalar_t>(b.data_ptr<scalar_t>(), b.size(0), o.data_ptr<scalar_t>(), int(b.size(1)),
+                                        ores, reinterpret_cast<const long long*>(ooff),
+                                        reinterpret_cast<const long long*>(srcp),
+                                        reinterpret_cast<const long long*>(shift.data_ptr<int64_t>()), nres,
+                                        reinterpret_cast<const long long*>(noff), M, threads);
+    });
+    out.push_back(o);
+  }
+  return out;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, C++/OpenMP CPU backend (see docs/renderer.md)";
   m.def("forward_cpu", &forward_cpu, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
         "tile_list, count, contrib, err)");
+  m.def("forward_pairs_cpu", &forward_pairs_cpu, "forward that also returns every blended (pix, prim, w) "
+        "(returns rgb, alpha, depth, pix, prim, w)");
   m.def("backward_cpu", &backward_cpu, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
         "v_texel_size, v_textures, v_background)");
+  m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
+  m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum over primitives of weight x sum of |2 sigmoid(raw) - 1| over their texels");
+  m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
+  m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
+  m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
+  m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
+  m.def("profile_counters", [](bool reset) {
+    const std::vector<double> v = ctgs::cpu::prof_read(reset);
+    std::map<std::string, double> out;
+    for (int k = 0; k < ctgs::cpu::PROF_COUNT; ++k) out[ctgs::cpu::PROF_NAMES[k]] = v[k];
+    return out;
+  }, "wall-clock seconds per kernel phase since the last reset (benchmarks/profile_train.py)",
+  py::arg("reset") = true);
 }

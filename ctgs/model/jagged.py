@@ -34,6 +34,9 @@ def remap(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: torch.Ten
     """
     new_res = new_res.to(torch.int32)
     new_off = jagged_offsets(new_res)
+    fast = _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off)
+    if fast is not None:
+        return fast, new_off
     pid, iu, iv = texel_coords(new_res)
     s = src.long()[pid]
     ro = old_res.long()[s]  # [T', 2]
@@ -52,6 +55,19 @@ def remap(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: torch.Ten
     return out, new_off
 
 
+def _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
+    """remap in one compiled pass of row copies (kernels/cpu/dense.cpp) for CPU tensors: the index
+    arithmetic below makes ~15 [T]-sized int64 temporaries, which dominated the routines (issue 11)."""
+    from ctgs.fused import cpu_ext, fusable
+
+    if not buffers or not fusable(*buffers) or old_res.device.type != "cpu":
+        return None
+    return cpu_ext().jagged_remap_cpu(list(buffers), old_res.to(torch.int32).contiguous(),
+                                      old_off.long().contiguous(), src.long().contiguous(),
+                                      shift.long().contiguous(), new_res.contiguous(), new_off.contiguous(),
+                                      torch.get_num_threads())
+
+
 def blocks(buf: torch.Tensor, offsets: torch.Tensor, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
     """Texels of `prims` (all of resolution ru x rv) as [G, rv, ru, C]."""
     idx = offsets.long()[prims][:, None] + torch.arange(ru * rv, device=buf.device)[None]  # [G, rv*ru]
@@ -67,21 +83,25 @@ def replace_blocks(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: 
     new_res[prims]; every other primitive must keep its resolution.
     """
     n = old_res.shape[0]
-    changed = torch.zeros(n, dtype=torch.bool, device=old_res.device)
-    for prims, _ in new_blocks:
-        changed[prims] = True
-    keep_res = torch.where(changed[:, None], torch.zeros_like(new_res), new_res)
-    # Unchanged primitives: identity remap (changed ones get 0 texels for now).
     src = torch.arange(n, device=old_res.device)
-    kept, _ = remap(buffers, old_res, old_off, src, torch.zeros(n, 2, dtype=torch.long, device=old_res.device),
-                    keep_res)
+    zero = torch.zeros(n, 2, dtype=torch.long, device=old_res.device)
     new_off = jagged_offsets(new_res)
-    out = [b.new_zeros((int((new_res.long()[:, 0] * new_res.long()[:, 1]).sum()), b.shape[1])) for b in buffers]
-    pid, _, _ = texel_coords(keep_res)
-    local = torch.arange(pid.numel(), device=old_res.device) - jagged_offsets(keep_res)[pid]
-    dst = new_off[pid] + local
-    for o, k in zip(out, kept):
-        o[dst] = k
+    out = _cpu_remap(buffers, old_res, old_off, src, zero, new_res.to(torch.int32), new_off)
+    if out is None:
+        changed = torch.zeros(n, dtype=torch.bool, device=old_res.device)
+        for prims, _ in new_blocks:
+            changed[prims] = True
+        keep_res = torch.where(changed[:, None], torch.zeros_like(new_res), new_res)
+        # Unchanged primitives: identity remap (changed ones get 0 texels for now).
+        kept, _ = remap(buffers, old_res, old_off, src, zero, keep_res)
+        out = [b.new_zeros((int((new_res.long()[:, 0] * new_res.long()[:, 1]).sum()), b.shape[1])) for b in buffers]
+        pid, _, _ = texel_coords(keep_res)
+        local = torch.arange(pid.numel(), device=old_res.device) - jagged_offsets(keep_res)[pid]
+        dst = new_off[pid] + local
+        for o, k in zip(out, kept):
+            o[dst] = k
+    # (The compiled path remaps the changed primitives too, cropped or padded; every one of their texels
+    # is overwritten here.)
     for prims, vals in new_blocks:
         if len(prims) == 0:
             continue

@@ -31,6 +31,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from ctgs.fused import texel_activation
 from ctgs.render.types import SurfelInputs
 
 TEXTURE_MODES = ("content_aware", "fixed", "none")
@@ -86,7 +87,7 @@ class SurfelModel:
 
     @property
     def textures(self) -> torch.Tensor:
-        return 2.0 * torch.sigmoid(self.textures_raw) - 1.0
+        return texel_activation(self.textures_raw)  # 2 sigmoid(raw) - 1, one fused pass on the CPU
 
     @property
     def texel_size(self) -> torch.Tensor:

@@ -19,7 +19,9 @@ def render(surfels, camera, *, backend="auto", sh_degree=None, background=None, 
         sh_degree: active SH degree (default: the largest the K of `surfels.sh` allows).
         background: [3] colour behind everything (default black).
         error_image: optional [H, W] per-pixel error; when given, `RenderOutput.stats` holds the
-            per-primitive error statistics (no gradient flows through them).
+            per-primitive error statistics (no gradient flows through them). May also be a function
+            rgb [H, W, 3] -> [H, W] error of this very render (one pass instead of two on the cpu
+            backend when no gradient is wanted; the statistics are the same).
     Returns: RenderOutput.
     """
     from ctgs.render.api import render as _render

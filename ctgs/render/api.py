@@ -110,6 +110,8 @@ def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_d
     """Render `surfels` from `camera` (see ctgs.render.render for the argument documentation)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if callable(error_image):
+        return _render_error_fn(surfels, camera, backend, sh_degree, background, error_image)
     validate_inputs(surfels, camera, background, error_image)
     k_coeffs = surfels.sh.shape[1]
     max_degree = math.isqrt(k_coeffs) - 1
@@ -132,3 +134,36 @@ def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_d
         raise ValueError(f"the cpu backend needs CPU tensors (means is on {means.device}); pass backend='auto'")
     return rasterize(surfels, camera, degree, bg, error_image, device="cpu", knob=torch.get_num_threads(),
                      poison=POISON_OUTPUTS)
+
+
+def _render_error_fn(surfels: SurfelInputs, camera: Camera, backend: str, sh_degree: int | None,
+                     background: torch.Tensor | None, error_fn) -> RenderOutput:
+    """render() with error_image = error_fn(rgb of this render): one pass on the CPU backend (when no
+    gradient is wanted), else a render and a second render with the error image."""
+    validate_inputs(surfels, camera, background, None)
+
+    def check(e: torch.Tensor) -> None:
+        _check_float("error_image", e, f"[{camera.height}, {camera.width}]",
+                     isinstance(e, torch.Tensor) and tuple(e.shape) == (camera.height, camera.width), surfels.means)
+
+    means = surfels.means
+    wants_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in vars(surfels).values() if isinstance(t, torch.Tensor))
+    resolved = ("cuda" if means.is_cuda else "cpu") if backend == "auto" else backend
+    if resolved == "cpu" and means.device.type == "cpu" and not wants_grad:
+        from ctgs.render.rasterize import rasterize_error_fn
+
+        k_coeffs = surfels.sh.shape[1]
+        degree = math.isqrt(k_coeffs) - 1 if sh_degree is None else int(sh_degree)
+        if not 0 <= degree <= math.isqrt(k_coeffs) - 1:
+            raise ValueError(f"sh_degree must be in [0, {math.isqrt(k_coeffs) - 1}] for sh of shape "
+                             f"[N, {k_coeffs}, 3], got {degree}")
+        bg = background if background is not None else means.new_zeros(3)
+        return rasterize_error_fn(surfels, camera, degree, bg, error_fn, check, knob=torch.get_num_threads(),
+                                  poison=POISON_OUTPUTS)
+    first = render(surfels, camera, backend=backend, sh_degree=sh_degree, background=background)
+    e = error_fn(first.rgb)
+    check(e)
+    stats = render(surfels, camera, backend=backend, sh_degree=sh_degree, background=background,
+                   error_image=e.detach()).stats
+    return RenderOutput(rgb=first.rgb, alpha=first.alpha, depth=first.depth, stats=stats)

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import torch
 
+from typing import Callable
+
 from ctgs.render.camera import Camera
 from ctgs.render.preprocess import to_camera_space
 from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
@@ -80,4 +82,32 @@ def rasterize(s: SurfelInputs, camera: Camera, sh_degree: int, background: torch
         return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=None)
     if s.num_primitives == 0:  # the kernels return placeholder buffers for N = 0
         count, contrib, err = count.new_zeros(0), contrib.new_zeros(0), err.new_zeros(0)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err))
+
+
+def rasterize_error_fn(s: SurfelInputs, camera: Camera, sh_degree: int, background: torch.Tensor,
+                       error_fn: Callable[[torch.Tensor], torch.Tensor], check_error, *, knob: int,
+                       poison: bool) -> RenderOutput:
+    """One CPU render whose error statistics use the error image error_fn(rgb) of that very render: the
+    kernel lists every blended (pixel, primitive, w) and the statistics are sums over that list (the same
+    pairs and weights a second render with the error image would blend). No gradients.
+    check_error(e) validates the error image."""
+    from ctgs.render._ext import load_cpu
+
+    with torch.no_grad():
+        prims = to_camera_space(s.means, s.quats, s.sh, camera, sh_degree)
+        k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)
+        cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
+               int(camera.height), float(camera.near))
+        rgb, alpha, depth, pix, prim, w = load_cpu().forward_pairs_cpu(
+            prims.mu_c.contiguous(), prims.Rc.contiguous(), s.scales.detach().contiguous(),
+            s.opacities.detach().contiguous(), prims.colors.contiguous(), k.detach().contiguous(),
+            s.textures.detach().contiguous(), s.tex_res.contiguous(), s.tex_offset.contiguous(),
+            background.detach().contiguous(), *cam, knob, poison)
+        e = error_fn(rgb)
+        check_error(e)
+        n = s.num_primitives
+        count = torch.bincount(prim, minlength=n).to(torch.int32)
+        contrib = w.new_zeros(n).index_add_(0, prim, w)
+        err = w.new_zeros(n).index_add_(0, prim, e.detach().reshape(-1)[pix] * w)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err))

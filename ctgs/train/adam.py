@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from ctgs import fused
+
 PRIM_PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 TEX_PARAM = "textures_raw"
 ALL_PARAMS = PRIM_PARAMS + (TEX_PARAM,)
@@ -18,13 +20,22 @@ BETA1, BETA2 = 0.9, 0.999
 class SurfelAdam:
     def __init__(self, model, eps: float = 1e-15):
         self.eps = eps
+        self.nonfinite: list[str] = []
+        self.unchecked: list[str] = list(ALL_PARAMS)
         self.exp_avg = {n: torch.zeros_like(getattr(model, n)) for n in ALL_PARAMS}
         self.exp_avg_sq = {n: torch.zeros_like(getattr(model, n)) for n in ALL_PARAMS}
         self.steps = {n: 0 for n in ALL_PARAMS}
 
     @torch.no_grad()
     def step(self, model, lrs: dict) -> None:
-        """One Adam step; lrs maps a parameter name to a float or a broadcastable tensor (SH bands)."""
+        """One Adam step; lrs maps a parameter name to a float or a broadcastable tensor (SH bands).
+
+        On the CPU one fused pass per parameter (ctgs.fused), which also counts the non-finite
+        results: afterwards `nonfinite` names the parameters the step made NaN/Inf and `unchecked` those it
+        updated without counting (the PyTorch path), for the trainer's guard.
+        """
+        self.nonfinite: list[str] = []
+        self.unchecked: list[str] = []
         for name in ALL_PARAMS:
             p = getattr(model, name)
             lr = lrs.get(name, 0.0)
@@ -34,6 +45,14 @@ class SurfelAdam:
             m, v = self.exp_avg[name], self.exp_avg_sq[name]
             self.steps[name] += 1
             t = self.steps[name]
+            if fused.fusable(p, g, m, v) and p.dtype == g.dtype == m.dtype == v.dtype:
+                lr_t = None if not torch.is_tensor(lr) else lr.to(p.dtype).expand_as(p).contiguous()
+                bad = fused.cpu_ext().adam_step_cpu(p.detach(), g, m, v, lr_t, float(lr) if lr_t is None else 0.0,
+                                                    BETA1, BETA2, t, self.eps, torch.get_num_threads())
+                if bad:
+                    self.nonfinite.append(name)
+                continue
+            self.unchecked.append(name)
             m.mul_(BETA1).add_(g, alpha=1 - BETA1)
             v.mul_(BETA2).addcmul_(g, g, value=1 - BETA2)
             bc1 = 1 - BETA1 ** t

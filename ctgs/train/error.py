@@ -32,15 +32,16 @@ def accumulate_error(stats_per_view: list[tuple[torch.Tensor, torch.Tensor, int]
 
 @torch.no_grad()
 def compute_E(model, views, render_fn, lambda_ssim: float = 0.2) -> torch.Tensor:
-    """E over ALL `views` (objects with .camera and .image_t [H,W,3] tensors); render_fn(inputs, cam, err)."""
+    """E over ALL `views` (objects with .camera and .image_t [H,W,3] tensors); render_fn(inputs, cam, err)
+    with err a function of the rendered rgb (ctgs.render.render's error_image)."""
     inputs = model.render_inputs()
     inputs = type(inputs)(**{k: (v.detach() if torch.is_tensor(v) else v) for k, v in vars(inputs).items()})
     acc = []
     for view in views:
-        out = render_fn(inputs, view.camera, None)
-        e = error_image(out.rgb.clamp(0, 1), view.image_t, lambda_ssim)
-        stats = render_fn(inputs, view.camera, e).stats
-        acc.append((stats.err, stats.contrib, e.numel()))
+        # The error image of this very render (one pass on the CPU backend, see ctgs.render.render).
+        stats = render_fn(inputs, view.camera, lambda rgb, gt=view.image_t: error_image(rgb.clamp(0, 1), gt,
+                                                                                        lambda_ssim)).stats
+        acc.append((stats.err, stats.contrib, view.image_t.shape[0] * view.image_t.shape[1]))
     return accumulate_error(acc)
 
 

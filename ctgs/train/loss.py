@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ctgs.fused import texel_l1
 from ctgs.metrics.ssim import ssim_map
 from ctgs.model.geometry import quat_to_rotmat
 from ctgs.render.constants import CUTOFF_RHO, FILTER_INV_SQUARE, MAX_ALPHA, MIN_ALPHA
@@ -116,9 +117,9 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, st
     if cfg.lambda_opacity > 0:
         total = total + cfg.lambda_opacity * model.opacities.mean()
     if cfg.lambda_texture > 0 and model.texture_mode != "none" and model.num_texels > 0:
-        sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
-        texel_w = torch.repeat_interleave(texture_weights(model, camera, cfg, stats), sizes)  # [T]
+        weights = texture_weights(model, camera, cfg, stats)  # [N]
         # cfg.lambda_texture is already resolved for the image size (ctgs/train/rules.py: x 1e6 / (H*W)).
-        total = total + cfg.lambda_texture * (model.textures.abs().sum(1) * texel_w).sum()
+        # sum_i weights[i] sum |texel of i|: one fused pass on the CPU, no [T] weight tensor.
+        total = total + cfg.lambda_texture * texel_l1(model, weights)
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)
     return LossTerms(total=total, l1=float(l1.detach()), ssim=float(s.detach()), psnr=float(-10 * torch.log10(mse)))

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ctgs import fused
 from ctgs.errors import UserError
 from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
@@ -30,6 +31,12 @@ from ctgs.train.init import init_model
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
+
+
+def _all_finite(t: torch.Tensor) -> bool:
+    # min/max propagate NaN and expose +-inf in one pass without a bool temporary of the tensor's size.
+    lo, hi = torch.aminmax(t.detach())
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
 class TrainingDiverged(UserError):
@@ -74,6 +81,8 @@ class Trainer:
         self.device = pick_device(cfg)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)  # OpenMP spin-waiting on an oversubscribed CPU costs ~5x
+        if self.device.type == "cpu":
+            fused.tune_allocator()  # freed [T, 3] temporaries are reused, not faulted in afresh
         self.extent = float(scene.extent)
         self.train_views = make_views(scene.train, self.device)
         self.test_views = make_views(scene.test, self.device)
@@ -162,6 +171,7 @@ class Trainer:
         return self.wall_before + time.monotonic() - self.start_time
 
     def _save_checkpoint(self) -> str:
+        self._check_finite(None, full=True)
         path = ckpt.checkpoint_path(self.run_dir)
         atomic.torch_save(self._state(), path)
         return path
@@ -200,14 +210,18 @@ class Trainer:
         return float(np.mean(psnrs)), float(np.mean(ssims))
 
     # ---- guard -----------------------------------------------------------------------------------
-    def _check_finite(self, loss: torch.Tensor) -> None:
+    def _check_finite(self, loss: torch.Tensor | None, full: bool = False) -> None:
+        """NaN/Inf in the loss, or in a parameter the last optimiser step made non-finite (its fused
+        kernel counts them as it writes; parameters it updated otherwise are scanned here). full: scan
+        every parameter (before a checkpoint is written, so no NaN can reach one)."""
         bad = None
-        if not bool(torch.isfinite(loss)):
+        if loss is not None and not bool(torch.isfinite(loss)):
             bad = "loss"
         else:
+            names = ALL_PARAMS if full else self.opt.nonfinite + self.opt.unchecked
             for name in ALL_PARAMS:
                 p = getattr(self.model, name)
-                if p.numel() and not bool(torch.isfinite(p).all()):
+                if name in names and p.numel() and (name in self.opt.nonfinite or not _all_finite(p)):
                     bad = f"parameter {name}"
                     break
         if bad is None:

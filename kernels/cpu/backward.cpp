@@ -3,11 +3,17 @@
 // per-primitive gradients go to per-thread buffers reduced at the end. Texel gradients go to per-thread
 // copies of the texel buffer too while those stay small (MAX_PRIVATE_TEXEL_BYTES), else to the output
 // with atomics (a float atomic add is a CAS loop: 12 per pair would dominate the backward).
+//
+// Pixels are processed W at a time along the primitive's row spans (lanes.h, lane_math.h): the same
+// alpha as the forward (same functions), then the gradient of docs/renderer.md steps 1-8 per lane (the
+// derivative of ctgs/surfel.h's surfel_backward, regrouped: terms that are a per-primitive vector times a
+// per-pixel scalar are summed as scalars and multiplied once per primitive and tile).
 #include <omp.h>
 
 #include <algorithm>
 #include <memory>
 
+#include "lane_math.h"
 #include "rasterize.h"
 
 namespace ctgs {
@@ -18,31 +24,257 @@ namespace {
 enum : int { G_MU = 0, G_RC = 3, G_SCALE = 12, G_OPACITY = 14, G_COLOR = 15, G_TEXEL = 18, G_STRIDE = 20 };
 // Above this many bytes of extra per-thread texel-gradient copies, atomics are used instead.
 constexpr size_t MAX_PRIVATE_TEXEL_BYTES = size_t(256) << 20;
-}  // namespace
 
 template <typename S>
-inline void add_grad(SurfelGrad<S>& sum, const SurfelGrad<S>& g) {
-  sum.mu += g.mu;
-  sum.u += g.u;
-  sum.v += g.v;
-  sum.n += g.n;
-  sum.sx += g.sx;
-  sum.sy += g.sy;
-  sum.opacity += g.opacity;
-  sum.ku += g.ku;
-  sum.kv += g.kv;
-  for (int c = 0; c < 3; ++c) sum.color[c] += g.color[c];
+struct BackwardTileArgs {
+  const SceneArgs<S>* a;
+  const TileBinsView* bins;
+  const LanePrim<S>* prims;
+  const S* final_T;
+  const int32_t* n_contrib;
+  const S* v_rgb;
+  const S* v_alpha;
+  const S* v_depth;
+  int ntx;
+  S* g_thread;    // [N, G_STRIDE] this thread's per-primitive gradients
+  S* v_tex;       // [T, 3] this thread's texel gradients
+  bool atomics;   // v_tex is shared: add atomically
+  S* bg_thread;   // [3] this thread's background gradient
+};
+
+// Per-lane sums of one primitive over one tile.
+template <typename S>
+struct GradSums {
+  typename Lanes<S>::V color[3], opacity, sx, sy, mx, my, ku, kv, lx, ly, s, u[3], v[3], n[3], z_invalid;
+};
+
+template <typename S>
+CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
+  using L = Lanes<S>;
+  using V = typename L::V;
+  using I = typename L::I;
+  using Int = typename L::Int;
+  constexpr int W = L::W;
+  constexpr int RS = TILE_W + W;  // row stride: lane groups may run past a row end into the padding
+  constexpr int NP = TILE_H * RS;
+  const SceneArgs<S>& a = *b.a;
+  const int Wimg = a.K.width, Himg = a.K.height;
+  const int64_t begin = b.bins->offsets[tile];
+  const int x0 = (tile % b.ntx) * TILE_W, y0 = (tile / b.ntx) * TILE_H;
+  const int x1 = std::min(x0 + TILE_W, Wimg), y1 = std::min(y0 + TILE_H, Himg);  // exclusive
+  alignas(32) S T[NP], acc[NP], g0[NP], g1[NP], g2[NP], gD[NP], dn[NP];
+  alignas(32) Int ncon[NP];
+  alignas(32) S pxa[RS], dxa[RS], pya[TILE_H], dya[TILE_H];
+  const S bg[3] = {a.background[0], a.background[1], a.background[2]};
+  for (int k = 0; k < RS; ++k) {
+    pxa[k] = S(x0 + k) + S(0.5);
+    dxa[k] = (pxa[k] - a.K.cx) / a.K.fx;
+  }
+  int32_t jmax = 0;
+  for (int r = 0; r < TILE_H; ++r) {
+    pya[r] = S(y0 + r) + S(0.5);
+    dya[r] = (pya[r] - a.K.cy) / a.K.fy;
+    for (int k = 0; k < RS; ++k) {
+      const int p = r * RS + k;
+      dn[p] = sqrt(dxa[k] * dxa[k] + dya[r] * dya[r] + S(1) * S(1));
+      if (!(y0 + r < y1 && x0 + k < x1 && k < TILE_W)) {
+        T[p] = acc[p] = g0[p] = g1[p] = g2[p] = gD[p] = S(0);
+        ncon[p] = 0;  // padding: no entry is ever in front of where it stopped
+        continue;
+      }
+      const int64_t pix = int64_t(y0 + r) * Wimg + x0 + k;
+      g0[p] = b.v_rgb[3 * pix];
+      g1[p] = b.v_rgb[3 * pix + 1];
+      g2[p] = b.v_rgb[3 * pix + 2];
+      gD[p] = b.v_depth[pix];
+      T[p] = b.final_T[pix];
+      b.bg_thread[0] += T[p] * g0[p];
+      b.bg_thread[1] += T[p] * g1[p];
+      b.bg_thread[2] += T[p] * g2[p];
+      // acc = sum_{j>i} w_j f_j + T_final (bg . gC - gA), f_j = c_j . gC + z_j gD: everything behind i
+      // that alpha_i attenuates (alpha = 1 - T_final, hence -gA).
+      acc[p] = T[p] * (bg[0] * g0[p] + bg[1] * g1[p] + bg[2] * g2[p] - b.v_alpha[pix]);
+      ncon[p] = b.n_contrib[pix];
+      jmax = std::max(jmax, b.n_contrib[pix]);
+    }
+  }
+  I iota;
+  for (int k = 0; k < W; ++k) iota[k] = k;
+  const V zero = splat(S(0));
+  for (int32_t jj = jmax - 1; jj >= 0; --jj) {
+    const int32_t i = b.bins->list[begin + jj];
+    const LanePrim<S>& P = b.prims[i];
+    // Two entries ahead: the struct; one ahead: its spans, texels and texel gradients.
+    if (jj > 1) prefetch_prim(&b.prims[b.bins->list[begin + jj - 2]]);
+    if (jj > 0) {
+      const LanePrim<S>& Q = b.prims[b.bins->list[begin + jj - 1]];
+      prefetch_spans(Q, y0, y1 - 1);
+      prefetch_texels(Q, a.textures, b.v_tex);
+    }
+    const PixelRect& r = P.rect;
+    const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
+    if (ry0 > ry1) continue;
+    const int32_t* sp = P.spans + 2 * (ry0 - r.y0);
+    GradSums<S> g;
+    g.opacity = g.sx = g.sy = g.mx = g.my = g.ku = g.kv = g.lx = g.ly = g.s = g.z_invalid = zero;
+    for (int c = 0; c < 3; ++c) g.color[c] = g.u[c] = g.v[c] = g.n[c] = zero;
+    bool any_pass = false;
+    for (int y = ry0; y <= ry1; ++y, sp += 2) {
+      const int lo = std::max(int(sp[0]), x0), hi = std::min(int(sp[1]), x1 - 1);
+      if (lo > hi) continue;
+      const int ty = y - y0;
+      const LaneRow<S> R = lane_row(P, pya[ty], dya[ty]);
+      for (int x = lo; x <= hi; x += W) {
+        const int k0 = x - x0, p0 = ty * RS + k0;
+        const I in = (iota <= Int(hi - x)) & (Int(jj) < vload<I>(ncon + p0));  // not behind where it stopped
+        if (!any(in)) continue;
+        const V dx = vload<V>(dxa + k0), px = vload<V>(pxa + k0);
+        LaneHit<S> h;
+        lane_alpha(P, R, dx, px, vload<V>(dn + p0), a.K.near_plane, in, h);
+        const I pass = h.ok;
+        if (!any(pass)) continue;
+        any_pass = true;
+        V c_raw[3], c[3];
+        LaneTex<S> tx;
+        if (P.textured) {
+          lane_texture(P, a.textures, h, pass, tx, true);
+          lane_color(P, tx, c_raw, c);
+        } else {
+          tx.active = I{};
+          lane_color_plain(P, c_raw, c);
+        }
+        const V Tv = vload<V>(T + p0), accv = vload<V>(acc + p0);
+        const V gc[3] = {vload<V>(g0 + p0), vload<V>(g1 + p0), vload<V>(g2 + p0)};
+        const V gd = vload<V>(gD + p0);
+        const V om = S(1) - h.alpha;
+        const V one_minus = sel(om > S(T_RECOVER_EPS), om, splat(S(T_RECOVER_EPS)));
+        const V T_i = Tv / one_minus;
+        const V w = h.alpha * T_i;
+        const V f = c[0] * gc[0] + c[1] * gc[1] + c[2] * gc[2] + h.z * gd;
+        const V v_a = T_i * f - accv / one_minus;
+        // Colour: no gradient where clamped (c_raw <= 0); the texture gets what the colour gets.
+        V vc[3], gtex[3];
+        for (int ch = 0; ch < 3; ++ch) {
+          vc[ch] = sel(c_raw[ch] > S(0), w * gc[ch], zero);
+          gtex[ch] = sel(tx.active, vc[ch], zero);
+          g.color[ch] += sel(pass, vc[ch], zero);
+        }
+        // alpha = min(MAX_ALPHA, o G): no gradient through the clamped branch.
+        const I unclamped = (P.opacity * h.G) < S(MAX_ALPHA);
+        g.opacity += sel(pass & unclamped, v_a * h.G, zero);
+        const V v_G = sel(unclamped, v_a * P.opacity, zero);
+        const V v_rho = v_G * S(-0.5) * h.G;
+        const I is3d = pass & h.valid & h.use3d;
+        // rho3d = (lx/sx)^2 + (ly/sy)^2
+        V v_lx = sel(is3d, v_rho * S(2) * h.lx * P.isx2, zero);
+        V v_ly = sel(is3d, v_rho * S(2) * h.ly * P.isy2, zero);
+        g.sx += sel(is3d, -v_rho * S(2) * h.lx * h.lx * P.isx2 * P.isx, zero);
+        g.sy += sel(is3d, -v_rho * S(2) * h.ly * h.ly * P.isy2 * P.isy, zero);
+        // rho2d = F |pix - m|^2: summed here, times d m / d mu once per primitive below.
+        const I is2d = pass & ~(h.valid & h.use3d);
+        g.mx += sel(is2d, -v_rho * S(2) * S(FILTER_INV_SQUARE) * (px - P.mx), zero);
+        g.my += sel(is2d, -v_rho * S(2) * S(FILTER_INV_SQUARE) * R.ey, zero);
+        // Texture: uu = lx/ku + (res_u-1)/2 -> dL/dlx += v_uu/ku, dL/dku = -v_uu lx/ku^2; the texel
+        // gradients (tap weight x dL/d(fetched value)) are scattered lane by lane.
+        if (any(tx.active)) {
+          V tv[4];  // dL/d(fetched value) . texel, per tap (0 outside the grid)
+          for (int t = 0; t < 4; ++t)
+            tv[t] = gtex[0] * vload<V>(tx.texel[t][0]) + gtex[1] * vload<V>(tx.texel[t][1]) +
+                    gtex[2] * vload<V>(tx.texel[t][2]);
+          const V one = splat(S(1));
+          const V v_uu = sel(tx.active, (one - tx.fv) * (tv[1] - tv[0]) + tx.fv * (tv[3] - tv[2]), zero);
+          const V v_vv = sel(tx.active, (one - tx.fu) * (tv[2] - tv[0]) + tx.fu * (tv[3] - tv[1]), zero);
+          v_lx = v_lx + v_uu * P.iku;
+          v_ly = v_ly + v_vv * P.ikv;
+          g.ku += sel(tx.active, -v_uu * h.lx * P.iku2, zero);
+          g.kv += sel(tx.active, -v_vv * h.ly * P.ikv2, zero);
+          for (int k = 0; k < W; ++k) {
+            if (!tx.active[k]) continue;
+            for (int t = 0; t < 4; ++t) {
+              if (tx.row[t][k] < 0) continue;
+              S* dst = b.v_tex + 3 * tx.row[t][k];
+              const S wt = tx.w[t][k];
+              for (int ch = 0; ch < 3; ++ch) {
+                const S val = wt * gtex[ch][k];
+                if (b.atomics) {
+#pragma omp atomic
+                  dst[ch] += val;
+                } else {
+                  dst[ch] += val;
+                }
+              }
+            }
+          }
+        }
+        const V v_z = w * gd;
+        const I pv = pass & h.valid;
+        // lx = u.(p - mu), ly = v.(p - mu), p = t d; t = (n.mu) / (n.d): dt/dmu = n/(n.d),
+        // dt/dn = (mu - p)/(n.d). v_p . d = v_lx (u.d) + v_ly (v.d).
+        const V v_t = v_z + (v_lx * h.ud + v_ly * h.vd);
+        const V s = sel(pv, v_t / h.nd, zero);
+        const V q[3] = {h.t * dx - P.mux, h.t * R.dy - P.muy, h.t - P.muz};  // p - mu
+        const V vlx = sel(pv, v_lx, zero), vly = sel(pv, v_ly, zero);
+        g.lx += vlx;
+        g.ly += vly;
+        g.s += s;
+        for (int k = 0; k < 3; ++k) {
+          g.u[k] += sel(pv, vlx * q[k], zero);
+          g.v[k] += sel(pv, vly * q[k], zero);
+          g.n[k] += sel(pv, -s * q[k], zero);
+        }
+        g.z_invalid += sel(pass & ~h.valid, v_z, zero);  // z = mu.z
+        vstore(acc + p0, sel(pass, accv + w * f, accv));
+        vstore(T + p0, sel(pass, T_i, Tv));
+      }
+    }
+    if (!any_pass) continue;
+    const S slx = hsum<S>(g.lx), sly = hsum<S>(g.ly), ss = hsum<S>(g.s);
+    const S smx = hsum<S>(g.mx), smy = hsum<S>(g.my);
+    const S iz = S(1) / P.muz;
+    S* row = b.g_thread + size_t(i) * G_STRIDE;
+    // mu: -v_p (through lx, ly) + s n (through t) + the screen-space centre + z = mu.z where invalid.
+    row[G_MU] += -(P.ux * slx + P.vx * sly) + P.nx * ss + smx * a.K.fx * iz;
+    row[G_MU + 1] += -(P.uy * slx + P.vy * sly) + P.ny * ss + smy * a.K.fy * iz;
+    row[G_MU + 2] += -(P.uz * slx + P.vz * sly) + P.nz * ss -
+                     (smx * (P.mx - a.K.cx) + smy * (P.my - a.K.cy)) * iz + hsum<S>(g.z_invalid);
+    // Rc row-major with columns u, v, n: element (row k, col c) at 3k + c.
+    for (int k = 0; k < 3; ++k) {
+      row[G_RC + 3 * k] += hsum<S>(g.u[k]);
+      row[G_RC + 3 * k + 1] += hsum<S>(g.v[k]);
+      row[G_RC + 3 * k + 2] += hsum<S>(g.n[k]);
+    }
+    row[G_SCALE] += hsum<S>(g.sx);
+    row[G_SCALE + 1] += hsum<S>(g.sy);
+    row[G_OPACITY] += hsum<S>(g.opacity);
+    for (int ch = 0; ch < 3; ++ch) row[G_COLOR + ch] += hsum<S>(g.color[ch]);
+    row[G_TEXEL] += hsum<S>(g.ku);
+    row[G_TEXEL + 1] += hsum<S>(g.kv);
+  }
 }
+
+// Non-template entry points so that each can be multiversioned (lanes.h).
+CTGS_LANE_CLONES void backward_tile(const BackwardTileArgs<float>& b, int tile) { backward_tile_impl(b, tile); }
+CTGS_LANE_CLONES void backward_tile(const BackwardTileArgs<double>& b, int tile) { backward_tile_impl(b, tile); }
+
+}  // namespace
 
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out) {
+  ProfTimer timer;
   std::vector<SurfelPrim<S>> prims;
   std::vector<PixelRect> rects;
-  bin_primitives<S>(a, prims, rects, nullptr);  // camera-space constants only; the lists come from forward
+  PrimSpans spans;
+  bin_primitives<S>(a, prims, rects, spans, nullptr);  // camera-space constants only; the lists come from forward
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
   const int nt = std::max(1, a.num_threads);
+  std::vector<LanePrim<S>> lp(N);
+#pragma omp parallel for schedule(static) num_threads(nt)
+  for (int i = 0; i < N; ++i) {
+    const PixelRect& r = rects[i];
+    lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr);
+  }
   std::vector<S> gbuf(size_t(nt) * N * G_STRIDE, S(0));
   std::vector<S> bgbuf(size_t(nt) * 3, S(0));
   // Thread 0 writes texel gradients straight into the output, threads 1.. into private copies.
@@ -57,109 +289,18 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     else tbuf[k - tex_n] = S(0);
   }
   const bool use_atomics = nt > 1 && !private_tex;
-  const S bg[3] = {a.background[0], a.background[1], a.background[2]};
-  constexpr int TP = TILE_W * TILE_H;
+  timer.lap(PROF_BWD_SETUP);
 
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
-    S* g_thread = gbuf.data() + size_t(tid) * N * G_STRIDE;
-    S* v_tex_thread = (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n;
-    const int64_t begin = bins.offsets[tile];
-    const int x0 = (tile % ntx) * TILE_W, y0 = (tile / ntx) * TILE_H;
-    const int x1 = std::min(x0 + TILE_W, W), y1 = std::min(y0 + TILE_H, H);  // exclusive
-    PixelRay<S> rays[TP];
-    S T[TP], acc[TP], gC[TP][3], gD[TP];
-    int32_t ncon[TP];
-    int32_t jmax = 0;
-    for (int y = y0; y < y1; ++y)
-      for (int x = x0; x < x1; ++x) {
-        const int p = (y - y0) * TILE_W + (x - x0);
-        const int64_t pix = int64_t(y) * W + x;
-        rays[p] = pixel_ray<S>(x, y, a.K);
-        for (int c = 0; c < 3; ++c) gC[p][c] = v_rgb[3 * pix + c];
-        gD[p] = v_depth[pix];
-        T[p] = final_T[pix];
-        for (int c = 0; c < 3; ++c) bgbuf[3 * tid + c] += T[p] * gC[p][c];
-        // acc = sum_{j>i} w_j f_j + T_final (bg . gC - gA), f_j = c_j . gC + z_j gD: everything behind i
-        // that alpha_i attenuates (alpha = 1 - T_final, hence -gA).
-        acc[p] = T[p] * (bg[0] * gC[p][0] + bg[1] * gC[p][1] + bg[2] * gC[p][2] - v_alpha[pix]);
-        ncon[p] = n_contrib[pix];
-        jmax = std::max(jmax, ncon[p]);
-      }
-    for (int32_t jj = jmax - 1; jj >= 0; --jj) {
-      const int32_t i = bins.list[begin + jj];
-      const SurfelPrim<S>& P = prims[i];
-      const PixelRect& r = rects[i];
-      const int rx0 = std::max(r.x0, x0), rx1 = std::min(r.x1, x1 - 1);
-      const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
-      SurfelGrad<S> sum;
-      const Vec3<S> zero = make_vec3(S(0), S(0), S(0));
-      sum.mu = sum.u = sum.v = sum.n = zero;
-      sum.sx = sum.sy = sum.opacity = sum.ku = sum.kv = S(0);
-      sum.color[0] = sum.color[1] = sum.color[2] = S(0);
-      bool any = false;
-      for (int y = ry0; y <= ry1; ++y) {
-        for (int x = rx0; x <= rx1; ++x) {
-          const int p = (y - y0) * TILE_W + (x - x0);
-          if (jj >= ncon[p]) continue;  // behind where this pixel stopped
-          SurfelHit<S> h;
-          if (!surfel_alpha(P, rays[p], a.K.near_plane, h)) continue;
-          surfel_color(P, a.textures, h);
-          const S one_minus = std::max(S(T_RECOVER_EPS), S(1) - h.alpha);
-          const S T_i = T[p] / one_minus;
-          const S w = h.alpha * T_i;
-          const S f = h.c[0] * gC[p][0] + h.c[1] * gC[p][1] + h.c[2] * gC[p][2] + h.z * gD[p];
-          const S v_a = T_i * f - acc[p] / one_minus;
-          const S v_c[3] = {w * gC[p][0], w * gC[p][1], w * gC[p][2]};
-          SurfelGrad<S> g;
-          surfel_backward(P, rays[p], a.K, h, a.textures, v_a, v_c, w * gD[p], g);
-          add_grad(sum, g);
-          any = true;
-          if (h.taps.active) {
-            for (int k = 0; k < 4; ++k) {
-              if (h.taps.row[k] < 0) continue;
-              S* dst = v_tex_thread + 3 * h.taps.row[k];
-              if (use_atomics) {
-                for (int c = 0; c < 3; ++c) {
-                  const S val = h.taps.w[k] * g.tex[c];
-#pragma omp atomic
-                  dst[c] += val;
-                }
-              } else {
-                for (int c = 0; c < 3; ++c) dst[c] += h.taps.w[k] * g.tex[c];
-              }
-            }
-          }
-          acc[p] += w * f;
-          T[p] = T_i;
-        }
-      }
-      if (!any) continue;
-      S* row = g_thread + size_t(i) * G_STRIDE;
-      row[G_MU] += sum.mu.x;
-      row[G_MU + 1] += sum.mu.y;
-      row[G_MU + 2] += sum.mu.z;
-      // Rc row-major with columns u, v, n: element (row k, col c) at 3k + c.
-      row[G_RC + 0] += sum.u.x;
-      row[G_RC + 3] += sum.u.y;
-      row[G_RC + 6] += sum.u.z;
-      row[G_RC + 1] += sum.v.x;
-      row[G_RC + 4] += sum.v.y;
-      row[G_RC + 7] += sum.v.z;
-      row[G_RC + 2] += sum.n.x;
-      row[G_RC + 5] += sum.n.y;
-      row[G_RC + 8] += sum.n.z;
-      row[G_SCALE] += sum.sx;
-      row[G_SCALE + 1] += sum.sy;
-      row[G_OPACITY] += sum.opacity;
-      row[G_COLOR] += sum.color[0];
-      row[G_COLOR + 1] += sum.color[1];
-      row[G_COLOR + 2] += sum.color[2];
-      row[G_TEXEL] += sum.ku;
-      row[G_TEXEL + 1] += sum.kv;
-    }
+    BackwardTileArgs<S> b{&a, &bins, lp.data(), final_T, n_contrib, v_rgb, v_alpha, v_depth,
+                          ntx, gbuf.data() + size_t(tid) * N * G_STRIDE,
+                          (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n,
+                          use_atomics, bgbuf.data() + 3 * tid};
+    backward_tile(b, tile);
   }
+  timer.lap(PROF_BWD_RASTER);
 
 #pragma omp parallel for schedule(static) num_threads(nt)
   for (int i = 0; i < N; ++i) {
@@ -175,6 +316,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     for (int k = 0; k < 3; ++k) out.v_colors[3 * i + k] = row[G_COLOR + k];
     for (int k = 0; k < 2; ++k) out.v_texel_size[2 * i + k] = row[G_TEXEL + k];
   }
+  timer.lap(PROF_BWD_REDUCE);
   if (private_tex) {
 #pragma omp parallel for schedule(static) num_threads(nt)
     for (long long k = 0; k < (long long)tex_n; ++k) {
@@ -188,6 +330,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     for (int t = 0; t < nt; ++t) s += bgbuf[3 * t + c];
     out.v_background[c] = s;
   }
+  timer.lap(PROF_BWD_TEX_REDUCE);
 }
 
 template void backward<float>(const SceneArgs<float>&, const TileBinsView&, const float*, const int32_t*,

@@ -1,108 +1,222 @@
 // Forward pass of the CPU backend (docs/renderer.md step 8) plus the per-primitive error statistics.
-// Per tile, primitives are the outer loop (in blending order) and only the pixels inside each one's
-// pixel bounds are visited, with per-pixel blending state kept in small arrays: the same per-pixel
-// front-to-back result as a pixel-outer loop, but the work scales with the area primitives cover, not
-// with (pixels x primitives in the tile).
+// Per tile, primitives are the outer loop (in blending order) and only the pixels of each one's row
+// spans (spans.h) are visited, W at a time (lanes.h, lane_math.h), with the per-pixel blending state in
+// small per-tile arrays: the same per-pixel front-to-back result as a pixel-outer loop, but the work
+// scales with the area primitives cover, not with (pixels x primitives in the tile).
 #include <omp.h>
 
 #include <algorithm>
 
+#include "lane_math.h"
 #include "rasterize.h"
 
 namespace ctgs {
 namespace cpu {
 
+namespace {
+
+template <typename S>
+struct ForwardTileArgs {
+  const SceneArgs<S>* a;
+  const ForwardOut<S>* out;
+  const LanePrim<S>* prims;
+  const int32_t* list;
+  int ntx;
+  int32_t* count;  // this thread's statistics [N] (null without an error image)
+  S* contrib;
+  S* err;
+  BlendPairs<S>* pairs;  // this tile's blended pairs (null unless recorded)
+};
+
+// One tile: list entries [begin, end).
+template <typename S>
+CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_t begin, int64_t end) {
+  using L = Lanes<S>;
+  using V = typename L::V;
+  using I = typename L::I;
+  using Int = typename L::Int;
+  constexpr int W = L::W;
+  // Rows of RS entries: a lane group starting inside a row may run past its end into the padding.
+  constexpr int RS = TILE_W + W;
+  constexpr int NP = TILE_H * RS;
+  const SceneArgs<S>& a = *f.a;
+  const ForwardOut<S>& out = *f.out;
+  const int Wimg = a.K.width, Himg = a.K.height;
+  const bool stats = out.error_image != nullptr;
+  const int x0 = (tile % f.ntx) * TILE_W, y0 = (tile / f.ntx) * TILE_H;
+  const int x1 = std::min(x0 + TILE_W, Wimg), y1 = std::min(y0 + TILE_H, Himg);  // exclusive
+  alignas(32) S T[NP], C0[NP], C1[NP], C2[NP], D[NP], E[NP], dn[NP];
+  alignas(32) Int last[NP], done[NP];
+  alignas(32) S pxa[RS], dxa[RS], pya[TILE_H], dya[TILE_H];
+  for (int k = 0; k < RS; ++k) {
+    pxa[k] = S(x0 + k) + S(0.5);
+    dxa[k] = (pxa[k] - a.K.cx) / a.K.fx;
+  }
+  int alive = 0;
+  for (int r = 0; r < TILE_H; ++r) {
+    pya[r] = S(y0 + r) + S(0.5);
+    dya[r] = (pya[r] - a.K.cy) / a.K.fy;
+    for (int k = 0; k < RS; ++k) {
+      const int p = r * RS + k;
+      const bool inside = y0 + r < y1 && x0 + k < x1 && k < TILE_W;
+      dn[p] = sqrt(dxa[k] * dxa[k] + dya[r] * dya[r] + S(1) * S(1));
+      T[p] = S(1);
+      C0[p] = C1[p] = C2[p] = D[p] = S(0);
+      E[p] = stats && inside ? out.error_image[int64_t(y0 + r) * Wimg + x0 + k] : S(0);
+      last[p] = 0;
+      done[p] = inside ? 0 : -1;  // padding never blends
+      alive += inside;
+    }
+  }
+  I iota;
+  for (int k = 0; k < W; ++k) iota[k] = k;
+  for (int64_t j = begin; j < end && alive > 0; ++j) {
+    const int32_t i = f.list[j];
+    const LanePrim<S>& P = f.prims[i];
+    // Two entries ahead: the struct; one ahead: its spans and texels (the struct is in cache by now).
+    if (j + 2 < end) prefetch_prim(&f.prims[f.list[j + 2]]);
+    if (j + 1 < end) {
+      const LanePrim<S>& Q = f.prims[f.list[j + 1]];
+      prefetch_spans(Q, y0, y1 - 1);
+      prefetch_texels(Q, a.textures, static_cast<const S*>(nullptr));
+    }
+    const PixelRect& r = P.rect;
+    const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
+    if (ry0 > ry1) continue;
+    const int32_t* sp = P.spans + 2 * (ry0 - r.y0);
+    const Int jpos = Int(j - begin + 1);
+    V sum_w{}, sum_ew{};
+    I n_blend{};
+    for (int y = ry0; y <= ry1; ++y, sp += 2) {
+      const int lo = std::max(int(sp[0]), x0), hi = std::min(int(sp[1]), x1 - 1);
+      if (lo > hi) continue;
+      const int ty = y - y0;
+      const LaneRow<S> R = lane_row(P, pya[ty], dya[ty]);
+      for (int x = lo; x <= hi; x += W) {
+        const int k0 = x - x0, p0 = ty * RS + k0;
+        const I in = (iota <= Int(hi - x)) & ~vload<I>(done + p0);
+        if (!any(in)) continue;
+        LaneHit<S> h;
+        lane_alpha(P, R, vload<V>(dxa + k0), vload<V>(pxa + k0), vload<V>(dn + p0), a.K.near_plane, in, h);
+        if (!any(h.ok)) continue;
+        const V Tv = vload<V>(T + p0);
+        const V T_next = Tv * (S(1) - h.alpha);
+        const I stop = h.ok & (T_next < S(T_EPS));  // 3DGS rule: stop without blending this one
+        const I blend = h.ok & ~stop;
+        if (any(stop)) {
+          vstore(done + p0, vload<I>(done + p0) | stop);
+          alive -= count_lanes(stop);
+        }
+        if (!any(blend)) continue;
+        V c_raw[3], c[3];
+        if (P.textured) {
+          LaneTex<S> tx;
+          lane_texture(P, a.textures, h, blend, tx, false);
+          lane_color(P, tx, c_raw, c);
+        } else {
+          lane_color_plain(P, c_raw, c);
+        }
+        const V w = h.alpha * Tv;
+        vstore(C0 + p0, sel(blend, vload<V>(C0 + p0) + w * c[0], vload<V>(C0 + p0)));
+        vstore(C1 + p0, sel(blend, vload<V>(C1 + p0) + w * c[1], vload<V>(C1 + p0)));
+        vstore(C2 + p0, sel(blend, vload<V>(C2 + p0) + w * c[2], vload<V>(C2 + p0)));
+        vstore(D + p0, sel(blend, vload<V>(D + p0) + w * h.z, vload<V>(D + p0)));
+        vstore(T + p0, sel(blend, T_next, Tv));
+        vstore(last + p0, seli(blend, I{} + jpos, vload<I>(last + p0)));
+        if (f.pairs) {
+          for (int k = 0; k < W; ++k)
+            if (blend[k]) {
+              f.pairs->pix.push_back(int32_t(int64_t(y) * Wimg + x + k));
+              f.pairs->prim.push_back(i);
+              f.pairs->w.push_back(w[k]);
+            }
+        }
+        if (stats) {
+          n_blend -= blend;
+          sum_w += sel(blend, w, splat(S(0)));
+          sum_ew += sel(blend, vload<V>(E + p0) * w, splat(S(0)));
+        }
+      }
+    }
+    if (stats && any(n_blend)) {
+      int n = 0;
+      for (int k = 0; k < W; ++k) n += int(n_blend[k]);
+      f.count[i] += n;
+      f.contrib[i] += hsum<S>(sum_w);
+      f.err[i] += hsum<S>(sum_ew);
+    }
+  }
+  const S bg[3] = {a.background[0], a.background[1], a.background[2]};
+  for (int y = y0; y < y1; ++y)
+    for (int x = x0; x < x1; ++x) {
+      const int p = (y - y0) * RS + (x - x0);
+      const int64_t pix = int64_t(y) * Wimg + x;
+      out.rgb[3 * pix] = C0[p] + T[p] * bg[0];
+      out.rgb[3 * pix + 1] = C1[p] + T[p] * bg[1];
+      out.rgb[3 * pix + 2] = C2[p] + T[p] * bg[2];
+      out.alpha[pix] = S(1) - T[p];
+      out.depth[pix] = D[p];
+      out.final_T[pix] = T[p];
+      out.n_contrib[pix] = int32_t(last[p]);
+    }
+}
+
+// Non-template entry points so that each can be multiversioned (lanes.h).
+CTGS_LANE_CLONES void forward_tile(const ForwardTileArgs<float>& f, int tile, int64_t begin, int64_t end) {
+  forward_tile_impl(f, tile, begin, end);
+}
+CTGS_LANE_CLONES void forward_tile(const ForwardTileArgs<double>& f, int tile, int64_t begin, int64_t end) {
+  forward_tile_impl(f, tile, begin, end);
+}
+
+}  // namespace
+
 template <typename S>
 void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
+  ProfTimer timer;
   std::vector<SurfelPrim<S>> prims;
   std::vector<PixelRect> rects;
-  bin_primitives(a, prims, rects, bins);
-  const int W = a.K.width, H = a.K.height, N = a.N;
-  const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
-  const bool stats = out.error_image != nullptr;
+  PrimSpans spans;
+  bin_primitives(a, prims, rects, spans, bins);
+  const int N = a.N;
   const int nt = std::max(1, a.num_threads);
+  std::vector<LanePrim<S>> lp(N);
+#pragma omp parallel for schedule(static) num_threads(nt)
+  for (int i = 0; i < N; ++i) {
+    const PixelRect& r = rects[i];
+    lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr);
+  }
+  timer.lap(PROF_FWD_BIN);
+  const int ntx = tiles_x(a.K.width), num_tiles = ntx * tiles_y(a.K.height);
+  const bool stats = out.error_image != nullptr;
   // Per-thread statistics, reduced at the end: race-free and deterministic for a fixed thread count.
   std::vector<int32_t> count_buf(stats ? size_t(nt) * N : 0, 0);
   std::vector<S> contrib_buf(stats ? size_t(nt) * N : 0, S(0)), err_buf(stats ? size_t(nt) * N : 0, S(0));
-  const S bg[3] = {a.background[0], a.background[1], a.background[2]};
-  constexpr int TP = TILE_W * TILE_H;
+  std::vector<BlendPairs<S>> tile_pairs(out.pairs ? num_tiles : 0);
 
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
-    const int64_t begin = bins->offsets[tile], end = bins->offsets[tile + 1];
-    const int32_t* list = bins->list.data();
-    const int x0 = (tile % ntx) * TILE_W, y0 = (tile / ntx) * TILE_H;
-    const int x1 = std::min(x0 + TILE_W, W), y1 = std::min(y0 + TILE_H, H);  // exclusive
-    PixelRay<S> rays[TP];
-    S T[TP], D[TP], C[TP][3], E[TP];
-    int32_t last[TP];
-    bool done[TP];
-    int alive = 0;
-    for (int y = y0; y < y1; ++y)
-      for (int x = x0; x < x1; ++x) {
-        const int p = (y - y0) * TILE_W + (x - x0);
-        rays[p] = pixel_ray<S>(x, y, a.K);
-        T[p] = S(1);
-        D[p] = C[p][0] = C[p][1] = C[p][2] = S(0);
-        E[p] = stats ? out.error_image[int64_t(y) * W + x] : S(0);
-        last[p] = 0;
-        done[p] = false;
-        ++alive;
-      }
-    for (int64_t j = begin; j < end && alive > 0; ++j) {
-      const int32_t i = list[j];
-      const SurfelPrim<S>& P = prims[i];
-      const PixelRect& r = rects[i];
-      const int rx0 = std::max(r.x0, x0), rx1 = std::min(r.x1, x1 - 1);
-      const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
-      int32_t n_blend = 0;
-      S sum_w = S(0), sum_ew = S(0);
-      for (int y = ry0; y <= ry1; ++y) {
-        for (int x = rx0; x <= rx1; ++x) {
-          const int p = (y - y0) * TILE_W + (x - x0);
-          if (done[p]) continue;
-          SurfelHit<S> h;
-          if (!surfel_alpha(P, rays[p], a.K.near_plane, h)) continue;
-          const S T_next = T[p] * (S(1) - h.alpha);
-          if (T_next < S(T_EPS)) {  // 3DGS rule: stop without blending this one
-            done[p] = true;
-            --alive;
-            continue;
-          }
-          surfel_color(P, a.textures, h);
-          const S w = h.alpha * T[p];
-          C[p][0] += w * h.c[0];
-          C[p][1] += w * h.c[1];
-          C[p][2] += w * h.c[2];
-          D[p] += w * h.z;
-          T[p] = T_next;
-          last[p] = int32_t(j - begin + 1);
-          ++n_blend;
-          sum_w += w;
-          sum_ew += E[p] * w;
-        }
-      }
-      if (stats && n_blend > 0) {
-        const size_t k = size_t(tid) * N + i;
-        count_buf[k] += n_blend;
-        contrib_buf[k] += sum_w;
-        err_buf[k] += sum_ew;
-      }
-    }
-    for (int y = y0; y < y1; ++y)
-      for (int x = x0; x < x1; ++x) {
-        const int p = (y - y0) * TILE_W + (x - x0);
-        const int64_t pix = int64_t(y) * W + x;
-        out.rgb[3 * pix] = C[p][0] + T[p] * bg[0];
-        out.rgb[3 * pix + 1] = C[p][1] + T[p] * bg[1];
-        out.rgb[3 * pix + 2] = C[p][2] + T[p] * bg[2];
-        out.alpha[pix] = S(1) - T[p];
-        out.depth[pix] = D[p];
-        out.final_T[pix] = T[p];
-        out.n_contrib[pix] = last[p];
-      }
+    ForwardTileArgs<S> f{&a, &out, lp.data(), bins->list.data(), ntx,
+                         stats ? count_buf.data() + size_t(tid) * N : nullptr,
+                         stats ? contrib_buf.data() + size_t(tid) * N : nullptr,
+                         stats ? err_buf.data() + size_t(tid) * N : nullptr,
+                         out.pairs ? &tile_pairs[tile] : nullptr};
+    forward_tile(f, tile, bins->offsets[tile], bins->offsets[tile + 1]);
   }
+  if (out.pairs) {
+    size_t total = 0;
+    for (const auto& t : tile_pairs) total += t.pix.size();
+    out.pairs->pix.reserve(total);
+    out.pairs->prim.reserve(total);
+    out.pairs->w.reserve(total);
+    for (const auto& t : tile_pairs) {
+      out.pairs->pix.insert(out.pairs->pix.end(), t.pix.begin(), t.pix.end());
+      out.pairs->prim.insert(out.pairs->prim.end(), t.prim.begin(), t.prim.end());
+      out.pairs->w.insert(out.pairs->w.end(), t.w.begin(), t.w.end());
+    }
+  }
+  timer.lap(PROF_FWD_RASTER);
   if (stats) {
 #pragma omp parallel for schedule(static) num_threads(nt)
     for (int i = 0; i < N; ++i) {
@@ -118,6 +232,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
       out.err[i] = r;
     }
   }
+  timer.lap(PROF_FWD_REDUCE);
 }
 
 template void forward<float>(const SceneArgs<float>&, const ForwardOut<float>&, TileBins*);

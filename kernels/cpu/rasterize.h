@@ -2,6 +2,7 @@
 // tensors). Templated on the scalar S (float, double); explicit instantiations live in the .cpp files.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <vector>
 
@@ -29,12 +30,26 @@ struct TileBinsView {
   const int32_t* list;     // [pairs]
 };
 
-// Camera-space primitives and their pixel bounds for every index, and (if bins) the tile lists. Culls
-// mu_c.z < near, opacity < MIN_ALPHA (alpha <= opacity can never reach MIN_ALPHA) and primitives whose
-// bounds miss the image (their rect is empty).
+// Per-row pixel spans of every primitive (spans.h): row y of primitive i covers pixels
+// xs[2 k], xs[2 k + 1] (inclusive; empty if the first is larger), k = offset[i] + y - row0[i], for
+// y in rects[i].y0..rects[i].y1. Every pair that can pass surfel_alpha lies inside its span.
+struct PrimSpans {
+  std::vector<int64_t> offset;  // [N]
+  std::vector<int32_t> row0;    // [N]
+  std::vector<int32_t> xs;      // [rows, 2]
+  const int32_t* row(int i, int y) const { return xs.data() + 2 * (offset[i] + (y - row0[i])); }
+};
+
+// Camera-space primitives, their pixel bounds and row spans for every index, and (if bins) the tile
+// lists. Culls mu_c.z < near, opacity < MIN_ALPHA (alpha <= opacity can never reach MIN_ALPHA) and
+// primitives none of whose rows has pixels (their rect is empty). rects[i] is the bounding box of the
+// spans; a primitive is listed in the tiles its 3-sigma rect (ctgs/bounds.h) touches, as on CUDA.
 template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
-                    TileBins* bins);
+                    PrimSpans& spans, TileBins* bins);
+
+template <typename S>
+struct BlendPairs;
 
 // Forward outputs; stats pointers may be null when no error image is given.
 template <typename S>
@@ -48,6 +63,17 @@ struct ForwardOut {
   int32_t* count;  // [N] pixels blended
   S* contrib;      // [N] sum of w
   S* err;          // [N] sum of e w
+  struct BlendPairs<S>* pairs = nullptr;  // if set: every blended (pixel, primitive, w), see BlendPairs
+};
+
+// Every blended (pixel, primitive, w) of one render, tile by tile in tile order (within a tile:
+// primitive by primitive in blending order, then pixel by pixel): the error statistics of any error
+// image computed afterwards are sums over these (one render instead of two, ctgs/render/api.py).
+template <typename S>
+struct BlendPairs {
+  std::vector<int32_t> pix;   // y * W + x
+  std::vector<int32_t> prim;
+  std::vector<S> w;
 };
 
 template <typename S>
@@ -61,6 +87,34 @@ using BackwardOut = ctgs::BackwardOut<S>;
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out);
+
+// Wall-clock seconds per phase, summed over calls since the last read (benchmarks/profile_train.py reads
+// them through the binding `profile_counters`). Only the calling thread touches them, outside parallel
+// regions: a few clock reads per render, nothing per pixel.
+enum ProfPhase : int {
+  PROF_FWD_BIN = 0,     // per-primitive setup, bounds, depth sort, tile lists
+  PROF_FWD_RASTER,      // blending
+  PROF_FWD_REDUCE,      // per-thread error statistics -> outputs
+  PROF_BWD_SETUP,       // per-primitive setup and zeroing of the gradient buffers
+  PROF_BWD_RASTER,      // back-to-front blending gradients
+  PROF_BWD_REDUCE,      // per-thread per-primitive gradients -> outputs
+  PROF_BWD_TEX_REDUCE,  // per-thread texel gradients -> output
+  PROF_COUNT
+};
+extern const char* const PROF_NAMES[PROF_COUNT];
+void prof_add(int phase, double seconds);
+// Returns the counters and, if reset, zeroes them.
+std::vector<double> prof_read(bool reset);
+
+// Adds the time from construction (or the last lap) to a phase.
+struct ProfTimer {
+  std::chrono::steady_clock::time_point t0 = std::chrono::steady_clock::now();
+  void lap(int phase) {
+    const auto t1 = std::chrono::steady_clock::now();
+    prof_add(phase, std::chrono::duration<double>(t1 - t0).count());
+    t0 = t1;
+  }
+};
 
 }  // namespace cpu
 }  // namespace ctgs

@@ -1,0 +1,248 @@
+// Dense per-element training work on the CPU, one pass each instead of a chain of PyTorch ops (issue 11:
+// at 1-2M texels every [T, 3] pass and temporary of the optimiser and the texture regulariser showed in
+// the profile):
+//  - adam_step: Adam on one parameter tensor in place (p, m, v), counting non-finite results so the
+//    trainer's NaN guard needs no scan of its own;
+//  - texel_l1: sum over primitives of weight[i] x the sum over i's texels of |2 sigmoid(raw) - 1| (the
+//    activated texel offsets, ctgs/model/surfels.py) and its gradient w.r.t. raw.
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "dense.h"
+#include "lanes.h"
+
+namespace ctgs {
+namespace cpu {
+
+namespace {
+// Elements per OpenMP chunk: large enough that scheduling costs nothing, small enough to balance.
+constexpr int64_t CHUNK = 1 << 14;
+}  // namespace
+
+template <typename S>
+int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, double lr, double beta1,
+                  double beta2, double bc1, double bc2, double eps, int threads) {
+  const S b1 = S(beta1), b2 = S(beta2), c1 = S(1 - beta1), c2 = S(1 - beta2);
+  const S ibc1 = S(1) / S(bc1), ibc2 = S(1) / S(bc2), e = S(eps), lr_s = S(lr);
+  int64_t bad = 0;
+#pragma omp parallel for schedule(static) num_threads(std::max(1, threads)) reduction(+ : bad)
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK) {
+    const int64_t c1e = std::min(n, c0 + CHUNK);
+    int64_t b = 0;
+#pragma omp simd reduction(+ : b)
+    for (int64_t k = c0; k < c1e; ++k) {
+      const S gk = g[k];
+      const S mk = b1 * m[k] + c1 * gk;
+      const S vk = b2 * v[k] + c2 * (gk * gk);
+      m[k] = mk;
+      v[k] = vk;
+      const S step = (lr_vec ? lr_vec[k] : lr_s) * (mk * ibc1) / (std::sqrt(vk * ibc2) + e);
+      const S pk = p[k] - step;
+      p[k] = pk;
+      b += !(pk - pk == S(0));  // NaN or +-inf (x - x is NaN for both)
+    }
+    bad += b;
+  }
+  return bad;
+}
+
+namespace {
+
+// |tanh(x/2)| = |2 sigmoid(x) - 1| = (1 - e) / (1 + e) and d/dx = sign(x) 2e / (1 + e)^2 with
+// e = exp(-|x|) in (0, 1]: no cancellation, exp's argument always <= 0 (lanes.h vexp's range).
+// wgt: the primitive's weight; gradients are scaled by `scale` (= upstream gradient x wgt).
+template <typename S>
+CTGS_INLINE void l1_lanes(const S* x, S* grad, S wgt, S scale, typename Lanes<S>::V& acc) {
+  using V = typename Lanes<S>::V;
+  const V xv = vload<V>(x);
+  const V ax = vabs<S>(xv);
+  const V arg = sel(ax < S(87), -ax, splat(S(-87)));  // exp(-87) ~ 1.6e-38: the rest rounds to 1 or 0 anyway
+  const V e = vexp(arg);
+  const V one = splat(S(1));
+  if (grad == nullptr) {
+    acc += wgt * ((one - e) / (one + e));
+  } else {
+    const V d = S(2) * e / ((one + e) * (one + e));
+    const V s = sel(xv > S(0), one, sel(xv < S(0), -one, splat(S(0))));
+    vstore(grad, scale * s * d);
+  }
+}
+
+// For the primitives in [i0, i1): grad (if given) or the sum of weight[i] |tanh(raw/2)| over their texels.
+template <typename S>
+CTGS_INLINE double texel_l1_range(const S* raw, const S* weight, const long long* tex_offset,
+                                  const int* tex_res, int i0, int i1, S* grad, S scale) {
+  using L = Lanes<S>;
+  constexpr int W = L::W;
+  typename L::V acc{};
+  double total = 0.0;
+  for (int i = i0; i < i1; ++i) {
+    const int64_t cnt = 3 * int64_t(tex_res[2 * i]) * tex_res[2 * i + 1];
+    if (cnt <= 0) continue;
+    const int64_t off = 3 * tex_offset[i];
+    const S wi = weight[i];
+    if (wi == S(0)) {
+      if (grad) std::fill(grad + off, grad + off + cnt, S(0));
+      continue;
+    }
+    int64_t k = 0;
+    const S gs_i = scale * wi;  // the gradient's factor for this primitive (w = 1: exactly `scale`)
+    for (; k + W <= cnt; k += W) l1_lanes<S>(raw + off + k, grad ? grad + off + k : nullptr, wi, gs_i, acc);
+    if (k < cnt) {  // tail through a zero-padded copy (|tanh(0)| = 0, its gradient is dropped)
+      alignas(32) S xs[W] = {}, gs[W];
+      std::copy(raw + off + k, raw + off + cnt, xs);
+      l1_lanes<S>(xs, grad ? gs : nullptr, wi, gs_i, acc);
+      if (grad) std::copy(gs, gs + (cnt - k), grad + off + k);
+    }
+    if (!grad && (i & 63) == 63) {  // flush to double now and then: float lanes would drift over 1e6 terms
+      total += double(hsum<S>(acc));
+      acc = typename L::V{};
+    }
+  }
+  return total + double(hsum<S>(acc));
+}
+
+CTGS_LANE_CLONES double texel_l1_part(const float* raw, const float* weight, const long long* off, const int* res,
+                                      int i0, int i1, float* grad, float scale) {
+  return texel_l1_range<float>(raw, weight, off, res, i0, i1, grad, scale);
+}
+CTGS_LANE_CLONES double texel_l1_part(const double* raw, const double* weight, const long long* off, const int* res,
+                                      int i0, int i1, double* grad, double scale) {
+  return texel_l1_range<double>(raw, weight, off, res, i0, i1, grad, scale);
+}
+
+}  // namespace
+
+template <typename S>
+double texel_l1(const S* raw, const S* weight, const long long* tex_offset, const int* tex_res, int n_prims,
+                S* grad, S scale, int threads) {
+  const int nt = std::max(1, threads);
+  // Fixed blocks of primitives summed in block order: the result does not depend on the thread count.
+  constexpr int BLOCK = 256;
+  const int nb = (n_prims + BLOCK - 1) / BLOCK;
+  std::vector<double> part(nb, 0.0);
+#pragma omp parallel for schedule(dynamic, 4) num_threads(nt)
+  for (int b = 0; b < nb; ++b)
+    part[b] = texel_l1_part(raw, weight, tex_offset, tex_res, b * BLOCK, std::min(n_prims, (b + 1) * BLOCK), grad,
+                            scale);
+  double total = 0.0;
+  for (double v : part) total += v;
+  return total;
+}
+
+namespace {
+
+// y = sign(x) (1 - e) / (1 + e), e = exp(-|x|): tanh(|x| / 2) without cancellation.
+template <typename S>
+CTGS_INLINE typename Lanes<S>::V activation_lanes(typename Lanes<S>::V x) {
+  using V = typename Lanes<S>::V;
+  const V ax = vabs<S>(x);
+  const V e = vexp(sel(ax < S(87), -ax, splat(S(-87))));
+  const V one = splat(S(1));
+  const V t = (one - e) / (one + e);
+  return sel(x < S(0), -t, t);
+}
+
+template <typename S>
+CTGS_INLINE void activation_range(const S* x, S* y, const S* gy, S* gx, int64_t k0, int64_t k1) {
+  using V = typename Lanes<S>::V;
+  constexpr int W = Lanes<S>::W;
+  int64_t k = k0;
+  for (; k + W <= k1; k += W) {
+    if (gx == nullptr) {
+      vstore(y + k, activation_lanes<S>(vload<V>(x + k)));
+    } else {
+      const V yv = vload<V>(y + k);
+      vstore(gx + k, vload<V>(gy + k) * ((S(1) - yv) * (S(1) + yv) * S(0.5)));
+    }
+  }
+  if (k < k1) {  // tail through zero-padded copies
+    alignas(32) S a[W] = {}, b[W] = {};
+    if (gx == nullptr) {
+      std::copy(x + k, x + k1, a);
+      vstore(b, activation_lanes<S>(vload<V>(a)));
+      std::copy(b, b + (k1 - k), y + k);
+    } else {
+      std::copy(y + k, y + k1, a);
+      std::copy(gy + k, gy + k1, b);
+      const V yv = vload<V>(a);
+      vstore(a, vload<V>(b) * ((S(1) - yv) * (S(1) + yv) * S(0.5)));
+      std::copy(a, a + (k1 - k), gx + k);
+    }
+  }
+}
+
+CTGS_LANE_CLONES void activation_part(const float* x, float* y, const float* gy, float* gx, int64_t k0, int64_t k1) {
+  activation_range<float>(x, y, gy, gx, k0, k1);
+}
+CTGS_LANE_CLONES void activation_part(const double* x, double* y, const double* gy, double* gx, int64_t k0,
+                                      int64_t k1) {
+  activation_range<double>(x, y, gy, gx, k0, k1);
+}
+
+}  // namespace
+
+template <typename S>
+void texel_activation(const S* x, S* y, int64_t n, int threads) {
+#pragma omp parallel for schedule(static) num_threads(std::max(1, threads))
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK) activation_part(x, y, static_cast<const S*>(nullptr),
+                                                            static_cast<S*>(nullptr), c0, std::min(n, c0 + CHUNK));
+}
+
+template <typename S>
+void texel_activation_backward(const S* y, const S* grad_y, S* grad_x, int64_t n, int threads) {
+#pragma omp parallel for schedule(static) num_threads(std::max(1, threads))
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK)
+    activation_part(static_cast<const S*>(nullptr), const_cast<S*>(y), grad_y, grad_x, c0, std::min(n, c0 + CHUNK));
+}
+
+template void texel_activation<float>(const float*, float*, int64_t, int);
+template void texel_activation<double>(const double*, double*, int64_t, int);
+template void texel_activation_backward<float>(const float*, const float*, float*, int64_t, int);
+template void texel_activation_backward<double>(const double*, const double*, double*, int64_t, int);
+
+template <typename S>
+void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const int* old_res,
+                  const long long* old_off, const long long* src, const long long* shift, const int* new_res,
+                  const long long* new_off, int64_t n_new, int threads) {
+  auto floor_half = [](long long d) { return d >= 0 ? d / 2 : -((-d + 1) / 2); };
+#pragma omp parallel for schedule(dynamic, 256) num_threads(std::max(1, threads))
+  for (int64_t j = 0; j < n_new; ++j) {
+    const long long s = src[j];
+    const long long ru = old_res[2 * s], rv = old_res[2 * s + 1];
+    const long long nu = new_res[2 * j], nv = new_res[2 * j + 1];
+    const long long du = floor_half(ru - nu) + shift[2 * j], dv = floor_half(rv - nv) + shift[2 * j + 1];
+    // Columns iu with 0 <= iu + du < ru.
+    const long long u0 = std::min(nu, std::max(0LL, -du)), u1 = std::max(u0, std::min(nu, ru - du));
+    for (long long iv = 0; iv < nv; ++iv) {
+      S* dst = new_buf + C * (new_off[j] + iv * nu);
+      const long long ov = iv + dv;
+      if (old_rows == 0 || ov < 0 || ov >= rv || u0 >= u1) {
+        std::fill(dst, dst + C * nu, S(0));
+        continue;
+      }
+      std::fill(dst, dst + C * u0, S(0));
+      const S* from = old_buf + C * (old_off[s] + ov * ru + u0 + du);
+      std::copy(from, from + C * (u1 - u0), dst + C * u0);
+      std::fill(dst + C * u1, dst + C * nu, S(0));
+    }
+  }
+}
+
+template void jagged_remap<float>(const float*, int64_t, float*, int, const int*, const long long*,
+                                  const long long*, const long long*, const int*, const long long*, int64_t, int);
+template void jagged_remap<double>(const double*, int64_t, double*, int, const int*, const long long*,
+                                   const long long*, const long long*, const int*, const long long*, int64_t, int);
+template int64_t adam_step<float>(float*, const float*, float*, float*, int64_t, const float*, double, double,
+                                  double, double, double, double, int);
+template int64_t adam_step<double>(double*, const double*, double*, double*, int64_t, const double*, double,
+                                   double, double, double, double, double, int);
+template double texel_l1<float>(const float*, const float*, const long long*, const int*, int, float*, float,
+                                int);
+template double texel_l1<double>(const double*, const double*, const long long*, const int*, int, double*,
+                                 double, int);
+
+}  // namespace cpu
+}  // namespace ctgs

@@ -1,0 +1,42 @@
+// Dense per-element training work (dense.cpp): fused Adam, the texel L1 regulariser, jagged re-layout.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+namespace ctgs {
+namespace cpu {
+
+// One Adam step in place on n contiguous elements: m = b1 m + (1-b1) g, v = b2 v + (1-b2) g^2,
+// p -= lr (m / bc1) / (sqrt(v / bc2) + eps), with lr per element (lr_vec, if not null) or lr. bc1, bc2:
+// the bias corrections 1 - beta^t. Returns how many updated p are NaN or infinite.
+template <typename S>
+int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, double lr, double beta1,
+                  double beta2, double bc1, double bc2, double eps, int threads);
+
+// Weighted texel L1 (texels of i: rows tex_offset[i] .. + res_u*res_v of raw [T, 3], packed):
+// grad == null -> returns sum_i weight[i] sum over i's texels of |2 sigmoid(raw) - 1|; else writes
+// grad = scale * d/draw of that sum (0 for the texels of primitives with weight 0) and returns 0.
+// The weights (the loss's visibility mask, times 1 - transmittance on option) are constants here.
+template <typename S>
+double texel_l1(const S* raw, const S* weight, const long long* tex_offset, const int* tex_res, int n_prims,
+                S* grad, S scale, int threads);
+
+// Texel activation y = 2 sigmoid(x) - 1 = tanh(x / 2) on n elements, and its backward
+// grad_x = grad_y (1 - y) (1 + y) / 2.
+template <typename S>
+void texel_activation(const S* x, S* y, int64_t n, int threads);
+template <typename S>
+void texel_activation_backward(const S* y, const S* grad_y, S* grad_x, int64_t n, int threads);
+
+// Jagged texture re-layout (ctgs/model/jagged.py remap): new primitive j copies primitive src[j]'s
+// texels re-centred, new texel (iu, iv) <- old (iu + floor((ru_old - ru_new) / 2) + shift[j, 0], iv + ...),
+// 0 where that falls outside the old grid. Buffers [rows, C] (one old, one new per buffer); offsets of
+// both layouts given. Row by row copies, primitives in parallel.
+template <typename S>
+void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const int* old_res,
+                  const long long* old_off, const long long* src, const long long* shift, const int* new_res,
+                  const long long* new_off, int64_t n_new, int threads);
+
+}  // namespace cpu
+}  // namespace ctgs

@@ -1,0 +1,156 @@
+"""The fused CPU kernels of the training loop (ctgs.fused, kernels/cpu/dense.cpp) against the PyTorch
+expressions they replace: Adam (scalar and per-element learning rates, the non-finite count) and the
+texel L1 regulariser (value, gradient, gradcheck), in float32 and float64."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from ctgs import fused
+from ctgs.train.adam import BETA1, BETA2, SurfelAdam
+
+# One fused pass vs PyTorch's chain of ops: the same formula, rounded in a different order.
+ADAM_ATOL = {torch.float32: 1e-6, torch.float64: 1e-14}
+
+
+def _torch_adam(p, g, m, v, lr, t, eps):
+    m.mul_(BETA1).add_(g, alpha=1 - BETA1)
+    v.mul_(BETA2).addcmul_(g, g, value=1 - BETA2)
+    denom = (v / (1 - BETA2 ** t)).sqrt_().add_(eps)
+    p.sub_(lr * (m / (1 - BETA1 ** t)) / denom)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("per_element_lr", [False, True])
+def test_adam_step_matches_pytorch(dtype, per_element_lr):
+    gen = torch.Generator().manual_seed(1)
+    shape = (1037, 4, 3)  # not a multiple of the kernel's chunk or lane width
+    p, g = torch.randn(shape, generator=gen, dtype=dtype), torch.randn(shape, generator=gen, dtype=dtype)
+    m = torch.randn(shape, generator=gen, dtype=dtype) * 0.1
+    v = torch.rand(shape, generator=gen, dtype=dtype) * 0.01
+    lr = torch.tensor([1e-2, 1e-3, 1e-3, 1e-3], dtype=dtype).view(1, 4, 1) if per_element_lr else 3e-3
+    ref = [x.clone() for x in (p, m, v)]
+    for t in (1, 7):
+        _torch_adam(*ref[:1], g, *ref[1:], lr, t, 1e-15)
+        lr_t = lr.expand_as(p).contiguous() if per_element_lr else None
+        bad = fused.cpu_ext().adam_step_cpu(p, g, m, v, lr_t, 0.0 if per_element_lr else lr, BETA1, BETA2, t,
+                                            1e-15, 2)
+        assert bad == 0
+        for x, y in zip((p, m, v), ref):
+            torch.testing.assert_close(x, y, atol=ADAM_ATOL[dtype], rtol=0)
+
+
+def test_adam_counts_non_finite_results():
+    p = torch.zeros(100)
+    g = torch.ones(100)
+    g[3], g[50] = float("nan"), float("inf")
+    m, v = torch.zeros(100), torch.zeros(100)
+    assert fused.cpu_ext().adam_step_cpu(p, g, m, v, None, 1e-3, BETA1, BETA2, 1, 1e-15, 1) == 2
+    p, g = torch.ones(10), torch.ones(10)
+    assert fused.cpu_ext().adam_step_cpu(p, g, torch.zeros(10), torch.zeros(10), None, 1e39, BETA1, BETA2, 1,
+                                         1e-15, 1) == 10  # an lr that overflows float32
+
+
+def test_surfel_adam_reports_the_parameter_made_non_finite():
+    names = ("means", "log_scales", "quats", "opacity_logits", "sh", "textures_raw")
+    model = SimpleNamespace(**{n: torch.zeros(5, 3, requires_grad=True) for n in names})
+    opt = SurfelAdam(model)
+    for n in names:
+        getattr(model, n).grad = torch.ones(5, 3)
+    model.quats.grad[2, 1] = float("nan")
+    opt.step(model, {n: 1e-3 for n in names})
+    assert opt.nonfinite == ["quats"] and opt.unchecked == []
+
+
+def _jagged(dtype, seed=0):
+    res = torch.tensor([[4, 4], [0, 0], [3, 5], [2, 2], [8, 8], [1, 3]], dtype=torch.int32)
+    sizes = res[:, 0].long() * res[:, 1].long()
+    off = torch.cumsum(sizes, 0) - sizes
+    raw = torch.randn(int(sizes.sum()), 3, generator=torch.Generator().manual_seed(seed), dtype=dtype) * 3
+    raw[0, 0] = 0.0  # sign(0): no gradient, like abs()
+    # Per-primitive weights as the loss makes them: 0 (not rasterized), 1, and 1 - transmittance in between.
+    weight = torch.tensor([1.0, 1.0, 0.0, 0.375, 1.0, 0.8], dtype=dtype)
+    return SimpleNamespace(textures_raw=raw.requires_grad_(True), tex_offset=off, tex_res=res), weight, sizes
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_texel_l1_matches_pytorch(dtype):
+    model, weight, sizes = _jagged(dtype)
+    a = fused.texel_l1(model, weight)
+    textures = 2.0 * torch.sigmoid(model.textures_raw) - 1.0
+    b = (textures.abs().sum(1) * torch.repeat_interleave(weight, sizes)).sum()
+    ga, = torch.autograd.grad(a * 0.7, model.textures_raw)
+    gb, = torch.autograd.grad(b * 0.7, model.textures_raw)
+    tol = 1e-5 if dtype == torch.float32 else 1e-13
+    torch.testing.assert_close(a, b, atol=tol * float(b.detach()), rtol=0)
+    torch.testing.assert_close(ga, gb, atol=tol, rtol=0)
+    assert ga[int(sizes[:2].sum()):int(sizes[:3].sum())].abs().max() == 0  # the invisible primitive
+    # A bool mask is the 0/1 weight.
+    mask = weight > 0.5
+    torch.testing.assert_close(fused.texel_l1(model, mask), fused.texel_l1(model, mask.to(dtype)), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="weight must be"):
+        fused.texel_l1(model, weight[:-1])
+
+
+def test_texel_l1_gradcheck_and_layout_check():
+    model, weight, _ = _jagged(torch.float64, seed=2)
+    f = lambda r: fused._TexelL1.apply(r, weight, model.tex_offset, model.tex_res)  # noqa: E731
+    assert torch.autograd.gradcheck(f, (model.textures_raw,))
+    with pytest.raises(RuntimeError, match="packed"):
+        fused._TexelL1.apply(model.textures_raw, weight, model.tex_offset + 1, model.tex_res)
+    with pytest.raises(RuntimeError, match="weight"):  # the kernel takes weights of raw's dtype only
+        fused._TexelL1.apply(model.textures_raw, weight.float(), model.tex_offset, model.tex_res)
+
+
+def test_jagged_remap_matches_pytorch(monkeypatch):
+    """The compiled re-layout (split children with shifts, crops, pads, duplicates) equals the index
+    arithmetic it replaces, for every buffer; so does replace_blocks built on it."""
+    from ctgs.model import jagged
+    from ctgs.model.surfels import jagged_offsets
+
+    gen = torch.Generator().manual_seed(4)
+    old_res = torch.tensor([[4, 4], [0, 0], [2, 8], [8, 2], [16, 16], [1, 1]], dtype=torch.int32)
+    old_off = jagged_offsets(old_res)
+    t = int(old_off[-1] + 1)
+    bufs = [torch.randn(t, 3, generator=gen), torch.rand(t, 3, generator=gen)]
+    src = torch.tensor([0, 2, 2, 3, 4, 4, 5, 1, 0])
+    shift = torch.tensor([[0, 0], [1, 0], [-1, 3], [0, -2], [5, 0], [-9, 2], [0, 0], [0, 0], [2, 2]])
+    new_res = torch.tensor([[8, 2], [2, 8], [4, 4], [2, 2], [16, 8], [4, 32], [2, 2], [2, 2], [1, 4]],
+                           dtype=torch.int32)
+    fast, off_fast = jagged.remap(bufs, old_res, old_off, src, shift, new_res)
+    monkeypatch.setattr(jagged, "_cpu_remap", lambda *a: None)
+    slow, off_slow = jagged.remap(bufs, old_res, old_off, src, shift, new_res)
+    assert torch.equal(off_fast, off_slow)
+    for a, b in zip(fast, slow):
+        assert torch.equal(a, b)
+    blocks = [(torch.tensor([0, 4]), [torch.randn(2, 2, 2, 3, generator=gen) for _ in bufs])]
+    res2 = old_res.clone()
+    res2[0] = res2[4] = torch.tensor([2, 2], dtype=torch.int32)
+    slow2 = jagged.replace_blocks(bufs, old_res, old_off, res2, blocks)
+    monkeypatch.undo()
+    fast2 = jagged.replace_blocks(bufs, old_res, old_off, res2, blocks)
+    assert torch.equal(fast2[1], slow2[1])
+    for a, b in zip(fast2[0], slow2[0]):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_texel_activation_matches_pytorch(dtype):
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randn(1001, 3, generator=gen, dtype=dtype) * 4  # length not a multiple of the lane width
+    x[0, :] = torch.tensor([0.0, 200.0, -200.0], dtype=dtype)  # saturation: exactly +-1, gradient 0
+    x.requires_grad_(True)
+    y = fused.texel_activation(x)
+    ref = 2.0 * torch.sigmoid(x) - 1.0
+    g = torch.randn(x.shape, generator=gen, dtype=dtype)
+    gy, = torch.autograd.grad(y, x, g)
+    gr, = torch.autograd.grad(ref, x, g)
+    tol = 1e-6 if dtype == torch.float32 else 1e-14
+    torch.testing.assert_close(y, ref, atol=tol, rtol=0)
+    torch.testing.assert_close(gy, gr, atol=tol, rtol=0)
+    assert y[0].tolist() == [0.0, 1.0, -1.0] and gy[0, 1:].abs().max() == 0
+    if dtype == torch.float64:
+        assert torch.autograd.gradcheck(fused.texel_activation, (x[1:50].detach().requires_grad_(True),))
