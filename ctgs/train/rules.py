@@ -113,9 +113,11 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
     for key, rule in (("tau_tr_start", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
                       ("tau_tr_end", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
                       ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
-                      ("lambda_texture", "x 1e6 / HW")):
+                      ("lambda_texture", "x 1e6 / HW"),
+                      ("max_primitives", "min(max_primitives, primitives_per_pixel x HW); 0 = no cap")):
         vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
-        rows.append({"setting": key, "unit": "texels" if key != "lambda_texture" else "per texel",
+        unit = {"lambda_texture": "per texel", "max_primitives": "primitives"}.get(key, "texels")
+        rows.append({"setting": key, "unit": unit,
                      "rule": rule, "paper": getattr(cfg, key), "values": vals})
     for key in ITERATION_KEYS:
         vals = {label: schedule.at(replace(cfg, iterations=n), getattr(cfg, key)) for label, n in iterations.items()}
