@@ -110,16 +110,21 @@ def resolved_toml(path: str) -> dict:
     return out
 
 
-def write_config(base_tree: str, head_tree: str, iterations: int, sets: list[str], path: str) -> dict:
-    cfg = resolved_toml(os.path.join(base_tree, "configs", "demo.toml"))
-    keys = config_keys(base_tree) & config_keys(head_tree)
-    cfg = {k: v for k, v in cfg.items() if k in keys}
+def apply_sets(cfg: dict, sets: list[str]) -> None:
+    """`key=value` items into cfg: TOML literals, else the text as a string."""
     for item in sets:
         k, v = item.split("=", 1)
         try:
             cfg[k] = tomllib.loads(f"x = {v}")["x"]
         except tomllib.TOMLDecodeError:
             cfg[k] = v
+
+
+def write_config(base_tree: str, head_tree: str, iterations: int, sets: list[str], path: str) -> dict:
+    cfg = resolved_toml(os.path.join(base_tree, "configs", "demo.toml"))
+    keys = config_keys(base_tree) & config_keys(head_tree)
+    cfg = {k: v for k, v in cfg.items() if k in keys}
+    apply_sets(cfg, sets)
     full = int(cfg["iterations"])
     if iterations != full:
         cfg["schedule_scale"] = float(cfg["schedule_scale"]) * iterations / full
@@ -161,12 +166,7 @@ def write_preset_configs(base_tree: str, head_tree: str, preset: str, iterations
     cfg = resolved_toml(os.path.join(head_tree, "configs", f"{preset}.toml"))
     full = int(cfg.get("iterations", 30000))
     cfg["schedule_scale"] = full / 30000.0
-    for item in sets:
-        k, v = item.split("=", 1)
-        try:
-            cfg[k] = tomllib.loads(f"x = {v}")["x"]
-        except tomllib.TOMLDecodeError:
-            cfg[k] = v
+    apply_sets(cfg, sets)
     cfg["iterations"] = iterations
     cfg["threads"] = 1
     r = subprocess.run([sys.executable, "-c", _RESOLVE, json.dumps(cfg), str(pixels)], cwd=head_tree,
