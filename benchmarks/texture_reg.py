@@ -52,11 +52,10 @@ def run_one(scene: str, run_dir: str, variant: str, seed: int, backend: str, set
     from ctgs.train.trainer import Trainer
 
     shutil.rmtree(run_dir, ignore_errors=True)
-    cfg = resolve_config(scene, run_dir, None, None, (f"seed={seed}", "threads=1", *sets), None, False, backend, None,
-                         preset=PRESET)
+    tr = f"texture_reg_transmittance={'true' if variant == 'transmittance' else 'false'}"
+    cfg = resolve_config(scene, run_dir, None, None, (f"seed={seed}", "threads=1", tr, *sets), None, False, backend,
+                         None, preset=PRESET)
     trainer = Trainer(cfg, _load_scene(cfg), run_dir)
-    # Not a config key yet: set on the config the trainer resolved (ctgs.train.loss reads it with getattr).
-    trainer.cfg.texture_reg_transmittance = variant == "transmittance"
     write_config(run_dir, cfg.to_dict())
     kept = loss.rasterized_mask
     if variant == "centre":
