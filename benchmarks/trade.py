@@ -185,6 +185,9 @@ def plot(rows: list[dict], out: str) -> None:
                 axes[1][j].scatter(r["metrics"]["params"] / 1e6, r["metrics"]["psnr"], c=color, marker=marker)
                 label = r["name"].split("_", 1)[1]
                 axes[0][j].annotate(label, (x_t, r["metrics"]["psnr"]), fontsize=6)
+        for ax in (axes[0][j], axes[1][j]):
+            ax.ticklabel_format(useOffset=False)
+            ax.set_xlim(left=0)  # time and parameters from zero: two-point panels stay readable
         axes[0][j].set_title(f"{scene} {scale}")
         axes[0][j].set_xlabel("wall time (min)")
         axes[1][j].set_xlabel("parameters (M)")
