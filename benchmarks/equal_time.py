@@ -30,6 +30,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from trade import ctgs  # noqa: E402  (one logged `python -m ctgs` runner for the benchmarks)
 
 
 def train(args, method: str, iters: int, split: str) -> dict:
@@ -40,32 +42,27 @@ def train(args, method: str, iters: int, split: str) -> dict:
         with open(rec_path) as fh:
             return json.load(fh)
     os.makedirs(args.work, exist_ok=True)
-    cmd = [sys.executable, "-m", "ctgs", "train", args.scene, "-o", run, "--images", args.images, "-q",
-           "--preset", args.preset, "--iterations", str(iters), "--set", f"threads={args.threads}",
-           "--set", f"seed={args.seed}"]
+    cmd = ["train", args.scene, "-o", run, "--images", args.images, "-q", "--preset", args.preset,
+           "--iterations", str(iters), "--set", f"threads={args.threads}", "--set", f"seed={args.seed}"]
     if method == "2dgs":
         cmd += ["--config", "2dgs"]
     if split == "val":
         cmd += ["--set", "validation_holdout=8"]
     log = run + ".log"
-    with open(log, "w") as fh:
-        fh.write("$ " + " ".join(cmd) + "\n")
-        fh.flush()
-        t0 = time.time()
-        r = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT)
-        wall = time.time() - t0
-    if r.returncode != 0:
-        raise RuntimeError(f"failed ({r.returncode}): {' '.join(cmd)}; see {log}")
+    if os.path.exists(log):
+        os.remove(log)
+    t0 = time.time()
+    ctgs(*cmd, log=log)
+    wall = time.time() - t0
     with open(os.path.join(run, "train_summary.json")) as fh:
         s = json.load(fh)
-    rec = {"method": method, "iterations": iters, "split": split, "command": " ".join(cmd[1:]), "wall_s": wall,
+    rec = {"method": method, "iterations": iters, "split": split, "command": "-m ctgs " + " ".join(cmd), "wall_s": wall,
            "psnr": s["final_test_psnr"], "ssim": s["final_test_ssim"], "primitives": s["num_primitives"],
            "texels": s["num_texels"], "params": s["num_params"],
            "params_per_value": s.get("params_per_observed_value")}
     if split == "test":
-        for sub in (["export", run, "-o", os.path.join(run, "model")],
-                    ["eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval")]):
-            subprocess.run([sys.executable, "-m", "ctgs", *sub], check=True, cwd=ROOT, capture_output=True)
+        ctgs("export", run, "-o", os.path.join(run, "model"), log=log)
+        ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"), log=log)
         with open(os.path.join(run, "eval", "metrics.json")) as fh:
             m = json.load(fh)
         rec.update({"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "fps": m["fps"],
