@@ -113,3 +113,54 @@ def texel_l1(model, weight: torch.Tensor) -> torch.Tensor:
     sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
     texel_w = torch.repeat_interleave(weight, sizes)  # [T]
     return (model.textures.abs().sum(1) * texel_w).sum()
+
+
+class _PhotometricLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, render, gt, lambda_ssim):
+        total, l1, s, grad, _ = cpu_ext().photometric_loss_cpu(render, gt, float(lambda_ssim),
+                                                               bool(ctx.needs_input_grad[0]), False,
+                                                               torch.get_num_threads())
+        ctx.save_for_backward(grad)
+        ctx.mark_non_differentiable(l1, s)
+        return total, l1, s
+
+    @staticmethod
+    def backward(ctx, grad_total, _grad_l1, _grad_ssim):
+        (grad,) = ctx.saved_tensors
+        return grad * grad_total, None, None
+
+
+def photometric_loss(render: torch.Tensor, gt: torch.Tensor,
+                     lambda_ssim: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(1 - lambda_ssim) mean |render - gt| + lambda_ssim (1 - mean SSIM) of two [H, W, C] images (SSIM as
+    ctgs.metrics.ssim): (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached).
+
+    On the CPU one compiled pass computes the value and, if render needs it, the gradient
+    (kernels/cpu/ssim.cpp; 5 blurred moment images, their adjoint for the gradient); it matches the
+    PyTorch expression below to float rounding (tests/train/test_fused.py)."""
+    if render.shape != gt.shape or render.ndim != 3:
+        raise ValueError(f"photometric_loss expects two [H, W, C] images of one shape, got {list(render.shape)}, "
+                         f"{list(gt.shape)}")
+    if not gt.requires_grad and gt.dtype == render.dtype:
+        render_c, gt_c = render.contiguous(), gt.contiguous()
+        if fusable(render_c, gt_c):
+            return _PhotometricLoss.apply(render_c, gt_c, float(lambda_ssim))
+    from ctgs.metrics.ssim import ssim_map
+
+    l1 = (render - gt).abs().mean()
+    s = ssim_map(render, gt).mean()
+    total = (1 - lambda_ssim) * l1 + lambda_ssim * (1 - s)
+    return total, l1.detach(), s.detach()
+
+
+def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float) -> torch.Tensor | None:
+    """e [H, W] = (1 - l) mean_c |render - gt| + l mean_c (1 - SSIM map) in one compiled pass, or None where
+    the extension does not apply (the caller computes it with PyTorch). Not differentiable."""
+    if render.shape != gt.shape or render.ndim != 3 or gt.dtype != render.dtype:
+        return None
+    render_c, gt_c = render.detach().contiguous(), gt.detach().contiguous()
+    if not fusable(render_c, gt_c):
+        return None
+    return cpu_ext().photometric_loss_cpu(render_c, gt_c, float(lambda_ssim), False, True,
+                                          torch.get_num_threads())[4]

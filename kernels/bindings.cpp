@@ -249,6 +249,40 @@ Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_thread
   return g;
 }
 
+// The photometric loss of render x and ground truth y, [H, W, C] float CPU tensors of one dtype
+// (kernels/cpu/ssim.cpp). Returns {total (0-d) = (1 - l) mean |x - y| + l (1 - mean SSIM), mean |x - y|,
+// mean SSIM, grad [H, W, C] = d total / d x (empty unless want_grad), error [H, W] (empty unless
+// want_error)}.
+std::vector<Tensor> photometric_loss_cpu(Tensor x, Tensor y, double lambda_ssim, bool want_grad, bool want_error,
+                                         int64_t num_threads) {
+  TORCH_CHECK(x.device().is_cpu() && x.dim() == 3 && x.is_contiguous() &&
+                  (x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble),
+              "photometric_loss: render must be a contiguous float CPU tensor [H, W, C], got ", x.sizes(), " ",
+              x.scalar_type());
+  TORCH_CHECK(y.device().is_cpu() && y.is_contiguous() && y.scalar_type() == x.scalar_type() &&
+                  y.sizes() == x.sizes(),
+              "photometric_loss: ground truth must be a contiguous CPU tensor like the render ", x.sizes(), " ",
+              x.scalar_type(), ", got ", y.sizes(), " ", y.scalar_type());
+  TORCH_CHECK(lambda_ssim >= 0 && lambda_ssim <= 1, "photometric_loss: lambda_ssim must be in [0, 1]");
+  const int64_t H = x.size(0), W = x.size(1), C = x.size(2);
+  TORCH_CHECK(H * W * C < (int64_t(1) << 31), "photometric_loss: image too large");
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  Tensor grad = want_grad ? torch::empty_like(x) : torch::empty({0}, x.options());
+  Tensor error = want_error ? torch::empty({H, W}, x.options()) : torch::empty({0}, x.options());
+  double l1_sum = 0.0, ssim_sum = 0.0;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ctgs_photometric_loss_cpu", [&] {
+    ctgs::cpu::photometric_loss<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), int(H), int(W), int(C),
+                                          lambda_ssim, want_grad ? grad.data_ptr<scalar_t>() : nullptr,
+                                          want_error ? error.data_ptr<scalar_t>() : nullptr, &l1_sum, &ssim_sum,
+                                          threads);
+  });
+  const double count = double(std::max<int64_t>(1, H * W * C));
+  const double l1 = l1_sum / count, ssim = ssim_sum / count;
+  const double total = (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim);
+  return {torch::scalar_tensor(total, x.options()), torch::scalar_tensor(l1, x.options()),
+          torch::scalar_tensor(ssim, x.options()), grad, error};
+}
+
 // New jagged buffers [T', C] where new primitive j holds src[j]'s texels re-centred (ctgs/model/jagged.py
 // remap, which checks the arguments): buffers [T, C] each, old_res [N, 2] int32, old_off [N] int64,
 // src [N'] int64, shift [N', 2] int64, new_res [N', 2] int32, new_off [N'] int64.
@@ -316,6 +350,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
   m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
   m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
+  m.def("photometric_loss_cpu", &photometric_loss_cpu,
+        "(1 - l) L1 + l (1 - SSIM) of render and ground truth, its gradient and the error image, fused");
   m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
   m.def("profile_counters", [](bool reset) {

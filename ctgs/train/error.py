@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import torch
 
+from ctgs.fused import error_image as fused_error_image
 from ctgs.metrics.ssim import ssim_map
 
 
 def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
-    """e [H, W] = (1-l) |gt - render|_meanRGB + l (1 - SSIM map)_meanRGB."""
+    """e [H, W] = (1-l) |gt - render|_meanRGB + l (1 - SSIM map)_meanRGB (one compiled pass on the CPU
+    when no gradient is needed)."""
+    if not torch.is_grad_enabled() or not (render.requires_grad or gt.requires_grad):
+        e = fused_error_image(render, gt, lambda_ssim)
+        if e is not None:
+            return e
     l1 = (gt - render).abs().mean(-1)
     ds = (1 - ssim_map(render, gt)).mean(-1)
     return (1 - lambda_ssim) * l1 + lambda_ssim * ds

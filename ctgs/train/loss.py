@@ -14,8 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ctgs.fused import texel_l1
-from ctgs.metrics.ssim import ssim_map
+from ctgs.fused import photometric_loss, texel_l1
 from ctgs.model.geometry import quat_to_rotmat
 from ctgs.render.constants import CUTOFF_RHO, FILTER_INV_SQUARE, MAX_ALPHA, MIN_ALPHA
 
@@ -111,9 +110,8 @@ def texture_weights(model, camera, cfg, stats=None) -> torch.Tensor:
 
 def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, stats=None) -> LossTerms:
     """render, gt: [H, W, 3] in [0, 1]; stats: the view's ErrorStats, if rendered (see texture_weights)."""
-    l1 = (render - gt).abs().mean()
-    s = ssim_map(render, gt).mean()
-    total = (1 - cfg.lambda_ssim) * l1 + cfg.lambda_ssim * (1 - s)
+    # (1 - l) L1 + l (1 - SSIM): one fused pass, gradient included, on the CPU (kernels/cpu/ssim.cpp).
+    total, l1, s = photometric_loss(render, gt, cfg.lambda_ssim)
     if cfg.lambda_opacity > 0:
         total = total + cfg.lambda_opacity * model.opacities.mean()
     if cfg.lambda_texture > 0 and model.texture_mode != "none" and model.num_texels > 0:
@@ -122,4 +120,4 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, st
         # sum_i weights[i] sum |texel of i|: one fused pass on the CPU, no [T] weight tensor.
         total = total + cfg.lambda_texture * texel_l1(model, weights)
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)
-    return LossTerms(total=total, l1=float(l1.detach()), ssim=float(s.detach()), psnr=float(-10 * torch.log10(mse)))
+    return LossTerms(total=total, l1=float(l1), ssim=float(s), psnr=float(-10 * torch.log10(mse)))

@@ -1,4 +1,5 @@
-// Dense per-element training work (dense.cpp): fused Adam, the texel L1 regulariser, jagged re-layout.
+// Dense per-element training work (dense.cpp): fused Adam, the texel L1 regulariser, jagged re-layout;
+// and the fused photometric loss (ssim.cpp).
 #pragma once
 
 #include <cstdint>
@@ -37,6 +38,14 @@ template <typename S>
 void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const int* old_res,
                   const long long* old_off, const long long* src, const long long* shift, const int* new_res,
                   const long long* new_off, int64_t n_new, int threads);
+
+// The photometric loss of two [H, W, C] images x (render) and y (ground truth), kernels/cpu/ssim.cpp:
+// l1_sum = sum |x - y|, ssim_sum = sum of the SSIM map (11x11 Gaussian window, sigma 1.5, zero padded), so
+// the loss is (1 - l) l1_sum / (H W C) + l (1 - ssim_sum / (H W C)). grad (if not null) [H, W, C] gets its
+// gradient w.r.t. x; error (if not null) [H, W] gets (1 - l) mean_c |x - y| + l mean_c (1 - SSIM).
+template <typename S>
+void photometric_loss(const S* x, const S* y, int H, int W, int C, double lambda_ssim, S* grad, S* error,
+                      double* l1_sum, double* ssim_sum, int threads);
 
 }  // namespace cpu
 }  // namespace ctgs

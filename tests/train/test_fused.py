@@ -1,6 +1,7 @@
 """The fused CPU kernels of the training loop (ctgs.fused, kernels/cpu/dense.cpp) against the PyTorch
-expressions they replace: Adam (scalar and per-element learning rates, the non-finite count) and the
-texel L1 regulariser (value, gradient, gradcheck), in float32 and float64."""
+expressions they replace: Adam (scalar and per-element learning rates, the non-finite count), the
+texel L1 regulariser (value, gradient, gradcheck) and the photometric loss (kernels/cpu/ssim.cpp: value,
+gradient, error image, gradcheck, threads), in float32 and float64."""
 
 from __future__ import annotations
 
@@ -154,3 +155,72 @@ def test_texel_activation_matches_pytorch(dtype):
     assert y[0].tolist() == [0.0, 1.0, -1.0] and gy[0, 1:].abs().max() == 0
     if dtype == torch.float64:
         assert torch.autograd.gradcheck(fused.texel_activation, (x[1:50].detach().requires_grad_(True),))
+
+
+def _torch_photometric(render, gt, lam):
+    from ctgs.metrics.ssim import ssim_map
+
+    l1 = (render - gt).abs().mean()
+    s = ssim_map(render, gt).mean()
+    return (1 - lam) * l1 + lam * (1 - s), l1, s
+
+
+# Shapes: smaller than the 11-tap window in both directions, one channel, odd sizes, the demo's size.
+PHOTO_SHAPES = [(1, 1, 1), (5, 7, 3), (37, 53, 3), (20, 30, 1), (144, 192, 3)]
+PHOTO_RTOL = {torch.float32: 2e-5, torch.float64: 1e-12}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", PHOTO_SHAPES)
+@pytest.mark.parametrize("lam", [0.0, 0.2, 1.0])
+def test_photometric_loss_matches_pytorch(dtype, shape, lam):
+    gen = torch.Generator().manual_seed(sum(shape))
+    gt = torch.rand(shape, generator=gen, dtype=dtype)
+    noise = 0.1 * torch.randn(shape, generator=gen, dtype=dtype)
+    render = (gt + noise).clamp(0, 1)
+    render[..., 0].view(-1)[::5] = gt[..., 0].view(-1)[::5]  # exact ties: |d| has gradient 0 there
+    render.requires_grad_()
+    assert fused.fusable(render.detach(), gt)
+    total, l1, s = fused.photometric_loss(render, gt, lam)
+    (g_fused,) = torch.autograd.grad(3.0 * total, render)  # an upstream gradient != 1
+    ref_total, ref_l1, ref_s = _torch_photometric(render, gt, lam)
+    (g_ref,) = torch.autograd.grad(3.0 * ref_total, render)
+    rtol = PHOTO_RTOL[dtype]
+    for a, b in ((total, ref_total), (l1, ref_l1), (s, ref_s)):
+        torch.testing.assert_close(a.detach(), b.detach(), rtol=rtol, atol=rtol)
+    assert not l1.requires_grad and not s.requires_grad
+    scale = max(float(g_ref.abs().max()), 3.0 / render.numel())  # the L1 part alone: 3 (1 - lam) / numel
+    torch.testing.assert_close(g_fused, g_ref, rtol=0, atol=rtol * scale)
+    e = fused.error_image(render.detach(), gt, lam)
+    from ctgs.metrics.ssim import ssim_map
+
+    e_ref = (1 - lam) * (gt - render.detach()).abs().mean(-1) + lam * (1 - ssim_map(render.detach(), gt)).mean(-1)
+    assert e.shape == shape[:2]
+    torch.testing.assert_close(e, e_ref, rtol=0, atol=rtol)
+
+
+def test_photometric_loss_gradcheck_and_threads():
+    gen = torch.Generator().manual_seed(3)
+    gt = torch.rand(9, 13, 3, generator=gen, dtype=torch.float64)
+    # Away from render == gt, where |d| is not differentiable.
+    render = (gt + 0.05 + 0.1 * torch.rand(9, 13, 3, generator=gen, dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda r: fused.photometric_loss(r, gt, 0.3)[0], (render,))
+    # The row split over threads changes nothing (each row's sums are formed in the same order).
+    x, y = torch.rand(61, 47, 3, generator=gen), torch.rand(61, 47, 3, generator=gen)
+    outs = [fused.cpu_ext().photometric_loss_cpu(x, y, 0.2, True, True, t) for t in (1, 2, 3)]
+    for o in outs[1:]:
+        for a, b in zip(o, outs[0]):
+            assert torch.equal(a, b)
+
+
+def test_photometric_loss_falls_back_off_the_fused_path():
+    gen = torch.Generator().manual_seed(4)
+    gt = torch.rand(12, 10, 3, generator=gen).requires_grad_()  # a gradient w.r.t. gt: PyTorch path
+    render = torch.rand(12, 10, 3, generator=gen).requires_grad_()
+    total, _, _ = fused.photometric_loss(render, gt, 0.2)
+    ref, _, _ = _torch_photometric(render, gt, 0.2)
+    torch.testing.assert_close(total, ref)
+    total.backward()
+    assert gt.grad is not None
+    with pytest.raises(ValueError, match="one shape"):
+        fused.photometric_loss(render, gt[:, :5], 0.2)
