@@ -102,7 +102,10 @@ def install(timers: Timers, ext) -> None:
     timers.wrap(api, "validate_inputs", "validate")
     timers.wrap(rz, "to_camera_space", "preprocess")
     timers.wrap(trainer, "training_loss", "loss")
-    timers.wrap(loss_mod, "ssim_map", "ssim_map")
+    if hasattr(loss_mod, "ssim_map"):  # commits before the fused photometric loss
+        timers.wrap(loss_mod, "ssim_map", "ssim_map")
+    else:  # L1 + SSIM and (when the render needs one) its gradient, one compiled pass
+        timers.wrap(loss_mod, "photometric_loss", "photometric")
     timers.wrap(torch.Tensor, "backward", "backward")
     timers.wrap(trainer.Trainer, "_check_finite", "nan_guard")
     timers.wrap(SurfelAdam, "step", "adam")
