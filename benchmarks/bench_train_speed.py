@@ -187,7 +187,10 @@ def write_preset_configs(base_tree: str, head_tree: str, preset: str, iterations
     for path, c in ((head_path, cfg), (base_path, base_cfg)):
         with open(path, "wb") as fh:
             tomli_w.dump(c, fh)
-    return cfg, base_cfg
+    # Settings of the head the base cannot take: the base runs its built-in behaviour there, so the two
+    # sides may not do the same work (neutralise them with --set KEY=<the base's behaviour>).
+    head_only = {k: v for k, v in resolved.items() if k not in keys and k not in run_keys and v is not None}
+    return cfg, base_cfg, head_only
 
 
 def train_cmd(scene: str, run: str, cfg_path: str, iterations: int, seed: int, images: str | None) -> list[str]:
@@ -305,6 +308,9 @@ def write(res: dict, path: str) -> None:
              f", {res['iterations']} iterations, schedule_scale "
              f"{res['config']['schedule_scale']:.4g}; 1 thread per training. base = {res['base']}, "
              f"head = {res['head']}.", "",
+             *([f"Head settings the base does not know (it runs its built-in behaviour there; compare the "
+                f"primitives and texels columns): {', '.join(f'{k}={v}' for k, v in res['head_only_settings'].items())}.",
+                ""] if res.get("head_only_settings") else []),
              "| seed | side | it/s | train s | process CPU s | test PSNR | primitives | texels | peak RSS MiB | "
              "routines' share |",
              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -359,13 +365,13 @@ def main() -> None:
     scene = os.path.abspath(args.scene)
     if args.preset:
         cfg_paths = {name: os.path.join(args.work, f"config_{tag}_{name}.toml") for name in sides}
-        cfg, base_cfg = write_preset_configs(sides["base"], sides["head"], args.preset, args.iterations, args.sets,
+        cfg, base_cfg, head_only = write_preset_configs(sides["base"], sides["head"], args.preset, args.iterations, args.sets,
                                              image_pixels(scene, args.images), cfg_paths["head"],
                                              cfg_paths["base"])
     else:
         cfg_path = os.path.join(args.work, f"config_{tag}.toml")
         cfg = write_config(sides["base"], sides["head"], args.iterations, args.sets, cfg_path)
-        base_cfg = cfg
+        base_cfg, head_only = cfg, {}
         cfg_paths = {name: cfg_path for name in sides}
     pairs = {}
     for seed in args.seeds:
@@ -381,7 +387,7 @@ def main() -> None:
            "base": f"{args.base} ({shas['base'][:10]})", "head": f"{args.head} ({shas['head'][:10]})",
            "config_source": (f"preset {args.preset} (head), resolved by the head's rules for the base"
                              if args.preset else "configs/demo.toml"),
-           "config": cfg, "base_config": base_cfg, "serial": args.serial, "pairs": pairs,
+           "config": cfg, "base_config": base_cfg, "head_only_settings": head_only, "serial": args.serial, "pairs": pairs,
            "mean_ratio": statistics.mean(p["ratio"] for p in pairs.values()), "machine": machine(),
            "loadavg_start": load0, "loadavg_end": os.getloadavg(),
            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
