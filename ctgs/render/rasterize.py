@@ -48,11 +48,11 @@ class _Rasterize(torch.autograd.Function):
         ctx.save_for_backward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, tile_offsets, tile_list, final_T, n_contrib)
         ctx.cam, ctx.device, ctx.knob = cam, device, knob
-        ctx.mark_non_differentiable(count, contrib, err)
-        return rgb, alpha, depth, count, contrib, err
+        ctx.mark_non_differentiable(count, contrib, err, tile_list)
+        return rgb, alpha, depth, count, contrib, err, tile_list
 
     @staticmethod
-    def backward(ctx, v_rgb, v_alpha, v_depth, _v_count, _v_contrib, _v_err):
+    def backward(ctx, v_rgb, v_alpha, v_depth, _v_count, _v_contrib, _v_err, _v_tile_list):
         (mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
          tile_offsets, tile_list, final_T, n_contrib) = ctx.saved_tensors
         H, W = final_T.shape
@@ -73,16 +73,22 @@ def rasterize(s: SurfelInputs, camera: Camera, sh_degree: int, background: torch
     """Validated inputs -> RenderOutput through the compiled backend of `device` ("cpu" or "cuda")."""
     prims = to_camera_space(s.means, s.quats, s.sh, camera, sh_degree)
     k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)
-    rgb, alpha, depth, count, contrib, err = _Rasterize.apply(
+    rgb, alpha, depth, count, contrib, err, tile_list = _Rasterize.apply(
         prims.mu_c.contiguous(), prims.Rc.contiguous(), s.scales.contiguous(), s.opacities.contiguous(),
         prims.colors.contiguous(), k.contiguous(), s.textures.contiguous(), background.contiguous(),
         s.tex_res.contiguous(), s.tex_offset.contiguous(), camera,
         None if error_image is None else error_image.detach().contiguous(), device, knob, poison)
+    # Every primitive in some tile list: one scatter over the lists (a few per primitive), no PyTorch
+    # replay of the binning's geometry per training step.
+    rasterized = torch.zeros(s.num_primitives, dtype=torch.bool, device=rgb.device)
+    if s.num_primitives > 0 and tile_list.numel() > 0:
+        rasterized[tile_list.long()] = True
     if error_image is None:
-        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=None)
+        return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=None, rasterized=rasterized)
     if s.num_primitives == 0:  # the kernels return placeholder buffers for N = 0
         count, contrib, err = count.new_zeros(0), contrib.new_zeros(0), err.new_zeros(0)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err))
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err),
+                        rasterized=rasterized)
 
 
 def rasterize_error_fn(s: SurfelInputs, camera: Camera, sh_degree: int, background: torch.Tensor,

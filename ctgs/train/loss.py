@@ -91,11 +91,14 @@ def mean_transmittance(stats, opacities: torch.Tensor) -> torch.Tensor:
     return torch.where(count > 0, stats.contrib / expected.clamp_min(1e-12), 0.0).clamp(0.0, 1.0)
 
 
-def texture_weights(model, camera, cfg, stats=None) -> torch.Tensor:
+def texture_weights(model, camera, cfg, stats=None, rasterized=None) -> torch.Tensor:
     """[N] weight of each primitive's texel L1: 1 for rasterized primitives (0 otherwise), times 1 - mean
     transmittance with cfg.texture_reg_transmittance. `stats`: this view's ErrorStats if the caller rendered
-    them already; otherwise one extra forward pass computes them."""
-    weights = rasterized_mask(model, camera).to(model.means.dtype)
+    them already; otherwise one extra forward pass computes them. `rasterized`: the render's own [N] mask
+    (RenderOutput.rasterized) if it has one; otherwise `rasterized_mask` recomputes the same set."""
+    if rasterized is None or rasterized.shape != (model.num_primitives,):
+        rasterized = rasterized_mask(model, camera)
+    weights = rasterized.to(model.means.dtype)
     if cfg.texture_reg_transmittance:
         if stats is None:
             from ctgs.render import render
@@ -108,14 +111,16 @@ def texture_weights(model, camera, cfg, stats=None) -> torch.Tensor:
     return weights
 
 
-def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, stats=None) -> LossTerms:
-    """render, gt: [H, W, 3] in [0, 1]; stats: the view's ErrorStats, if rendered (see texture_weights)."""
+def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, stats=None,
+                  rasterized=None) -> LossTerms:
+    """render, gt: [H, W, 3] in [0, 1]; stats: the view's ErrorStats, if rendered; rasterized: the render's
+    [N] mask of rasterized primitives, if it has one (see texture_weights)."""
     # (1 - l) L1 + l (1 - SSIM): one fused pass, gradient included, on the CPU (kernels/cpu/ssim.cpp).
     total, l1, s = photometric_loss(render, gt, cfg.lambda_ssim)
     if cfg.lambda_opacity > 0:
         total = total + cfg.lambda_opacity * model.opacities.mean()
     if cfg.lambda_texture > 0 and model.texture_mode != "none" and model.num_texels > 0:
-        weights = texture_weights(model, camera, cfg, stats)  # [N]
+        weights = texture_weights(model, camera, cfg, stats, rasterized)  # [N]
         # cfg.lambda_texture is already resolved for the image size (ctgs/train/rules.py: x 1e6 / (H*W)).
         # sum_i weights[i] sum |texel of i|: one fused pass on the CPU, no [T] weight tensor.
         total = total + cfg.lambda_texture * texel_l1(model, weights)

@@ -64,9 +64,13 @@ def test_mask_is_exactly_the_rasterizers_binning(seed):
     assert 50 < len(binned) < 350, len(binned)
     assert bool(((mu_z < cam.near) & ~mask).any()) and bool(((model.opacities < MIN_ALPHA) & ~mask).any())
     # Whatever the renderer blends anywhere was kept (its statistics only count kept primitives).
-    stats = render(model.render_inputs(), cam, backend="cpu", error_image=torch.zeros(H, W)).stats
+    out = render(model.render_inputs(), cam, backend="cpu", error_image=torch.zeros(H, W))
+    stats = out.stats
     assert bool(mask[stats.count > 0].all())
     assert int((stats.count > 0).sum()) < int(mask.sum())  # kept is conservative: some touch no pixel
+    # The render's own mask (what the trainer passes to the loss) is the same set, with or without stats.
+    assert torch.equal(out.rasterized, mask)
+    assert torch.equal(render(model.render_inputs(), cam, backend="cpu").rasterized, mask)
 
 
 def test_centre_off_screen_but_surfel_on_screen_is_regularised():
@@ -118,3 +122,14 @@ def test_transmittance_weighting_regularises_hidden_primitives_more():
     with torch.no_grad():
         term = float(training_loss(gt, gt, m, th.camera(), cfg).total - training_loss(gt, gt, m, th.camera(), off).total)
     assert abs(term - 1e-3 * float((w * per_prim).sum())) < 1e-6
+
+
+def test_loss_with_the_renders_mask_equals_the_recomputed_one():
+    model, cam = _scene(300, 5)
+    model.textures_raw.requires_grad_(True)
+    cfg = TrainConfig(lambda_texture=0.5)
+    out = render(model.render_inputs(), cam, backend="cpu")
+    gt = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0))
+    a = training_loss(out.rgb, gt, model, cam, cfg, rasterized=out.rasterized).total
+    b = training_loss(out.rgb, gt, model, cam, cfg).total
+    assert torch.equal(a, b)
