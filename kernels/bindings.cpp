@@ -249,6 +249,35 @@ Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_thread
   return g;
 }
 
+// Per-primitive (count int32, contrib, err) [n] from a forward's blended pairs (forward_pairs_cpu: pix, prim
+// int32 [P], w [P]) and the error image e [H, W] (kernels/cpu/dense.h accumulate_pairs).
+std::vector<Tensor> accumulate_pairs_cpu(Tensor pix, Tensor prim, Tensor w, Tensor e, int64_t n) {
+  const int64_t P = w.size(0);
+  check_tensor(pix, "pix", "[P] int32", {P}, at::kInt);
+  check_tensor(prim, "prim", "[P] int32", {P}, at::kInt);
+  TORCH_CHECK(w.device().is_cpu() && w.dim() == 1 && w.is_contiguous() &&
+                  (w.scalar_type() == at::kFloat || w.scalar_type() == at::kDouble),
+              "accumulate_pairs: w must be a contiguous float CPU tensor [P]");
+  TORCH_CHECK(e.device().is_cpu() && e.is_contiguous() && e.scalar_type() == w.scalar_type(),
+              "accumulate_pairs: the error image must be a contiguous CPU tensor of w's dtype");
+  TORCH_CHECK(n >= 0, "accumulate_pairs: n must be >= 0");
+  const int64_t npix = e.numel();
+  const int32_t* pp = pix.data_ptr<int32_t>();
+  const int32_t* qq = prim.data_ptr<int32_t>();
+  for (int64_t k = 0; k < P; ++k)
+    TORCH_CHECK(pp[k] >= 0 && pp[k] < npix && qq[k] >= 0 && qq[k] < n, "accumulate_pairs: pair ", k,
+                " out of range (pixel ", pp[k], " of ", npix, ", primitive ", qq[k], " of ", n, ")");
+  Tensor count = torch::empty({n}, torch::dtype(at::kInt));
+  Tensor contrib = torch::empty({n}, w.options());
+  Tensor err = torch::empty({n}, w.options());
+  AT_DISPATCH_FLOATING_TYPES(w.scalar_type(), "ctgs_accumulate_pairs_cpu", [&] {
+    ctgs::cpu::accumulate_pairs<scalar_t>(pp, qq, w.data_ptr<scalar_t>(), P, e.data_ptr<scalar_t>(),
+                                          count.data_ptr<int32_t>(), contrib.data_ptr<scalar_t>(),
+                                          err.data_ptr<scalar_t>(), n);
+  });
+  return {count, contrib, err};
+}
+
 // The photometric loss of render x and ground truth y, [H, W, C] float CPU tensors of one dtype
 // (kernels/cpu/ssim.cpp). Returns {total (0-d) = (1 - l) mean |x - y| + l (1 - mean SSIM), mean |x - y|,
 // mean SSIM, grad [H, W, C] = d total / d x (empty unless want_grad), error [H, W] (empty unless
@@ -350,6 +379,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
   m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
   m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
+  m.def("accumulate_pairs_cpu", &accumulate_pairs_cpu,
+        "per-primitive count, contrib and error sums over a forward's blended pairs");
   m.def("photometric_loss_cpu", &photometric_loss_cpu,
         "(1 - l) L1 + l (1 - SSIM) of render and ground truth, its gradient and the error image, fused");
   m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");

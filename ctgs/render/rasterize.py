@@ -112,8 +112,7 @@ def rasterize_error_fn(s: SurfelInputs, camera: Camera, sh_degree: int, backgrou
             background.detach().contiguous(), *cam, knob, poison)
         e = error_fn(rgb)
         check_error(e)
-        n = s.num_primitives
-        count = torch.bincount(prim, minlength=n).to(torch.int32)
-        contrib = w.new_zeros(n).index_add_(0, prim, w)
-        err = w.new_zeros(n).index_add_(0, prim, e.detach().reshape(-1)[pix] * w)
+        # One compiled pass over the pairs (the same sums, in the same order, as bincount / index_add_).
+        count, contrib, err = load_cpu().accumulate_pairs_cpu(pix, prim, w, e.detach().to(w.dtype).contiguous(),
+                                                              s.num_primitives)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err))

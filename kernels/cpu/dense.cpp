@@ -244,5 +244,25 @@ template double texel_l1<float>(const float*, const float*, const long long*, co
 template double texel_l1<double>(const double*, const double*, const long long*, const int*, int, double*,
                                  double, int);
 
+template <typename S>
+void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64_t n_pairs, const S* e,
+                      int32_t* count, S* contrib, S* err, int64_t n_prims) {
+  std::fill(count, count + n_prims, 0);
+  std::fill(contrib, contrib + n_prims, S(0));
+  std::fill(err, err + n_prims, S(0));
+  for (int64_t k = 0; k < n_pairs; ++k) {
+    const int32_t i = prim[k];
+    const S wk = w[k];
+    count[i] += 1;
+    contrib[i] += wk;
+    err[i] += e[pix[k]] * wk;
+  }
+}
+
+template void accumulate_pairs<float>(const int32_t*, const int32_t*, const float*, int64_t, const float*, int32_t*,
+                                      float*, float*, int64_t);
+template void accumulate_pairs<double>(const int32_t*, const int32_t*, const double*, int64_t, const double*,
+                                       int32_t*, double*, double*, int64_t);
+
 }  // namespace cpu
 }  // namespace ctgs

@@ -39,6 +39,13 @@ void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const i
                   const long long* old_off, const long long* src, const long long* shift, const int* new_res,
                   const long long* new_off, int64_t n_new, int threads);
 
+// Per-primitive error statistics from a forward's blended pairs (pix[k], prim[k], w[k]), k < n_pairs, and the
+// error image e [H*W]: count[i] = #pairs of i, contrib[i] = sum of their w, err[i] = sum of e[pix] w, summed
+// in pair order (the order of PyTorch's index_add_ on one thread). Outputs [n_prims], overwritten.
+template <typename S>
+void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64_t n_pairs, const S* e,
+                      int32_t* count, S* contrib, S* err, int64_t n_prims);
+
 // The photometric loss of two [H, W, C] images x (render) and y (ground truth), kernels/cpu/ssim.cpp:
 // l1_sum = sum |x - y|, ssim_sum = sum of the SSIM map (11x11 Gaussian window, sigma 1.5, zero padded), so
 // the loss is (1 - l) l1_sum / (H W C) + l (1 - ssim_sum / (H W C)). grad (if not null) [H, W, C] gets its

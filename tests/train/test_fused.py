@@ -224,3 +224,20 @@ def test_photometric_loss_falls_back_off_the_fused_path():
     assert gt.grad is not None
     with pytest.raises(ValueError, match="one shape"):
         fused.photometric_loss(render, gt[:, :5], 0.2)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_accumulate_pairs_matches_pytorch_index_add(dtype):
+    # E's per-view statistics (ctgs/render/rasterize.py rasterize_error_fn): the same sums in the same order.
+    gen = torch.Generator().manual_seed(6)
+    P, n, hw = 20000, 301, 1200
+    pix = torch.randint(0, hw, (P,), generator=gen, dtype=torch.int32)
+    prim = torch.randint(0, n - 1, (P,), generator=gen, dtype=torch.int32)  # primitive n-1 never blended
+    w, e = torch.rand(P, generator=gen, dtype=dtype), torch.rand(30, 40, generator=gen, dtype=dtype)
+    count, contrib, err = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n)
+    assert torch.equal(count, torch.bincount(prim, minlength=n).to(torch.int32))
+    assert torch.equal(contrib, w.new_zeros(n).index_add_(0, prim, w))
+    assert torch.equal(err, w.new_zeros(n).index_add_(0, prim, e.reshape(-1)[pix] * w))
+    assert count[-1] == 0 and contrib[-1] == 0 and err[-1] == 0
+    with pytest.raises(RuntimeError, match="out of range"):
+        fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e[:2], n)
