@@ -26,6 +26,15 @@ void check_tensor(const Tensor& t, const char* name, const char* shape, std::vec
   ctgs_binding::check_tensor(t, name, shape, std::move(sizes), dtype, kCPU);
 }
 
+// A 1-D tensor that takes over v's buffer (no copy; the tensor's deleter frees it).
+template <typename T>
+Tensor adopt_vector(std::vector<T>&& v, at::ScalarType dtype) {
+  const int64_t n = int64_t(v.size());
+  if (n == 0) return torch::empty({0}, torch::dtype(dtype));
+  auto* held = new std::vector<T>(std::move(v));
+  return torch::from_blob(held->data(), {n}, [held](void*) { delete held; }, torch::dtype(dtype));
+}
+
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
 // [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (the last three empty
 // unless error_image [H,W] is given). With poison=true outputs start as NaN, so unwritten pixels show up.
@@ -65,10 +74,10 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     o.pairs = record_pairs ? &pairs : nullptr;
     ctgs::cpu::forward<scalar_t>(scene_args<scalar_t>(s), o, &bins);
     if (record_pairs) {
-      const int64_t P = int64_t(pairs.pix.size());
-      pix = torch::from_blob(pairs.pix.data(), {P}, at::kInt).clone();
-      prim = torch::from_blob(pairs.prim.data(), {P}, at::kInt).clone();
-      w = torch::from_blob(pairs.w.data(), {P}, fopt.dtype()).clone();
+      // ~1M pairs per view for E: hand the buffers over instead of copying them.
+      pix = adopt_vector(std::move(pairs.pix), at::kInt);
+      prim = adopt_vector(std::move(pairs.prim), at::kInt);
+      w = adopt_vector(std::move(pairs.w), mu_c.scalar_type());
     }
   });
   if (record_pairs) return {rgb, alpha, depth, pix, prim, w};
