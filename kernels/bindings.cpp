@@ -81,8 +81,8 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     }
   });
   if (record_pairs) return {rgb, alpha, depth, pix, prim, w};
-  Tensor tile_offsets = torch::from_blob(bins.offsets.data(), {int64_t(bins.offsets.size())}, at::kLong).clone();
-  Tensor tile_list = torch::from_blob(bins.list.data(), {int64_t(bins.list.size())}, at::kInt).clone();
+  Tensor tile_offsets = adopt_vector(std::move(bins.offsets), at::kLong);
+  Tensor tile_list = adopt_vector(std::move(bins.list), at::kInt);
   return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err};
 }
 
