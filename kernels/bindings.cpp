@@ -287,6 +287,44 @@ std::vector<Tensor> accumulate_pairs_cpu(Tensor pix, Tensor prim, Tensor w, Tens
   return {count, contrib, err};
 }
 
+void check_sh_args(const Tensor& means, const Tensor& center, const Tensor& sh, int64_t degree) {
+  TORCH_CHECK(means.device().is_cpu() && means.dim() == 2 && means.size(1) == 3 && means.is_contiguous() &&
+                  (means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble),
+              "sh_color: means must be a contiguous float CPU tensor [N, 3], got ", means.sizes());
+  check_tensor(center, "center", "[3]", {3}, means.scalar_type());
+  check_tensor(sh, "sh", "[N, K, 3]", {means.size(0), -1, 3}, means.scalar_type());
+  TORCH_CHECK(degree >= 0 && degree <= 3 && sh.size(1) >= (degree + 1) * (degree + 1),
+              "sh_color: degree ", degree, " needs (degree + 1)^2 <= K = ", sh.size(1), " and degree in 0..3");
+}
+
+// colors [N, 3] = SH_degree(normalize(means - center)) + 0.5 (kernels/cpu/sh.cpp).
+Tensor sh_color_cpu(Tensor means, Tensor center, Tensor sh, int64_t degree, int64_t num_threads) {
+  check_sh_args(means, center, sh, degree);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  Tensor colors = torch::empty_like(means);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "ctgs_sh_color_cpu", [&] {
+    ctgs::cpu::sh_color<scalar_t>(means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), sh.data_ptr<scalar_t>(),
+                                  means.size(0), int(sh.size(1)), int(degree), colors.data_ptr<scalar_t>(), threads);
+  });
+  return colors;
+}
+
+// {grad_means [N, 3], grad_sh [N, K, 3]} of sh_color_cpu for the upstream gradient grad_colors [N, 3].
+std::vector<Tensor> sh_color_backward_cpu(Tensor means, Tensor center, Tensor sh, int64_t degree, Tensor grad_colors,
+                                          int64_t num_threads) {
+  check_sh_args(means, center, sh, degree);
+  check_tensor(grad_colors, "grad_colors", "[N, 3]", {means.size(0), 3}, means.scalar_type());
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  Tensor gm = torch::empty_like(means), gs = torch::empty_like(sh);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "ctgs_sh_color_backward_cpu", [&] {
+    ctgs::cpu::sh_color_backward<scalar_t>(means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(),
+                                           sh.data_ptr<scalar_t>(), means.size(0), int(sh.size(1)), int(degree),
+                                           grad_colors.data_ptr<scalar_t>(), gm.data_ptr<scalar_t>(),
+                                           gs.data_ptr<scalar_t>(), threads);
+  });
+  return {gm, gs};
+}
+
 // The photometric loss of render x and ground truth y, [H, W, C] float CPU tensors of one dtype
 // (kernels/cpu/ssim.cpp). Returns {total (0-d) = (1 - l) mean |x - y| + l (1 - mean SSIM), mean |x - y|,
 // mean SSIM, grad [H, W, C] = d total / d x (empty unless want_grad), error [H, W] (empty unless
@@ -390,6 +428,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
   m.def("accumulate_pairs_cpu", &accumulate_pairs_cpu,
         "per-primitive count, contrib and error sums over a forward's blended pairs");
+  m.def("sh_color_cpu", &sh_color_cpu, "SH(normalize(mean - centre)) + 0.5 per primitive");
+  m.def("sh_color_backward_cpu", &sh_color_backward_cpu, "gradient of sh_color_cpu w.r.t. means and SH");
   m.def("photometric_loss_cpu", &photometric_loss_cpu,
         "(1 - l) L1 + l (1 - SSIM) of render and ground truth, its gradient and the error image, fused");
   m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");

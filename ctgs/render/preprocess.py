@@ -10,7 +10,7 @@ import torch
 
 from ctgs.model.geometry import quat_to_rotmat
 from ctgs.render.camera import Camera
-from ctgs.render.sh import sh_to_color, view_dirs
+from ctgs.render.sh import view_color
 
 
 @dataclass
@@ -29,5 +29,5 @@ def to_camera_space(means: torch.Tensor, quats: torch.Tensor, sh: torch.Tensor, 
     mu_c = means @ rv.T + tv  # [N, 3]
     Rc = rv @ quat_to_rotmat(quats)  # [N, 3, 3]
     center = -rv.T @ tv  # [3] camera centre, world
-    colors = sh_to_color(sh, view_dirs(means, center), sh_degree)
+    colors = view_color(means, sh, center, sh_degree)
     return CameraSpacePrims(mu_c=mu_c, Rc=Rc, colors=colors)

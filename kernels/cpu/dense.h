@@ -46,6 +46,15 @@ template <typename S>
 void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64_t n_pairs, const S* e,
                       int32_t* count, S* contrib, S* err, int64_t n_prims);
 
+// View-dependent colour (kernels/cpu/sh.cpp, ctgs/render/sh.py): colors [n, 3] = SH_deg(normalize(mean -
+// center)) + 0.5 from sh [n, K, 3] (K >= (deg + 1)^2, coefficients past the degree unused); and its backward:
+// grad_means [n, 3] through the view direction (0 where mean == center), grad_sh [n, K, 3] (0 past the degree).
+template <typename S>
+void sh_color(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, S* colors, int threads);
+template <typename S>
+void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, const S* grad_colors,
+                       S* grad_means, S* grad_sh, int threads);
+
 // The photometric loss of two [H, W, C] images x (render) and y (ground truth), kernels/cpu/ssim.cpp:
 // l1_sum = sum |x - y|, ssim_sum = sum of the SSIM map (11x11 Gaussian window, sigma 1.5, zero padded), so
 // the loss is (1 - l) l1_sum / (H W C) + l (1 - ssim_sum / (H W C)). grad (if not null) [H, W, C] gets its
