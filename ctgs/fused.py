@@ -98,16 +98,34 @@ class _TexelL1(torch.autograd.Function):
         return g, None, None, None  # the weights are constants of the loss (no gradient)
 
 
-def texel_l1(model, weight: torch.Tensor) -> torch.Tensor:
+class _TexelAbs(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, y, weight, tex_offset, tex_res):
+        ctx.save_for_backward(y, weight, tex_offset, tex_res)
+        return cpu_ext().texel_abs_forward_cpu(y, weight, tex_offset, tex_res, torch.get_num_threads())
+
+    @staticmethod
+    def backward(ctx, grad):
+        y, weight, tex_offset, tex_res = ctx.saved_tensors
+        g = cpu_ext().texel_abs_backward_cpu(y, weight, tex_offset, tex_res, float(grad), torch.get_num_threads())
+        return g, None, None, None
+
+
+def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) -> torch.Tensor:
     """sum_i weight[i] * (sum over primitive i's texels and channels of |activated texel| (model.textures)):
     a scalar, differentiable w.r.t. model.textures_raw, not w.r.t. weight. weight: [N] per-primitive
     factors (ctgs.train.loss.texture_weights: the rasterized mask, times 1 - transmittance on option);
-    a bool mask is taken as 0/1."""
+    a bool mask is taken as 0/1. textures: the activated offsets this step's render used (its
+    SurfelInputs.textures), if the caller has them: the term is then taken on them (no second activation,
+    and autograd sums its gradient with the render's before the one activation backward)."""
     raw = model.textures_raw
     n = model.tex_res.shape[0]
     if weight.shape != (n,):
         raise ValueError(f"texel_l1: weight must be [N] = [{n}] (one per primitive), got {list(weight.shape)}")
     weight = weight.detach().to(raw.dtype)
+    if textures is not None and textures.shape == raw.shape and fusable(textures):
+        return _TexelAbs.apply(textures, weight.contiguous(), model.tex_offset.contiguous(),
+                               model.tex_res.contiguous())
     if fusable(raw):
         return _TexelL1.apply(raw, weight.contiguous(), model.tex_offset.contiguous(), model.tex_res.contiguous())
     sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()

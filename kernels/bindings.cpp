@@ -202,22 +202,25 @@ void check_texel_l1(const Tensor& raw, const Tensor& weight, const Tensor& tex_o
   TORCH_CHECK(next == raw.size(0), "texel_l1: the primitives hold ", next, " texels, raw has ", raw.size(0));
 }
 
-// sum_i weight[i] x sum over primitive i's texels of |2 sigmoid(raw) - 1| (a 0-dim tensor of raw's dtype).
-Tensor texel_l1_forward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
+// sum_i weight[i] x sum over primitive i's texels of |2 sigmoid(raw) - 1| (a 0-dim tensor of raw's dtype);
+// activated: raw holds y = 2 sigmoid(x) - 1 already (the sum of |y|).
+Tensor texel_l1_forward_impl(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, int64_t num_threads,
+                             bool activated) {
   check_texel_l1(raw, weight, tex_offset, tex_res);
   const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
   double total = 0.0;
   AT_DISPATCH_FLOATING_TYPES(raw.scalar_type(), "ctgs_texel_l1_forward_cpu", [&] {
     total = ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), weight.data_ptr<scalar_t>(),
                                           reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
-                                          tex_res.data_ptr<int32_t>(), int(weight.numel()), nullptr, scalar_t(0), threads);
+                                          tex_res.data_ptr<int32_t>(), int(weight.numel()), nullptr, scalar_t(0), threads,
+                                          activated);
   });
   return torch::scalar_tensor(total, raw.options());
 }
 
-// scale * d/draw of texel_l1_forward_cpu, [T, 3].
-Tensor texel_l1_backward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, double scale,
-                             int64_t num_threads) {
+// scale * d/draw of texel_l1_forward_impl, [T, 3].
+Tensor texel_l1_backward_impl(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, double scale,
+                              int64_t num_threads, bool activated) {
   check_texel_l1(raw, weight, tex_offset, tex_res);
   const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
   Tensor grad = torch::empty_like(raw);
@@ -225,9 +228,24 @@ Tensor texel_l1_backward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tenso
     ctgs::cpu::texel_l1<scalar_t>(raw.data_ptr<scalar_t>(), weight.data_ptr<scalar_t>(),
                                   reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
                                   tex_res.data_ptr<int32_t>(), int(weight.numel()), grad.data_ptr<scalar_t>(),
-                                  scalar_t(scale), threads);
+                                  scalar_t(scale), threads, activated);
   });
   return grad;
+}
+
+Tensor texel_l1_forward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
+  return texel_l1_forward_impl(raw, weight, tex_offset, tex_res, num_threads, false);
+}
+Tensor texel_l1_backward_cpu(Tensor raw, Tensor weight, Tensor tex_offset, Tensor tex_res, double scale,
+                             int64_t num_threads) {
+  return texel_l1_backward_impl(raw, weight, tex_offset, tex_res, scale, num_threads, false);
+}
+Tensor texel_abs_forward_cpu(Tensor y, Tensor weight, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
+  return texel_l1_forward_impl(y, weight, tex_offset, tex_res, num_threads, true);
+}
+Tensor texel_abs_backward_cpu(Tensor y, Tensor weight, Tensor tex_offset, Tensor tex_res, double scale,
+                              int64_t num_threads) {
+  return texel_l1_backward_impl(y, weight, tex_offset, tex_res, scale, num_threads, true);
 }
 
 // y = 2 sigmoid(x) - 1 of a contiguous float CPU tensor (any shape).
@@ -424,6 +442,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
   m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum over primitives of weight x sum of |2 sigmoid(raw) - 1| over their texels");
   m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
+  m.def("texel_abs_forward_cpu", &texel_abs_forward_cpu,
+        "texel_l1_forward_cpu on activated offsets y: sum over primitives of weight x sum of |y|");
+  m.def("texel_abs_backward_cpu", &texel_abs_backward_cpu, "scale * gradient of texel_abs_forward_cpu w.r.t. y");
   m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
   m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
   m.def("accumulate_pairs_cpu", &accumulate_pairs_cpu,

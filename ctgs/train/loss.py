@@ -112,9 +112,10 @@ def texture_weights(model, camera, cfg, stats=None, rasterized=None) -> torch.Te
 
 
 def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, stats=None,
-                  rasterized=None) -> LossTerms:
+                  rasterized=None, textures=None) -> LossTerms:
     """render, gt: [H, W, 3] in [0, 1]; stats: the view's ErrorStats, if rendered; rasterized: the render's
-    [N] mask of rasterized primitives, if it has one (see texture_weights)."""
+    [N] mask of rasterized primitives, if it has one (see texture_weights); textures: the activated texel
+    offsets the render used (SurfelInputs.textures), if the caller kept them (see ctgs.fused.texel_l1)."""
     # (1 - l) L1 + l (1 - SSIM): one fused pass, gradient included, on the CPU (kernels/cpu/ssim.cpp).
     total, l1, s = photometric_loss(render, gt, cfg.lambda_ssim)
     if cfg.lambda_opacity > 0:
@@ -123,6 +124,6 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, st
         weights = texture_weights(model, camera, cfg, stats, rasterized)  # [N]
         # cfg.lambda_texture is already resolved for the image size (ctgs/train/rules.py: x 1e6 / (H*W)).
         # sum_i weights[i] sum |texel of i|: one fused pass on the CPU, no [T] weight tensor.
-        total = total + cfg.lambda_texture * texel_l1(model, weights)
+        total = total + cfg.lambda_texture * texel_l1(model, weights, textures)
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)
     return LossTerms(total=total, l1=float(l1), ssim=float(s), psnr=float(-10 * torch.log10(mse)))

@@ -241,9 +241,10 @@ class Trainer:
         fb, fw = [], []
         for _ in range(3):
             t0 = time.perf_counter()
-            out = self.render_fn(self.model.render_inputs(), view.camera)
-            training_loss(out.rgb, view.image_t, self.model, view.camera, self.cfg,
-                          rasterized=out.rasterized).total.backward()
+            inputs = self.model.render_inputs()
+            out = self.render_fn(inputs, view.camera)
+            training_loss(out.rgb, view.image_t, self.model, view.camera, self.cfg, rasterized=out.rasterized,
+                          textures=inputs.textures).total.backward()
             fb.append(time.perf_counter() - t0)
             with torch.no_grad():
                 t0 = time.perf_counter()
@@ -281,8 +282,10 @@ class Trainer:
             # A random background colour per step (cfg.random_background) makes transparency unpredictable,
             # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
             bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
-            out = self.render_fn(self.model.render_inputs(), view.camera, background=bg)
-            terms = training_loss(out.rgb, view.image_t, self.model, view.camera, cfg, rasterized=out.rasterized)
+            inputs = self.model.render_inputs()
+            out = self.render_fn(inputs, view.camera, background=bg)
+            terms = training_loss(out.rgb, view.image_t, self.model, view.camera, cfg, rasterized=out.rasterized,
+                                  textures=inputs.textures)
             loss = terms.total
             if cfg.debug_nan_at and it == cfg.debug_nan_at:
                 loss = loss * float("nan")  # testing hook for the NaN guard

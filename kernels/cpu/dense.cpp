@@ -53,10 +53,21 @@ namespace {
 // |tanh(x/2)| = |2 sigmoid(x) - 1| = (1 - e) / (1 + e) and d/dx = sign(x) 2e / (1 + e)^2 with
 // e = exp(-|x|) in (0, 1]: no cancellation, exp's argument always <= 0 (lanes.h vexp's range).
 // wgt: the primitive's weight; gradients are scaled by `scale` (= upstream gradient x wgt).
-template <typename S>
+// Act: x are activated offsets already (y = tanh(raw / 2)): the value is |y|, the gradient sign(y).
+template <typename S, bool Act>
 CTGS_INLINE void l1_lanes(const S* x, S* grad, S wgt, S scale, typename Lanes<S>::V& acc) {
   using V = typename Lanes<S>::V;
   const V xv = vload<V>(x);
+  if (Act) {
+    const V one = splat(S(1));
+    if (grad == nullptr) {
+      acc += wgt * vabs<S>(xv);
+    } else {
+      const V sg = sel(xv > S(0), one, sel(xv < S(0), -one, splat(S(0))));
+      vstore(grad, scale * sg);
+    }
+    return;
+  }
   const V ax = vabs<S>(xv);
   const V arg = sel(ax < S(87), -ax, splat(S(-87)));  // exp(-87) ~ 1.6e-38: the rest rounds to 1 or 0 anyway
   const V e = vexp(arg);
@@ -71,7 +82,7 @@ CTGS_INLINE void l1_lanes(const S* x, S* grad, S wgt, S scale, typename Lanes<S>
 }
 
 // For the primitives in [i0, i1): grad (if given) or the sum of weight[i] |tanh(raw/2)| over their texels.
-template <typename S>
+template <typename S, bool Act>
 CTGS_INLINE double texel_l1_range(const S* raw, const S* weight, const long long* tex_offset,
                                   const int* tex_res, int i0, int i1, S* grad, S scale) {
   using L = Lanes<S>;
@@ -89,11 +100,11 @@ CTGS_INLINE double texel_l1_range(const S* raw, const S* weight, const long long
     }
     int64_t k = 0;
     const S gs_i = scale * wi;  // the gradient's factor for this primitive (w = 1: exactly `scale`)
-    for (; k + W <= cnt; k += W) l1_lanes<S>(raw + off + k, grad ? grad + off + k : nullptr, wi, gs_i, acc);
+    for (; k + W <= cnt; k += W) l1_lanes<S, Act>(raw + off + k, grad ? grad + off + k : nullptr, wi, gs_i, acc);
     if (k < cnt) {  // tail through a zero-padded copy (|tanh(0)| = 0, its gradient is dropped)
       alignas(32) S xs[W] = {}, gs[W];
       std::copy(raw + off + k, raw + off + cnt, xs);
-      l1_lanes<S>(xs, grad ? gs : nullptr, wi, gs_i, acc);
+      l1_lanes<S, Act>(xs, grad ? gs : nullptr, wi, gs_i, acc);
       if (grad) std::copy(gs, gs + (cnt - k), grad + off + k);
     }
     if (!grad && (i & 63) == 63) {  // flush to double now and then: float lanes would drift over 1e6 terms
@@ -105,19 +116,21 @@ CTGS_INLINE double texel_l1_range(const S* raw, const S* weight, const long long
 }
 
 CTGS_LANE_CLONES double texel_l1_part(const float* raw, const float* weight, const long long* off, const int* res,
-                                      int i0, int i1, float* grad, float scale) {
-  return texel_l1_range<float>(raw, weight, off, res, i0, i1, grad, scale);
+                                      int i0, int i1, float* grad, float scale, bool act) {
+  return act ? texel_l1_range<float, true>(raw, weight, off, res, i0, i1, grad, scale)
+             : texel_l1_range<float, false>(raw, weight, off, res, i0, i1, grad, scale);
 }
 CTGS_LANE_CLONES double texel_l1_part(const double* raw, const double* weight, const long long* off, const int* res,
-                                      int i0, int i1, double* grad, double scale) {
-  return texel_l1_range<double>(raw, weight, off, res, i0, i1, grad, scale);
+                                      int i0, int i1, double* grad, double scale, bool act) {
+  return act ? texel_l1_range<double, true>(raw, weight, off, res, i0, i1, grad, scale)
+             : texel_l1_range<double, false>(raw, weight, off, res, i0, i1, grad, scale);
 }
 
 }  // namespace
 
 template <typename S>
 double texel_l1(const S* raw, const S* weight, const long long* tex_offset, const int* tex_res, int n_prims,
-                S* grad, S scale, int threads) {
+                S* grad, S scale, int threads, bool activated) {
   const int nt = std::max(1, threads);
   // Fixed blocks of primitives summed in block order: the result does not depend on the thread count.
   constexpr int BLOCK = 256;
@@ -126,7 +139,7 @@ double texel_l1(const S* raw, const S* weight, const long long* tex_offset, cons
 #pragma omp parallel for schedule(dynamic, 4) num_threads(nt)
   for (int b = 0; b < nb; ++b)
     part[b] = texel_l1_part(raw, weight, tex_offset, tex_res, b * BLOCK, std::min(n_prims, (b + 1) * BLOCK), grad,
-                            scale);
+                            scale, activated);
   double total = 0.0;
   for (double v : part) total += v;
   return total;
@@ -240,9 +253,9 @@ template int64_t adam_step<float>(float*, const float*, float*, float*, int64_t,
 template int64_t adam_step<double>(double*, const double*, double*, double*, int64_t, const double*, double,
                                    double, double, double, double, double, int);
 template double texel_l1<float>(const float*, const float*, const long long*, const int*, int, float*, float,
-                                int);
+                                int, bool);
 template double texel_l1<double>(const double*, const double*, const long long*, const int*, int, double*,
-                                 double, int);
+                                 double, int, bool);
 
 template <typename S>
 void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64_t n_pairs, const S* e,

@@ -19,9 +19,11 @@ int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, doub
 // grad == null -> returns sum_i weight[i] sum over i's texels of |2 sigmoid(raw) - 1|; else writes
 // grad = scale * d/draw of that sum (0 for the texels of primitives with weight 0) and returns 0.
 // The weights (the loss's visibility mask, times 1 - transmittance on option) are constants here.
+// activated: raw holds the activated offsets y = 2 sigmoid(x) - 1 already: the sum of |y| and grad = scale *
+// sign(y) (the same term, differentiated w.r.t. y; no exp).
 template <typename S>
 double texel_l1(const S* raw, const S* weight, const long long* tex_offset, const int* tex_res, int n_prims,
-                S* grad, S scale, int threads);
+                S* grad, S scale, int threads, bool activated = false);
 
 // Texel activation y = 2 sigmoid(x) - 1 = tanh(x / 2) on n elements, and its backward
 // grad_x = grad_y (1 - y) (1 + y) / 2.

@@ -241,3 +241,30 @@ def test_accumulate_pairs_matches_pytorch_index_add(dtype):
     assert count[-1] == 0 and contrib[-1] == 0 and err[-1] == 0
     with pytest.raises(RuntimeError, match="out of range"):
         fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e[:2], n)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_texel_l1_on_activated_textures_matches_the_raw_form(dtype):
+    # The trainer passes the render's activated offsets: the same term and the same gradient w.r.t. raw.
+    from ctgs.model.surfels import SurfelModel, jagged_offsets
+
+    gen = torch.Generator().manual_seed(8)
+    n = 57
+    tex_res = torch.randint(0, 6, (n, 2), generator=gen, dtype=torch.int32)
+    t = int((tex_res[:, 0].long() * tex_res[:, 1].long()).sum())
+    model = SurfelModel(
+        means=torch.randn(n, 3, dtype=dtype), log_scales=torch.zeros(n, 2, dtype=dtype),
+        quats=torch.randn(n, 4, dtype=dtype), opacity_logits=torch.zeros(n, dtype=dtype),
+        sh=torch.zeros(n, 1, 3, dtype=dtype), textures_raw=torch.randn(t, 3, generator=gen, dtype=dtype) * 3,
+        k_min=torch.full((n,), 0.05, dtype=dtype), t2p_exp=torch.ones(n, dtype=torch.int32), tex_res=tex_res,
+        tex_offset=jagged_offsets(tex_res), texture_mode="content_aware")
+    model.textures_raw.requires_grad_(True)
+    weight = (torch.rand(n, generator=gen) > 0.3).to(dtype) * torch.rand(n, generator=gen, dtype=dtype)
+    a = fused.texel_l1(model, weight)
+    (ga,) = torch.autograd.grad(2.0 * a, model.textures_raw)
+    y = model.textures
+    b = fused.texel_l1(model, weight, y)
+    (gb,) = torch.autograd.grad(2.0 * b, model.textures_raw)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+    torch.testing.assert_close(ga, gb, rtol=tol, atol=tol)
