@@ -1,7 +1,9 @@
 """Differentiable SSIM (Wang et al. 2004) with the 3DGS/2DGS convention: 11x11 Gaussian window,
 sigma 1.5, C1 = 0.01^2, C2 = 0.03^2 (images in [0, 1]), zero padding ("same" size map).
 
-Used by the training loss, the per-primitive error image E and evaluation, so all three agree.
+Used by evaluation, and by the training loss and the per-primitive error image E off the CPU; on the CPU those
+two use the compiled pass of kernels/cpu/ssim.cpp (ctgs.fused.photometric_loss / error_image), the same
+formula to float rounding (tests/train/test_fused.py), so all three agree.
 """
 
 from __future__ import annotations
