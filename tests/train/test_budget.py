@@ -19,9 +19,16 @@ class Clock:
         return self.t
 
 
-def simulate(monkeypatch, cfg, budget_s, step0, growth, routine_s, prior_growth=None):
+def simulate(monkeypatch, cfg, budget_s, step0, growth, routine_s, prior_growth=None, noise=0.0, plans=None):
     """Drive the planner like the trainer does; the true cost of a step is step0 * (1 + (growth - 1) * p)
-    over the routine window (p = its progress). Returns (wall seconds, iterations, initial plan)."""
+    over the routine window (p = its progress), times a factor exp(N(0, noise)) drawn every 10 steps (a shared
+    machine's load). Appends (iteration, new plan) to `plans` if given. Returns (wall seconds, iterations,
+    initial plan)."""
+    import math
+    import random
+
+    rng = random.Random(0)
+    factor = 1.0
     clock = Clock()
     monkeypatch.setattr(budget_mod.time, "monotonic", clock)
     planner = BudgetPlanner(cfg, budget_s, 0.0, n_train=20, n_test=3)
@@ -34,9 +41,11 @@ def simulate(monkeypatch, cfg, budget_s, step0, growth, routine_s, prior_growth=
     it = 0
     while it < cfg.iterations:
         it += 1
+        if noise and it % 10 == 0:
+            factor = math.exp(rng.gauss(0.0, noise))
         start, end = schedule.routine_window(cfg)
         p = min(max((it - start) / max(end - start, 1), 0.0), 1.0)
-        step = step0 * (1 + (growth - 1) * p)
+        step = step0 * (1 + (growth - 1) * p) * factor
         clock.t += step
         planner.observe_step(step)
         if schedule.routine_kind(cfg, it) in ("full", "late"):
@@ -47,6 +56,8 @@ def simulate(monkeypatch, cfg, budget_s, step0, growth, routine_s, prior_growth=
         new = planner.maybe_replan(it)
         if new is not None:
             cfg.iterations = new
+            if plans is not None:
+                plans.append((it, new))
     clock.t += 3 * step0 / 3 * growth + 0.2  # final evaluation and save
     return clock.t, it, initial
 
@@ -66,3 +77,19 @@ def test_a_budget_too_small_for_any_training_stops_at_once(monkeypatch):
     cfg = load_config(None, preset="fast")
     wall, iterations, _ = simulate(monkeypatch, cfg, 2.0, step0=0.5, growth=2.0, routine_s=5.0)
     assert iterations <= 2
+
+
+def test_noisy_step_times_do_not_swing_the_plan(monkeypatch):
+    # Every schedule is a fraction of the planned run: a plan that follows each burst of load moves every
+    # event back and forth. Step times noisy by ~30% per 10 steps: after the first 10% of the run no re-plan
+    # may change the plan by more than 25%, and the run still ends within its budget.
+    import math
+
+    cfg = load_config(None, preset="fast")
+    plans: list = []
+    budget_s = 900.0
+    wall, iterations, _ = simulate(monkeypatch, cfg, budget_s, step0=0.05, growth=2.5, routine_s=1.0, noise=0.3,
+                                   plans=plans)
+    changes = [abs(math.log(b / a)) for (ia, a), (_, b) in zip(plans, plans[1:]) if ia > 0.1 * iterations]
+    assert changes and max(changes) < math.log(1.25), max(changes)
+    assert abs(wall - budget_s) <= 0.10 * budget_s and wall <= budget_s * 1.02
