@@ -86,29 +86,22 @@ def texel_activation(raw: torch.Tensor) -> torch.Tensor:
 
 
 class _TexelL1(torch.autograd.Function):
+    """activated=False: x is textures_raw (the term on 2 sigmoid(x) - 1); True: x is already activated."""
+
     @staticmethod
-    def forward(ctx, raw, weight, tex_offset, tex_res):
-        ctx.save_for_backward(raw, weight, tex_offset, tex_res)
-        return cpu_ext().texel_l1_forward_cpu(raw, weight, tex_offset, tex_res, torch.get_num_threads())
+    def forward(ctx, x, weight, tex_offset, tex_res, activated=False):
+        ctx.save_for_backward(x, weight, tex_offset, tex_res)
+        ctx.activated = activated
+        fwd = cpu_ext().texel_abs_forward_cpu if activated else cpu_ext().texel_l1_forward_cpu
+        return fwd(x, weight, tex_offset, tex_res, torch.get_num_threads())
 
     @staticmethod
     def backward(ctx, grad):
-        raw, weight, tex_offset, tex_res = ctx.saved_tensors
-        g = cpu_ext().texel_l1_backward_cpu(raw, weight, tex_offset, tex_res, float(grad), torch.get_num_threads())
-        return g, None, None, None  # the weights are constants of the loss (no gradient)
-
-
-class _TexelAbs(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, y, weight, tex_offset, tex_res):
-        ctx.save_for_backward(y, weight, tex_offset, tex_res)
-        return cpu_ext().texel_abs_forward_cpu(y, weight, tex_offset, tex_res, torch.get_num_threads())
-
-    @staticmethod
-    def backward(ctx, grad):
-        y, weight, tex_offset, tex_res = ctx.saved_tensors
-        g = cpu_ext().texel_abs_backward_cpu(y, weight, tex_offset, tex_res, float(grad), torch.get_num_threads())
-        return g, None, None, None
+        x, weight, tex_offset, tex_res = ctx.saved_tensors
+        bwd = cpu_ext().texel_abs_backward_cpu if ctx.activated else cpu_ext().texel_l1_backward_cpu
+        g = bwd(x, weight, tex_offset, tex_res, float(grad), torch.get_num_threads())
+        # The weights are constants of the loss (no gradient); one entry per input given to apply.
+        return (g, None, None, None, None)[: len(ctx.needs_input_grad)]
 
 
 def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) -> torch.Tensor:
@@ -124,10 +117,11 @@ def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) 
         raise ValueError(f"texel_l1: weight must be [N] = [{n}] (one per primitive), got {list(weight.shape)}")
     weight = weight.detach().to(raw.dtype)
     if textures is not None and textures.shape == raw.shape and fusable(textures):
-        return _TexelAbs.apply(textures, weight.contiguous(), model.tex_offset.contiguous(),
-                               model.tex_res.contiguous())
+        return _TexelL1.apply(textures, weight.contiguous(), model.tex_offset.contiguous(),
+                              model.tex_res.contiguous(), True)
     if fusable(raw):
-        return _TexelL1.apply(raw, weight.contiguous(), model.tex_offset.contiguous(), model.tex_res.contiguous())
+        return _TexelL1.apply(raw, weight.contiguous(), model.tex_offset.contiguous(), model.tex_res.contiguous(),
+                              False)
     sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
     texel_w = torch.repeat_interleave(weight, sizes)  # [T]
     return (model.textures.abs().sum(1) * texel_w).sum()
