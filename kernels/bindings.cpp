@@ -9,6 +9,7 @@
 
 #include "binding_common.h"
 #include "cpu/dense.h"
+#include "cpu/lane_math.h"
 #include "cpu/rasterize.h"
 
 namespace {
@@ -36,8 +37,9 @@ Tensor adopt_vector(std::vector<T>&& v, at::ScalarType dtype) {
 }
 
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
-// [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (the last three empty
-// unless error_image [H,W] is given). With poison=true outputs start as NaN, so unwritten pixels show up.
+// [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (these three empty
+// unless error_image [H,W] is given), then setup_prims [bytes] uint8 and setup_spans int32 (ctgs::cpu::FrameSetup,
+// opaque: backward_cpu takes them back). With poison=true outputs start as NaN, so unwritten pixels show up.
 std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
                                  Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
                                  Tensor background, double fx, double fy, double cx, double cy, int64_t width,
@@ -58,6 +60,7 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   Tensor count = torch::zeros({stats ? N : 0}, fopt.dtype(at::kInt));
   Tensor contrib = torch::zeros({stats ? N : 0}, fopt), err = torch::zeros({stats ? N : 0}, fopt);
   ctgs::cpu::TileBins bins;
+  ctgs::cpu::FrameSetup setup;
   Tensor pix, prim, w;
   AT_DISPATCH_FLOATING_TYPES(mu_c.scalar_type(), "ctgs_forward_cpu", [&] {
     ctgs::cpu::BlendPairs<scalar_t> pairs;
@@ -72,7 +75,7 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     o.contrib = stats ? contrib.data_ptr<scalar_t>() : nullptr;
     o.err = stats ? err.data_ptr<scalar_t>() : nullptr;
     o.pairs = record_pairs ? &pairs : nullptr;
-    ctgs::cpu::forward<scalar_t>(scene_args<scalar_t>(s), o, &bins);
+    ctgs::cpu::forward<scalar_t>(scene_args<scalar_t>(s), o, &bins, record_pairs ? nullptr : &setup);
     if (record_pairs) {
       // ~1M pairs per view for E: hand the buffers over instead of copying them.
       pix = adopt_vector(std::move(pairs.pix), at::kInt);
@@ -83,7 +86,11 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   if (record_pairs) return {rgb, alpha, depth, pix, prim, w};
   Tensor tile_offsets = adopt_vector(std::move(bins.offsets), at::kLong);
   Tensor tile_list = adopt_vector(std::move(bins.list), at::kInt);
-  return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err};
+  // Opaque: what backward_cpu needs of this render besides the tile lists (ctgs::cpu::FrameSetup).
+  Tensor setup_prims = adopt_vector(std::move(setup.prims), at::kByte);
+  Tensor setup_spans = adopt_vector(std::move(setup.span_xs), at::kInt);
+  return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err, setup_prims,
+          setup_spans};
 }
 
 std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
@@ -113,7 +120,8 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
                                  Tensor background, double fx, double fy, double cx, double cy, int64_t width,
                                  int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
                                  Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
-                                 int64_t num_threads) {
+                                 int64_t num_threads, c10::optional<Tensor> setup_prims,
+                                 c10::optional<Tensor> setup_spans) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, fx, fy, cx, cy, width, height, near_plane, num_threads,
                               at::kCPU, "cpu");
@@ -128,6 +136,19 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   check_tensor(v_rgb, "v_rgb", "[H, W, 3]", {H, W, 3}, dt);
   check_tensor(v_alpha, "v_alpha", "[H, W]", {H, W}, dt);
   check_tensor(v_depth, "v_depth", "[H, W]", {H, W}, dt);
+  // The forward's setup (forward_cpu's last two outputs), or None to recompute it.
+  const bool reuse = setup_prims.has_value() && setup_spans.has_value();
+  if (reuse) {
+    const int64_t need = mu_c.size(0) * int64_t(dt == at::kFloat ? sizeof(ctgs::cpu::LanePrim<float>)
+                                                                  : sizeof(ctgs::cpu::LanePrim<double>));
+    TORCH_CHECK(setup_prims->scalar_type() == at::kByte && setup_prims->dim() == 1 && setup_prims->numel() == need &&
+                    setup_prims->is_contiguous() && setup_prims->device().is_cpu(),
+                "backward_cpu: setup_prims must be forward_cpu's output of the same render (", need,
+                " bytes), got ", setup_prims->sizes(), " ", setup_prims->scalar_type());
+    TORCH_CHECK(setup_spans->scalar_type() == at::kInt && setup_spans->dim() == 1 && setup_spans->is_contiguous() &&
+                    setup_spans->device().is_cpu(),
+                "backward_cpu: setup_spans must be forward_cpu's int32 output of the same render");
+  }
   Tensor v_mu_c = torch::empty_like(mu_c), v_Rc = torch::empty_like(Rc), v_scales = torch::empty_like(scales);
   Tensor v_opacities = torch::empty_like(opacities), v_colors = torch::empty_like(colors);
   Tensor v_texel_size = torch::empty_like(texel_size), v_textures = torch::empty_like(textures);
@@ -145,7 +166,9 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     ctgs::cpu::TileBinsView bins{tile_offsets.data_ptr<int64_t>(), tile_list.data_ptr<int32_t>()};
     ctgs::cpu::backward<scalar_t>(scene_args<scalar_t>(s), bins, final_T.data_ptr<scalar_t>(),
                                   n_contrib.data_ptr<int32_t>(), v_rgb.data_ptr<scalar_t>(),
-                                  v_alpha.data_ptr<scalar_t>(), v_depth.data_ptr<scalar_t>(), o);
+                                  v_alpha.data_ptr<scalar_t>(), v_depth.data_ptr<scalar_t>(), o,
+                                  reuse && setup_prims->numel() ? setup_prims->data_ptr<uint8_t>() : nullptr,
+                                  reuse && setup_spans->numel() ? setup_spans->data_ptr<int32_t>() : nullptr);
   });
   return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};
 }
@@ -434,11 +457,11 @@ std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, C++/OpenMP CPU backend (see docs/renderer.md)";
   m.def("forward_cpu", &forward_cpu, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
-        "tile_list, count, contrib, err)");
+        "tile_list, count, contrib, err, setup_prims, setup_spans; the last two are opaque, for backward_cpu)");
   m.def("forward_pairs_cpu", &forward_pairs_cpu, "forward that also returns every blended (pix, prim, w) "
         "(returns rgb, alpha, depth, pix, prim, w)");
   m.def("backward_cpu", &backward_cpu, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
-        "v_texel_size, v_textures, v_background)");
+        "v_texel_size, v_textures, v_background); setup_prims, setup_spans: forward_cpu's, or None to recompute");
   m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
   m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum over primitives of weight x sum of |2 sigmoid(raw) - 1| over their texels");
   m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");

@@ -42,11 +42,13 @@ class _Rasterize(torch.autograd.Function):
         cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
                int(camera.height), float(camera.near))
         forward_fn, _ = _load(device)
-        (rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err) = forward_fn(
-            mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, *cam,
-            error_image, knob, poison)
+        outs = forward_fn(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
+                          background, *cam, error_image, knob, poison)
+        (rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err) = outs[:10]
+        # CPU: the forward's per-primitive setup (opaque), handed back so the backward need not redo it.
+        setup = tuple(outs[10:])
         ctx.save_for_backward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
-                              background, tile_offsets, tile_list, final_T, n_contrib)
+                              background, tile_offsets, tile_list, final_T, n_contrib, *setup)
         ctx.cam, ctx.device, ctx.knob = cam, device, knob
         ctx.mark_non_differentiable(count, contrib, err, tile_list)
         return rgb, alpha, depth, count, contrib, err, tile_list
@@ -54,7 +56,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_rgb, v_alpha, v_depth, _v_count, _v_contrib, _v_err, _v_tile_list):
         (mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
-         tile_offsets, tile_list, final_T, n_contrib) = ctx.saved_tensors
+         tile_offsets, tile_list, final_T, n_contrib, *setup) = ctx.saved_tensors
         H, W = final_T.shape
         v_rgb = final_T.new_zeros(H, W, 3) if v_rgb is None else v_rgb.contiguous()
         v_alpha = final_T.new_zeros(H, W) if v_alpha is None else v_alpha.contiguous()
@@ -62,7 +64,7 @@ class _Rasterize(torch.autograd.Function):
         _, backward_fn = _load(ctx.device)
         grads = backward_fn(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                             background, *ctx.cam, tile_offsets, tile_list, final_T, n_contrib,
-                            v_rgb, v_alpha, v_depth, ctx.knob)
+                            v_rgb, v_alpha, v_depth, ctx.knob, *setup)
         v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background = grads
         return (v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background,
                 None, None, None, None, None, None, None)

@@ -260,20 +260,31 @@ CTGS_LANE_CLONES void backward_tile(const BackwardTileArgs<double>& b, int tile)
 
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
-              const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out) {
+              const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
+              unsigned char* setup_prims, const int32_t* setup_spans) {
   ProfTimer timer;
-  std::vector<SurfelPrim<S>> prims;
-  std::vector<PixelRect> rects;
-  PrimSpans spans;
-  bin_primitives<S>(a, prims, rects, spans, nullptr);  // camera-space constants only; the lists come from forward
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
   const int nt = std::max(1, a.num_threads);
-  std::vector<LanePrim<S>> lp(N);
+  std::vector<LanePrim<S>> lp_own;
+  PrimSpans spans;  // (recomputed case) the lane primitives point into it
+  LanePrim<S>* lp;
+  if (setup_prims != nullptr) {
+    // The forward's primitives; their span pointers are re-aimed at the spans buffer as handed back.
+    lp = reinterpret_cast<LanePrim<S>*>(setup_prims);
 #pragma omp parallel for schedule(static) num_threads(nt)
-  for (int i = 0; i < N; ++i) {
-    const PixelRect& r = rects[i];
-    lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr);
+    for (int i = 0; i < N; ++i) lp[i].spans = lp[i].span_off >= 0 ? setup_spans + lp[i].span_off : nullptr;
+  } else {
+    std::vector<SurfelPrim<S>> prims;
+    std::vector<PixelRect> rects;
+    bin_primitives<S>(a, prims, rects, spans, nullptr);  // camera-space constants only; the lists come from forward
+    lp_own.resize(N);
+    lp = lp_own.data();
+#pragma omp parallel for schedule(static) num_threads(nt)
+    for (int i = 0; i < N; ++i) {
+      const PixelRect& r = rects[i];
+      lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr, spans.xs.data());
+    }
   }
   std::vector<S> gbuf(size_t(nt) * N * G_STRIDE, S(0));
   std::vector<S> bgbuf(size_t(nt) * 3, S(0));
@@ -294,7 +305,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
-    BackwardTileArgs<S> b{&a, &bins, lp.data(), final_T, n_contrib, v_rgb, v_alpha, v_depth,
+    BackwardTileArgs<S> b{&a, &bins, lp, final_T, n_contrib, v_rgb, v_alpha, v_depth,
                           ntx, gbuf.data() + size_t(tid) * N * G_STRIDE,
                           (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n,
                           use_atomics, bgbuf.data() + 3 * tid};
@@ -334,9 +345,11 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
 }
 
 template void backward<float>(const SceneArgs<float>&, const TileBinsView&, const float*, const int32_t*,
-                              const float*, const float*, const float*, const BackwardOut<float>&);
+                              const float*, const float*, const float*, const BackwardOut<float>&,
+                              unsigned char*, const int32_t*);
 template void backward<double>(const SceneArgs<double>&, const TileBinsView&, const double*, const int32_t*,
-                               const double*, const double*, const double*, const BackwardOut<double>&);
+                               const double*, const double*, const double*, const BackwardOut<double>&,
+                               unsigned char*, const int32_t*);
 
 }  // namespace cpu
 }  // namespace ctgs

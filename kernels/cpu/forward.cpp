@@ -172,7 +172,7 @@ CTGS_LANE_CLONES void forward_tile(const ForwardTileArgs<double>& f, int tile, i
 }  // namespace
 
 template <typename S>
-void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
+void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins, FrameSetup* keep) {
   ProfTimer timer;
   std::vector<SurfelPrim<S>> prims;
   std::vector<PixelRect> rects;
@@ -180,11 +180,13 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
   bin_primitives(a, prims, rects, spans, bins);
   const int N = a.N;
   const int nt = std::max(1, a.num_threads);
-  std::vector<LanePrim<S>> lp(N);
+  // LanePrim is trivially copyable; held as bytes so that the backward can be handed the same buffer.
+  std::vector<unsigned char> lp_bytes(size_t(N) * sizeof(LanePrim<S>));
+  LanePrim<S>* lp = reinterpret_cast<LanePrim<S>*>(lp_bytes.data());
 #pragma omp parallel for schedule(static) num_threads(nt)
   for (int i = 0; i < N; ++i) {
     const PixelRect& r = rects[i];
-    lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr);
+    lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr, spans.xs.data());
   }
   timer.lap(PROF_FWD_BIN);
   const int ntx = tiles_x(a.K.width), num_tiles = ntx * tiles_y(a.K.height);
@@ -197,7 +199,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
     const int tid = omp_get_thread_num();
-    ForwardTileArgs<S> f{&a, &out, lp.data(), bins->list.data(), ntx,
+    ForwardTileArgs<S> f{&a, &out, lp, bins->list.data(), ntx,
                          stats ? count_buf.data() + size_t(tid) * N : nullptr,
                          stats ? contrib_buf.data() + size_t(tid) * N : nullptr,
                          stats ? err_buf.data() + size_t(tid) * N : nullptr,
@@ -232,11 +234,15 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins) {
       out.err[i] = r;
     }
   }
+  if (keep) {
+    keep->prims = std::move(lp_bytes);  // the buffers move, the pointers into them stay valid
+    keep->span_xs = std::move(spans.xs);
+  }
   timer.lap(PROF_FWD_REDUCE);
 }
 
-template void forward<float>(const SceneArgs<float>&, const ForwardOut<float>&, TileBins*);
-template void forward<double>(const SceneArgs<double>&, const ForwardOut<double>&, TileBins*);
+template void forward<float>(const SceneArgs<float>&, const ForwardOut<float>&, TileBins*, FrameSetup*);
+template void forward<double>(const SceneArgs<double>&, const ForwardOut<double>&, TileBins*, FrameSetup*);
 
 }  // namespace cpu
 }  // namespace ctgs

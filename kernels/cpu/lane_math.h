@@ -38,13 +38,16 @@ struct LanePrim {
   // Where its pixels are (binning.cpp), kept here so a tile touches one struct per primitive:
   PixelRect rect;                         // bounding box of the spans
   const int32_t* spans;                   // row rect.y0's span (PrimSpans), then one pair per row
+  int64_t span_off;                       // spans - PrimSpans::xs.data(), -1 without spans
 };
 
 template <typename S>
-inline LanePrim<S> lane_prim(const SurfelPrim<S>& P, const PixelRect& rect, const int32_t* spans) {
+inline LanePrim<S> lane_prim(const SurfelPrim<S>& P, const PixelRect& rect, const int32_t* spans,
+                             const int32_t* spans_base) {
   LanePrim<S> L;
   L.rect = rect;
   L.spans = spans;
+  L.span_off = spans ? spans - spans_base : -1;
   L.nx = P.n.x, L.ny = P.n.y, L.nz = P.n.z;
   L.ux = P.u.x, L.uy = P.u.y, L.uz = P.u.z;
   L.vx = P.v.x, L.vy = P.v.y, L.vz = P.v.z;

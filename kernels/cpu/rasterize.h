@@ -76,17 +76,28 @@ struct BlendPairs {
   std::vector<S> w;
 };
 
+// What the forward computed per primitive, kept for the backward of the same render (the autograd
+// Function saves it as two opaque tensors): every primitive in lane form (LanePrim<S>, lane_math.h, as
+// bytes) and the row spans they point into. Saves the backward its own binning pass.
+struct FrameSetup {
+  std::vector<unsigned char> prims;  // [N * sizeof(LanePrim<S>)]
+  std::vector<int32_t> span_xs;      // PrimSpans::xs
+};
+
 template <typename S>
-void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins);
+void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins, FrameSetup* keep = nullptr);
 
 // Gradients (kernels/include/ctgs/scene_args.h), shared with the other backend.
 template <typename S>
 using BackwardOut = ctgs::BackwardOut<S>;
 
 // v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W]: dL/d outputs. final_T, n_contrib, bins from forward.
+// setup_prims / setup_spans: the forward's FrameSetup of this render (prims is updated in place: its span
+// pointers are re-aimed at setup_spans), or null to recompute it.
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
-              const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out);
+              const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
+              unsigned char* setup_prims = nullptr, const int32_t* setup_spans = nullptr);
 
 // Wall-clock seconds per phase, summed over calls since the last read (benchmarks/profile_train.py reads
 // them through the binding `profile_counters`). Only the calling thread touches them, outside parallel

@@ -164,3 +164,38 @@ def test_build_errors_say_what_to_do(monkeypatch):
     monkeypatch.setattr(ext, "CPU_SOURCES", ["cpu/missing.cpp"])
     with pytest.raises(UserError, match="--backend reference"):
         ext.load_cpu()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_backward_reusing_the_forward_setup_matches_recomputing_it(dtype):
+    """forward_cpu hands its per-primitive setup to backward_cpu (no second binning pass); the gradients
+    are bit-identical to a backward that recomputes it, and a setup of another render is refused."""
+    from ctgs.render.preprocess import to_camera_space
+    from scenes import random_scene
+
+    case = random_scene(60, seed=3, dtype=dtype, width=40, height=28)
+    s, cam = case.surfels, case.camera
+    p = to_camera_space(s.means, s.quats, s.sh, cam, 2)
+    scene = (p.mu_c.contiguous(), p.Rc.contiguous(), s.scales, s.opacities, p.colors.contiguous(),
+             s.texel_size.contiguous(), s.textures, s.tex_res, s.tex_offset, torch.zeros(3, dtype=dtype))
+    cam_args = (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near)
+    mod = ext.load_cpu()
+    outs = mod.forward_cpu(*scene, *cam_args, None, 2, False)
+    assert len(outs) == 12
+    final_T, n_contrib, tile_offsets, tile_list, setup_prims, setup_spans = (
+        outs[3], outs[4], outs[5], outs[6], outs[10], outs[11])
+    assert setup_prims.dtype == torch.uint8 and setup_prims.numel() > 0 and setup_spans.numel() > 0
+    g = torch.Generator().manual_seed(0)
+    v_rgb = torch.randn(cam.height, cam.width, 3, generator=g, dtype=torch.float64).to(dtype)
+    v_alpha = torch.randn(cam.height, cam.width, generator=g, dtype=torch.float64).to(dtype)
+    v_depth = torch.randn(cam.height, cam.width, generator=g, dtype=torch.float64).to(dtype)
+    common = (*scene, *cam_args, tile_offsets, tile_list, final_T, n_contrib, v_rgb, v_alpha, v_depth, 2)
+    reused = mod.backward_cpu(*common, setup_prims, setup_spans)
+    again = mod.backward_cpu(*common, setup_prims, setup_spans)  # a second backward of the same render
+    fresh = mod.backward_cpu(*common, None, None)
+    assert any(bool(t.abs().sum() > 0) for t in fresh)
+    for a, b, c in zip(reused, again, fresh):
+        torch.testing.assert_close(a, c, atol=0, rtol=0)
+        torch.testing.assert_close(b, c, atol=0, rtol=0)
+    with pytest.raises(RuntimeError, match="setup_prims must be forward_cpu's output of the same render"):
+        mod.backward_cpu(*common, setup_prims[:-8].contiguous(), setup_spans)
