@@ -366,6 +366,45 @@ std::vector<Tensor> sh_color_backward_cpu(Tensor means, Tensor center, Tensor sh
   return {gm, gs};
 }
 
+void check_camera_args(const Tensor& quats, const Tensor& view) {
+  TORCH_CHECK(quats.device().is_cpu() && quats.dim() == 2 && quats.size(1) == 4 && quats.is_contiguous() &&
+                  (quats.scalar_type() == at::kFloat || quats.scalar_type() == at::kDouble),
+              "camera_space: quats must be a contiguous float CPU tensor [N, 4], got ", quats.sizes());
+  check_tensor(view, "view", "[4, 4]", {4, 4}, quats.scalar_type());
+}
+
+// {mu_c [N, 3], Rc [N, 3, 3]}: the primitives in the camera space of view [4, 4] (kernels/cpu/camera.cpp).
+std::vector<Tensor> camera_space_cpu(Tensor means, Tensor quats, Tensor view, int64_t num_threads) {
+  check_camera_args(quats, view);
+  check_tensor(means, "means", "[N, 3]", {quats.size(0), 3}, quats.scalar_type());
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  const int64_t n = quats.size(0);
+  Tensor mu_c = torch::empty({n, 3}, quats.options()), Rc = torch::empty({n, 3, 3}, quats.options());
+  AT_DISPATCH_FLOATING_TYPES(quats.scalar_type(), "ctgs_camera_space_cpu", [&] {
+    ctgs::cpu::camera_space<scalar_t>(means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                      view.data_ptr<scalar_t>(), n, mu_c.data_ptr<scalar_t>(),
+                                      Rc.data_ptr<scalar_t>(), threads);
+  });
+  return {mu_c, Rc};
+}
+
+// {grad_means [N, 3], grad_quats [N, 4]} of camera_space_cpu for the upstream gradients.
+std::vector<Tensor> camera_space_backward_cpu(Tensor quats, Tensor view, Tensor grad_mu_c, Tensor grad_Rc,
+                                              int64_t num_threads) {
+  check_camera_args(quats, view);
+  const int64_t n = quats.size(0);
+  check_tensor(grad_mu_c, "grad_mu_c", "[N, 3]", {n, 3}, quats.scalar_type());
+  check_tensor(grad_Rc, "grad_Rc", "[N, 3, 3]", {n, 3, 3}, quats.scalar_type());
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  Tensor gm = torch::empty({n, 3}, quats.options()), gq = torch::empty_like(quats);
+  AT_DISPATCH_FLOATING_TYPES(quats.scalar_type(), "ctgs_camera_space_backward_cpu", [&] {
+    ctgs::cpu::camera_space_backward<scalar_t>(quats.data_ptr<scalar_t>(), view.data_ptr<scalar_t>(), n,
+                                               grad_mu_c.data_ptr<scalar_t>(), grad_Rc.data_ptr<scalar_t>(),
+                                               gm.data_ptr<scalar_t>(), gq.data_ptr<scalar_t>(), threads);
+  });
+  return {gm, gq};
+}
+
 // The photometric loss of render x and ground truth y, [H, W, C] float CPU tensors of one dtype
 // (kernels/cpu/ssim.cpp). Returns {total (0-d) = (1 - l) mean |x - y| + l (1 - mean SSIM), mean |x - y|,
 // mean SSIM, grad [H, W, C] = d total / d x (empty unless want_grad), error [H, W] (empty unless
@@ -474,6 +513,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "per-primitive count, contrib and error sums over a forward's blended pairs");
   m.def("sh_color_cpu", &sh_color_cpu, "SH(normalize(mean - centre)) + 0.5 per primitive");
   m.def("sh_color_backward_cpu", &sh_color_backward_cpu, "gradient of sh_color_cpu w.r.t. means and SH");
+  m.def("camera_space_cpu", &camera_space_cpu, "{mu_c, Rc}: world -> camera space of means and quaternions");
+  m.def("camera_space_backward_cpu", &camera_space_backward_cpu, "gradient of camera_space_cpu w.r.t. means, quats");
   m.def("photometric_loss_cpu", &photometric_loss_cpu,
         "(1 - l) L1 + l (1 - SSIM) of render and ground truth, its gradient and the error image, fused");
   m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");

@@ -27,7 +27,7 @@ from ctgs.errors import UserError
 from ctgs.resources import cache_dir, kernels_dir
 
 CPU_SOURCES = ["bindings.cpp", "cpu/binning.cpp", "cpu/forward.cpp", "cpu/backward.cpp", "cpu/dense.cpp",
-               "cpu/ssim.cpp", "cpu/sh.cpp"]
+               "cpu/ssim.cpp", "cpu/sh.cpp", "cpu/camera.cpp"]
 # -O3: the per-pixel loops are the whole cost. No -march=native: a build dir may be shared between
 # machines, and forward/backward must recompute bit-identical alphas (no machine-dependent FMA contraction).
 # -fno-math-errno: sqrt need not set errno, so loops calling it vectorise (results are unchanged).

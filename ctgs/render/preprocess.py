@@ -22,12 +22,52 @@ class CameraSpacePrims:
     colors: torch.Tensor  # [N, 3] SH(view dir) + 0.5, unclamped
 
 
+class _CameraSpace(torch.autograd.Function):
+    """(mu_c, Rc) of camera_space_torch in one compiled pass each way (kernels/cpu/camera.cpp)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, view):
+        from ctgs.fused import cpu_ext
+
+        ctx.save_for_backward(quats, view)
+        return tuple(cpu_ext().camera_space_cpu(means, quats, view, torch.get_num_threads()))
+
+    @staticmethod
+    def backward(ctx, grad_mu_c, grad_Rc):
+        from ctgs.fused import cpu_ext
+
+        quats, view = ctx.saved_tensors
+        grad_mu_c = torch.zeros(quats.shape[0], 3, dtype=quats.dtype) if grad_mu_c is None else grad_mu_c.contiguous()
+        grad_Rc = torch.zeros(quats.shape[0], 3, 3, dtype=quats.dtype) if grad_Rc is None else grad_Rc.contiguous()
+        gm, gq = cpu_ext().camera_space_backward_cpu(quats, view, grad_mu_c, grad_Rc, torch.get_num_threads())
+        return (gm if ctx.needs_input_grad[0] else None), (gq if ctx.needs_input_grad[1] else None), None
+
+
+def camera_space_torch(means: torch.Tensor, quats: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """mu_c [N, 3] = R mean + t, Rc [N, 3, 3] = R quat_to_rotmat(quat) for view = [R t] (PyTorch)."""
+    rv, tv = view[:3, :3], view[:3, 3]  # [3, 3], [3]
+    return means @ rv.T + tv, rv @ quat_to_rotmat(quats)
+
+
+def camera_space(means: torch.Tensor, quats: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """camera_space_torch, on the CPU in one compiled pass each way (differentiable w.r.t. means and quats,
+    not the view; the same values to float rounding: tests/render/test_preprocess.py)."""
+    from ctgs.fused import fusable
+
+    if (not view.requires_grad and means.ndim == 2 and means.shape[1] == 3 and quats.ndim == 2
+            and quats.shape[1] == 4 and quats.shape[0] == means.shape[0] and quats.dtype == means.dtype):
+        m, q, v = means.contiguous(), quats.contiguous(), view.detach().contiguous()
+        if fusable(m, q, v):
+            mu_c, Rc = _CameraSpace.apply(m, q, v)
+            return mu_c, Rc
+    return camera_space_torch(means, quats, view)
+
+
 def to_camera_space(means: torch.Tensor, quats: torch.Tensor, sh: torch.Tensor, camera: Camera,
                     sh_degree: int) -> CameraSpacePrims:
     view = camera.viewmat.to(device=means.device, dtype=means.dtype)
     rv, tv = view[:3, :3], view[:3, 3]  # [3, 3], [3]
-    mu_c = means @ rv.T + tv  # [N, 3]
-    Rc = rv @ quat_to_rotmat(quats)  # [N, 3, 3]
+    mu_c, Rc = camera_space(means, quats, view)
     center = -rv.T @ tv  # [3] camera centre, world
     colors = view_color(means, sh, center, sh_degree)
     return CameraSpacePrims(mu_c=mu_c, Rc=Rc, colors=colors)

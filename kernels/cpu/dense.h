@@ -57,6 +57,15 @@ template <typename S>
 void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, const S* grad_colors,
                        S* grad_means, S* grad_sh, int threads);
 
+// World -> camera space (kernels/cpu/camera.cpp, ctgs/render/preprocess.py): mu_c [n, 3] = R mean + t and
+// Rc [n, 3, 3] = R quat_to_rotmat(quat) for view [4, 4] = [R t] (row-major), quats [n, 4] (w, x, y, z) of any
+// norm; and its backward: grad_means [n, 3], grad_quats [n, 4] from grad_mu_c [n, 3], grad_Rc [n, 3, 3].
+template <typename S>
+void camera_space(const S* means, const S* quats, const S* view, int64_t n, S* mu_c, S* Rc, int threads);
+template <typename S>
+void camera_space_backward(const S* quats, const S* view, int64_t n, const S* grad_mu_c, const S* grad_Rc,
+                           S* grad_means, S* grad_quats, int threads);
+
 // The photometric loss of two [H, W, C] images x (render) and y (ground truth), kernels/cpu/ssim.cpp:
 // l1_sum = sum |x - y|, ssim_sum = sum of the SSIM map (11x11 Gaussian window, sigma 1.5, zero padded), so
 // the loss is (1 - l) l1_sum / (H W C) + l (1 - ssim_sum / (H W C)). grad (if not null) [H, W, C] gets its
