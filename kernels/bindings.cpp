@@ -366,6 +366,53 @@ std::vector<Tensor> sh_color_backward_cpu(Tensor means, Tensor center, Tensor sh
   return {gm, gs};
 }
 
+// True if the surfel tensors pass every value check of ctgs.render.api.validate_inputs (all finite,
+// scales > 0, texel_size > 0, opacities in [0, 1], no all-zero quaternion, tex_res >= 0, texel blocks inside
+// textures): one pass each without temporaries. False means some check may fail: the caller then runs the
+// PyTorch checks, which name the problem. Shapes, dtypes and devices are the caller's (checked here too).
+bool surfel_values_ok_cpu(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh, Tensor texel_size,
+                          Tensor textures, Tensor tex_res, Tensor tex_offset, int64_t num_threads) {
+  const auto dt = means.scalar_type();
+  TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "surfel_values_ok: means must be float32 or float64");
+  const int64_t n = means.size(0);
+  for (const Tensor* t : {&means, &quats, &scales, &opacities, &sh, &texel_size, &textures})
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous() && t->scalar_type() == dt && (t->dim() == 0 || t->size(0) == n || t == &textures),
+                "surfel_values_ok: float tensors must be contiguous CPU tensors of means' dtype with N rows");
+  TORCH_CHECK(quats.numel() == 4 * n && scales.numel() == 2 * n && opacities.numel() == n &&
+                  (texel_size.numel() == n || texel_size.numel() == 2 * n),
+              "surfel_values_ok: quats [N, 4], scales [N, 2], opacities [N], texel_size [N] or [N, 2]");
+  check_tensor(tex_res, "tex_res", "[N, 2] int32", {n, 2}, at::kInt);
+  check_tensor(tex_offset, "tex_offset", "[N] int64", {n}, at::kLong);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  bool ok = true;
+  AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_surfel_values_ok_cpu", [&] {
+    for (const Tensor* t : {&means, &quats, &scales, &opacities, &sh, &texel_size, &textures})
+      ok = ok && ctgs::cpu::all_finite<scalar_t>(t->data_ptr<scalar_t>(), t->numel(), threads);
+    if (!ok) return;
+    const scalar_t* sc = scales.data_ptr<scalar_t>();
+    for (int64_t k = 0; k < scales.numel() && ok; ++k) ok = sc[k] > scalar_t(0);
+    const scalar_t* ts = texel_size.data_ptr<scalar_t>();
+    for (int64_t k = 0; k < texel_size.numel() && ok; ++k) ok = ts[k] > scalar_t(0);
+    const scalar_t* op = opacities.data_ptr<scalar_t>();
+    for (int64_t k = 0; k < n && ok; ++k) ok = op[k] >= scalar_t(0) && op[k] <= scalar_t(1);
+    // A sum of squares that is 0 in the tensor's dtype flags every quaternion PyTorch's norm can call zero.
+    const scalar_t* q = quats.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < n && ok; ++i)
+      ok = q[4 * i] * q[4 * i] + q[4 * i + 1] * q[4 * i + 1] + q[4 * i + 2] * q[4 * i + 2] + q[4 * i + 3] * q[4 * i + 3] !=
+           scalar_t(0);
+  });
+  if (!ok) return false;
+  const int32_t* res = tex_res.data_ptr<int32_t>();
+  const int64_t* off = tex_offset.data_ptr<int64_t>();
+  const int64_t T = textures.dim() >= 1 ? textures.size(0) : 0;
+  for (int64_t i = 0; i < n; ++i) {
+    if (res[2 * i] < 0 || res[2 * i + 1] < 0) return false;
+    const int64_t size = int64_t(res[2 * i]) * res[2 * i + 1];
+    if (size > 0 && (off[i] < 0 || off[i] > T - size)) return false;
+  }
+  return true;
+}
+
 void check_camera_args(const Tensor& quats, const Tensor& view) {
   TORCH_CHECK(quats.device().is_cpu() && quats.dim() == 2 && quats.size(1) == 4 && quats.is_contiguous() &&
                   (quats.scalar_type() == at::kFloat || quats.scalar_type() == at::kDouble),
@@ -513,6 +560,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "per-primitive count, contrib and error sums over a forward's blended pairs");
   m.def("sh_color_cpu", &sh_color_cpu, "SH(normalize(mean - centre)) + 0.5 per primitive");
   m.def("sh_color_backward_cpu", &sh_color_backward_cpu, "gradient of sh_color_cpu w.r.t. means and SH");
+  m.def("surfel_values_ok_cpu", &surfel_values_ok_cpu,
+        "whether the surfel tensors pass render()'s value checks (false: run the PyTorch checks for the message)");
   m.def("camera_space_cpu", &camera_space_cpu, "{mu_c, Rc}: world -> camera space of means and quaternions");
   m.def("camera_space_backward_cpu", &camera_space_backward_cpu, "gradient of camera_space_cpu w.r.t. means, quats");
   m.def("photometric_loss_cpu", &photometric_loss_cpu,

@@ -33,7 +33,8 @@ def _all_finite(t: torch.Tensor) -> bool:
     return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
-def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like: torch.Tensor) -> None:
+def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like: torch.Tensor,
+                 finite: bool = True) -> None:
     if not isinstance(t, torch.Tensor):
         raise ValueError(f"{name} must be a tensor of shape {expected}, got {type(t).__name__}")
     if not shape_ok:
@@ -42,8 +43,43 @@ def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like
         raise ValueError(f"{name} must have dtype {like.dtype} (the dtype of means), shape {expected}; got {t.dtype}")
     if t.device != like.device:
         raise ValueError(f"{name} must be on {like.device} (the device of means), shape {expected}; got {t.device}")
-    if t.numel() and not _all_finite(t):
+    if finite and t.numel() and not _all_finite(t):
         raise ValueError(f"{name} (shape {expected}) contains NaN or infinite values")
+
+
+_SURFEL_FLOATS = ("means", "quats", "scales", "opacities", "sh", "texel_size", "textures")
+
+
+def _values_ok_fused(s: SurfelInputs) -> bool:
+    """True if the compiled check (one pass per tensor, no temporaries) found every value check of
+    validate_inputs passed; False if it cannot run here or some check may fail (then the PyTorch checks run
+    and name the problem). A training step's inputs are ~1-2M values: the PyTorch checks cost ~1.5 ms."""
+    from ctgs.fused import cpu_ext
+
+    ts = [getattr(s, name) for name in _SURFEL_FLOATS]
+    m = s.means
+    if not all(isinstance(t, torch.Tensor) for t in ts + [s.tex_res, s.tex_offset]):
+        return False
+    if not (m.ndim == 2 and m.shape[1] == 3 and m.dtype in (torch.float32, torch.float64)):
+        return False
+    n = m.shape[0]
+    if not all(t.device.type == "cpu" and t.dtype == m.dtype for t in ts):
+        return False
+    if not (tuple(s.quats.shape) == (n, 4) and tuple(s.scales.shape) == (n, 2) and tuple(s.opacities.shape) == (n,)
+            and s.sh.ndim == 3 and s.sh.shape[0] == n and s.sh.shape[2] == 3
+            and tuple(s.texel_size.shape) in ((n,), (n, 2)) and s.textures.ndim == 2 and s.textures.shape[1] == 3
+            and tuple(s.tex_res.shape) == (n, 2) and s.tex_res.dtype == torch.int32 and s.tex_res.is_contiguous()
+            and tuple(s.tex_offset.shape) == (n,) and s.tex_offset.dtype == torch.int64
+            and s.tex_offset.is_contiguous() and s.tex_res.device.type == "cpu"
+            and s.tex_offset.device.type == "cpu"):
+        return False
+    ext = cpu_ext()
+    if ext is None:
+        return False
+    with torch.no_grad():
+        # (the SH of a step below degree 3 is a slice: a small copy)
+        return bool(ext.surfel_values_ok_cpu(*[t.detach().contiguous() for t in ts], s.tex_res, s.tex_offset,
+                                             torch.get_num_threads()))
 
 
 def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | None,
@@ -55,14 +91,18 @@ def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | 
     if m.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"means must be float32 or float64 with shape [N, 3], got {m.dtype}")
     n = m.shape[0]
-    _check_float("means", m, "[N, 3]", True, m)
-    _check_float("quats", s.quats, f"[{n}, 4]", tuple(s.quats.shape) == (n, 4), m)
-    _check_float("scales", s.scales, f"[{n}, 2]", tuple(s.scales.shape) == (n, 2), m)
-    _check_float("opacities", s.opacities, f"[{n}]", tuple(s.opacities.shape) == (n,), m)
+    # The value checks below (finite, ranges, layout) in one compiled pass where possible.
+    checked = m.device.type == "cpu" and _values_ok_fused(s)
+    v = not checked
+    _check_float("means", m, "[N, 3]", True, m, v)
+    _check_float("quats", s.quats, f"[{n}, 4]", tuple(s.quats.shape) == (n, 4), m, v)
+    _check_float("scales", s.scales, f"[{n}, 2]", tuple(s.scales.shape) == (n, 2), m, v)
+    _check_float("opacities", s.opacities, f"[{n}]", tuple(s.opacities.shape) == (n,), m, v)
     _check_float("sh", s.sh, f"[{n}, K, 3] with K in (1, 4, 9, 16)",
-                 s.sh.ndim == 3 and s.sh.shape[0] == n and s.sh.shape[2] == 3 and s.sh.shape[1] in (1, 4, 9, 16), m)
-    _check_float("texel_size", s.texel_size, f"[{n}] or [{n}, 2]", tuple(s.texel_size.shape) in ((n,), (n, 2)), m)
-    _check_float("textures", s.textures, "[T, 3]", s.textures.ndim == 2 and s.textures.shape[1] == 3, m)
+                 s.sh.ndim == 3 and s.sh.shape[0] == n and s.sh.shape[2] == 3 and s.sh.shape[1] in (1, 4, 9, 16), m, v)
+    _check_float("texel_size", s.texel_size, f"[{n}] or [{n}, 2]", tuple(s.texel_size.shape) in ((n,), (n, 2)), m,
+                 v)
+    _check_float("textures", s.textures, "[T, 3]", s.textures.ndim == 2 and s.textures.shape[1] == 3, m, v)
     for name, t, dtype, expected in (("tex_res", s.tex_res, torch.int32, f"[{n}, 2] int32"),
                                      ("tex_offset", s.tex_offset, torch.int64, f"[{n}] int64")):
         want = (n, 2) if name == "tex_res" else (n,)
@@ -72,24 +112,25 @@ def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | 
             raise ValueError(f"{name} must have dtype {dtype} (shape {expected}), got {t.dtype}")
         if t.device != m.device:
             raise ValueError(f"{name} must be on {m.device} (the device of means), shape {expected}; got {t.device}")
-    with torch.no_grad():
-        if n and bool((s.scales <= 0).any()):
-            raise ValueError(f"scales (shape [{n}, 2], world units) must be > 0")
-        if n and bool((s.texel_size <= 0).any()):
-            raise ValueError(f"texel_size (shape [{n}] or [{n}, 2], world units per texel) must be > 0")
-        if n and bool(((s.opacities < 0) | (s.opacities > 1)).any()):
-            raise ValueError(f"opacities (shape [{n}]) must lie in [0, 1]")
-        if n and bool((s.quats.norm(dim=-1) == 0).any()):
-            raise ValueError(f"quats (shape [{n}, 4]) must have non-zero norm")
-        if n and bool((s.tex_res < 0).any()):
-            raise ValueError(f"tex_res (shape [{n}, 2] int32) must be >= 0")
-        sizes = s.tex_res[:, 0].long() * s.tex_res[:, 1].long()
-        used = sizes > 0
-        if bool(used.any()):
-            end = s.tex_offset[used] + sizes[used]
-            if bool((s.tex_offset[used] < 0).any()) or int(end.max()) > s.textures.shape[0]:
-                raise ValueError(f"tex_offset (shape [{n}] int64) + res_u*res_v must stay within textures "
-                                 f"[T={s.textures.shape[0]}, 3]")
+    if not checked:
+        with torch.no_grad():
+            if n and bool((s.scales <= 0).any()):
+                raise ValueError(f"scales (shape [{n}, 2], world units) must be > 0")
+            if n and bool((s.texel_size <= 0).any()):
+                raise ValueError(f"texel_size (shape [{n}] or [{n}, 2], world units per texel) must be > 0")
+            if n and bool(((s.opacities < 0) | (s.opacities > 1)).any()):
+                raise ValueError(f"opacities (shape [{n}]) must lie in [0, 1]")
+            if n and bool((s.quats.norm(dim=-1) == 0).any()):
+                raise ValueError(f"quats (shape [{n}, 4]) must have non-zero norm")
+            if n and bool((s.tex_res < 0).any()):
+                raise ValueError(f"tex_res (shape [{n}, 2] int32) must be >= 0")
+            sizes = s.tex_res[:, 0].long() * s.tex_res[:, 1].long()
+            used = sizes > 0
+            if bool(used.any()):
+                end = s.tex_offset[used] + sizes[used]
+                if bool((s.tex_offset[used] < 0).any()) or int(end.max()) > s.textures.shape[0]:
+                    raise ValueError(f"tex_offset (shape [{n}] int64) + res_u*res_v must stay within textures "
+                                     f"[T={s.textures.shape[0]}, 3]")
     if camera.width < 1 or camera.height < 1:
         raise ValueError(f"camera must be at least 1x1 pixels, got {camera.width}x{camera.height}")
     if not all(math.isfinite(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy, camera.near)) or \

@@ -8,6 +8,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <cstring>
 #include <cmath>
 
 #include "dense.h"
@@ -210,6 +211,43 @@ void texel_activation_backward(const S* y, const S* grad_y, S* grad_x, int64_t n
   for (int64_t c0 = 0; c0 < n; c0 += CHUNK)
     activation_part(static_cast<const S*>(nullptr), const_cast<S*>(y), grad_y, grad_x, c0, std::min(n, c0 + CHUNK));
 }
+
+namespace {
+template <typename S>
+struct FloatBits;
+template <>
+struct FloatBits<float> {
+  typedef uint32_t U;
+  static constexpr U EXP = 0x7f800000u;
+};
+template <>
+struct FloatBits<double> {
+  typedef uint64_t U;
+  static constexpr U EXP = 0x7ff0000000000000ull;
+};
+}  // namespace
+
+template <typename S>
+bool all_finite(const S* x, int64_t n, int threads) {
+  using U = typename FloatBits<S>::U;
+  constexpr U E = FloatBits<S>::EXP;
+  int bad = 0;
+#pragma omp parallel for schedule(static) reduction(| : bad) num_threads(std::max(1, threads))
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK) {
+    const int64_t c1 = std::min(n, c0 + CHUNK);
+    U hit = 0;  // all exponent bits set: infinite or NaN
+    for (int64_t k = c0; k < c1; ++k) {
+      U b;
+      std::memcpy(&b, x + k, sizeof(U));
+      hit |= U((b & E) == E);
+    }
+    bad |= int(hit != 0);
+  }
+  return bad == 0;
+}
+
+template bool all_finite<float>(const float*, int64_t, int);
+template bool all_finite<double>(const double*, int64_t, int);
 
 template void texel_activation<float>(const float*, float*, int64_t, int);
 template void texel_activation<double>(const double*, double*, int64_t, int);

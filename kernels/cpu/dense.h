@@ -25,6 +25,10 @@ template <typename S>
 double texel_l1(const S* raw, const S* weight, const long long* tex_offset, const int* tex_res, int n_prims,
                 S* grad, S scale, int threads, bool activated = false);
 
+// Whether none of x[0..n) is NaN or infinite (exponent bits, one pass, no temporaries).
+template <typename S>
+bool all_finite(const S* x, int64_t n, int threads);
+
 // Texel activation y = 2 sigmoid(x) - 1 = tanh(x / 2) on n elements, and its backward
 // grad_x = grad_y (1 - y) (1 + y) / 2.
 template <typename S>

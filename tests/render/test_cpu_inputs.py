@@ -200,3 +200,49 @@ def test_backward_reusing_the_forward_setup_matches_recomputing_it(dtype):
         torch.testing.assert_close(b, c, atol=0, rtol=0)
     with pytest.raises(RuntimeError, match="setup_prims must be forward_cpu's output of the same render"):
         mod.backward_cpu(*common, setup_prims[:-8].contiguous(), setup_spans)
+
+
+def test_zero_quaternion_is_refused():
+    s, cam = _scene()
+    q = s.quats.clone()
+    q[1] = 0.0
+    with pytest.raises(ValueError, match="non-zero norm"):
+        render(replace(s, quats=q), cam, backend="cpu")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_value_check_agrees_with_pytorch(dtype):
+    """validate_inputs takes the compiled one-pass check where it can (api._values_ok_fused) and the PyTorch
+    checks otherwise: the compiled check passes valid inputs and flags every value problem the PyTorch
+    checks raise on (anywhere in a tensor larger than one parallel chunk), so the messages stay theirs."""
+    from scenes import random_scene
+
+    case = random_scene(50, seed=4, dtype=dtype, max_res=8)
+    s, cam = case.surfels, case.camera
+    big = torch.rand(70000, 3, dtype=dtype) - 0.5  # > 2 chunks of 16k values
+    s = replace(s, textures=torch.cat([s.textures, big]))
+    assert api._values_ok_fused(s)
+    assert api._values_ok_fused(replace(s, sh=s.sh[:, :4]))  # a training step below the top SH degree: a slice
+    api.validate_inputs(s, cam, None, None)
+    bad = []
+    for name, index, value in [("means", 7, float("nan")), ("quats", 3, float("inf")), ("scales", 0, 0.0),
+                               ("scales", 99, -1e-30), ("opacities", 5, 1.0 + 1e-6), ("opacities", 6, -0.0 - 1e-30),
+                               ("sh", -1, float("-inf")), ("texel_size", 1, 0.0),
+                               ("textures", 40000, float("nan")), ("textures", -1, float("inf"))]:
+        t = getattr(s, name).clone()
+        t.view(-1)[index] = value
+        bad.append((name, replace(s, **{name: t})))
+    q = s.quats.clone()
+    q[2] = 0.0
+    bad.append(("quats", replace(s, quats=q)))
+    off = s.tex_offset.clone()
+    used = int(torch.nonzero((s.tex_res[:, 0] * s.tex_res[:, 1]) > 0)[0])
+    off[used] = s.textures.shape[0]  # block past the end
+    bad.append(("tex_offset", replace(s, tex_offset=off)))
+    res = s.tex_res.clone()
+    res[4, 1] = -2
+    bad.append(("tex_res", replace(s, tex_res=res)))
+    for name, b in bad:
+        assert not api._values_ok_fused(b), name
+        with pytest.raises(ValueError, match=name):
+            api.validate_inputs(b, cam, None, None)
