@@ -118,3 +118,40 @@ def test_deterministic_across_thread_counts():
     assert torch.equal(outs[0][0], outs[1][0])
     for x, y in zip(outs[0][1], outs[1][1]):
         torch.testing.assert_close(x, y, atol=1e-12 * y.abs().max().item(), rtol=0)
+
+
+@pytest.mark.parametrize("layout", ["packed", "reversed", "shared"])
+def test_texel_gradients_with_two_threads_any_block_layout(layout):
+    """With 2 threads the second thread's texel gradients go to a private copy added at the end: whatever the
+    jagged layout (packed in primitive order as the model keeps it, stored in reverse, or one block shared by
+    every textured primitive), the texel gradients agree with one thread's to rounding."""
+
+    case = random_scene(60, seed=5, width=64, height=48)
+    s = case.surfels
+    sizes = (s.tex_res[:, 0] * s.tex_res[:, 1]).long()
+    if layout == "reversed":  # the same blocks, stored last primitive first
+        order = torch.arange(s.num_primitives - 1, -1, -1)
+        starts = torch.zeros_like(sizes)
+        starts[order] = torch.cumsum(sizes[order], 0) - sizes[order]
+        tex = torch.zeros_like(s.textures)
+        for i in range(s.num_primitives):
+            n = int(sizes[i])
+            tex[int(starts[i]):int(starts[i]) + n] = s.textures[int(s.tex_offset[i]):int(s.tex_offset[i]) + n]
+        s = replace(s, textures=tex, tex_offset=starts)
+    elif layout == "shared":  # every textured primitive reads the first block of the largest size
+        big = int(torch.argmax(sizes))
+        res = s.tex_res.clone()
+        res[sizes > 0] = s.tex_res[big]
+        s = replace(s, tex_res=res, tex_offset=torch.where(sizes > 0, s.tex_offset[big], s.tex_offset))
+    old = torch.get_num_threads()
+    grads = []
+    try:
+        for nt in (1, 2):
+            torch.set_num_threads(nt)
+            sg = with_grad(s)
+            out = render(sg, case.camera, backend="cpu")
+            grads.append(torch.autograd.grad(_loss(out, 0), [sg.textures])[0])
+    finally:
+        torch.set_num_threads(old)
+    assert grads[0].abs().sum() > 0
+    torch.testing.assert_close(grads[1], grads[0], atol=1e-12 * grads[0].abs().max().item(), rtol=0)
