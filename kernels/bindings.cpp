@@ -301,7 +301,7 @@ Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_thread
 
 // Per-primitive (count int32, contrib, err) [n] from a forward's blended pairs (forward_pairs_cpu: pix, prim
 // int32 [P], w [P]) and the error image e [H, W] (kernels/cpu/dense.h accumulate_pairs).
-std::vector<Tensor> accumulate_pairs_cpu(Tensor pix, Tensor prim, Tensor w, Tensor e, int64_t n) {
+std::vector<Tensor> accumulate_pairs_cpu(Tensor pix, Tensor prim, Tensor w, Tensor e, int64_t n, int64_t num_threads) {
   const int64_t P = w.size(0);
   check_tensor(pix, "pix", "[P] int32", {P}, at::kInt);
   check_tensor(prim, "prim", "[P] int32", {P}, at::kInt);
@@ -314,7 +314,11 @@ std::vector<Tensor> accumulate_pairs_cpu(Tensor pix, Tensor prim, Tensor w, Tens
   const int64_t npix = e.numel();
   const int32_t* pp = pix.data_ptr<int32_t>();
   const int32_t* qq = prim.data_ptr<int32_t>();
-  for (int64_t k = 0; k < P; ++k)
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  int bad = 0;
+#pragma omp parallel for schedule(static) reduction(| : bad) num_threads(std::max(1, threads))
+  for (int64_t k = 0; k < P; ++k) bad |= int(!(pp[k] >= 0 && pp[k] < npix && qq[k] >= 0 && qq[k] < n));
+  for (int64_t k = 0; bad && k < P; ++k)  // name the first bad pair
     TORCH_CHECK(pp[k] >= 0 && pp[k] < npix && qq[k] >= 0 && qq[k] < n, "accumulate_pairs: pair ", k,
                 " out of range (pixel ", pp[k], " of ", npix, ", primitive ", qq[k], " of ", n, ")");
   Tensor count = torch::empty({n}, torch::dtype(at::kInt));
@@ -323,7 +327,7 @@ std::vector<Tensor> accumulate_pairs_cpu(Tensor pix, Tensor prim, Tensor w, Tens
   AT_DISPATCH_FLOATING_TYPES(w.scalar_type(), "ctgs_accumulate_pairs_cpu", [&] {
     ctgs::cpu::accumulate_pairs<scalar_t>(pp, qq, w.data_ptr<scalar_t>(), P, e.data_ptr<scalar_t>(),
                                           count.data_ptr<int32_t>(), contrib.data_ptr<scalar_t>(),
-                                          err.data_ptr<scalar_t>(), n);
+                                          err.data_ptr<scalar_t>(), n, threads);
   });
   return {count, contrib, err};
 }

@@ -114,7 +114,8 @@ def rasterize_error_fn(s: SurfelInputs, camera: Camera, sh_degree: int, backgrou
             background.detach().contiguous(), *cam, knob, poison)
         e = error_fn(rgb)
         check_error(e)
-        # One compiled pass over the pairs (the same sums, in the same order, as bincount / index_add_).
+        # One compiled pass over the pairs (one thread: the same sums, in the same order, as bincount /
+        # index_add_; more: contiguous chunks in that order, added in order).
         count, contrib, err = load_cpu().accumulate_pairs_cpu(pix, prim, w, e.detach().to(w.dtype).contiguous(),
-                                                              s.num_primitives)
+                                                              s.num_primitives, knob)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err))

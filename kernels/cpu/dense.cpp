@@ -297,23 +297,46 @@ template double texel_l1<double>(const double*, const double*, const long long*,
 
 template <typename S>
 void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64_t n_pairs, const S* e,
-                      int32_t* count, S* contrib, S* err, int64_t n_prims) {
-  std::fill(count, count + n_prims, 0);
-  std::fill(contrib, contrib + n_prims, S(0));
-  std::fill(err, err + n_prims, S(0));
-  for (int64_t k = 0; k < n_pairs; ++k) {
-    const int32_t i = prim[k];
-    const S wk = w[k];
-    count[i] += 1;
-    contrib[i] += wk;
-    err[i] += e[pix[k]] * wk;
+                      int32_t* count, S* contrib, S* err, int64_t n_prims, int threads) {
+  // Thread t sums the t-th contiguous chunk of pairs in pair order into its own buffers (thread 0: the
+  // outputs); the chunks' sums are then added in thread order. One thread: the order of index_add_.
+  const int nt = n_pairs >= (int64_t(1) << 16) ? std::max(1, threads) : 1;
+  std::vector<int32_t> count_t(size_t(nt - 1) * n_prims);
+  std::vector<S> contrib_t(size_t(nt - 1) * n_prims), err_t(size_t(nt - 1) * n_prims);
+#pragma omp parallel num_threads(nt)
+  {
+    const int t = omp_get_thread_num(), got = omp_get_num_threads();
+    int32_t* c = t == 0 ? count : count_t.data() + size_t(t - 1) * n_prims;
+    S* s = t == 0 ? contrib : contrib_t.data() + size_t(t - 1) * n_prims;
+    S* r = t == 0 ? err : err_t.data() + size_t(t - 1) * n_prims;
+    std::fill(c, c + n_prims, 0);
+    std::fill(s, s + n_prims, S(0));
+    std::fill(r, r + n_prims, S(0));
+    // Chunks by the thread count actually granted (the buffers of threads that did not start stay 0).
+    const int64_t k0 = n_pairs * t / got, k1 = n_pairs * (t + 1) / got;
+    for (int64_t k = k0; k < k1; ++k) {
+      const int32_t i = prim[k];
+      const S wk = w[k];
+      c[i] += 1;
+      s[i] += wk;
+      r[i] += e[pix[k]] * wk;
+    }
+  }
+  if (nt > 1) {
+#pragma omp parallel for schedule(static) num_threads(nt)
+    for (int64_t i = 0; i < n_prims; ++i)
+      for (int t = 0; t + 1 < nt; ++t) {
+        count[i] += count_t[size_t(t) * n_prims + i];
+        contrib[i] += contrib_t[size_t(t) * n_prims + i];
+        err[i] += err_t[size_t(t) * n_prims + i];
+      }
   }
 }
 
 template void accumulate_pairs<float>(const int32_t*, const int32_t*, const float*, int64_t, const float*, int32_t*,
-                                      float*, float*, int64_t);
+                                      float*, float*, int64_t, int);
 template void accumulate_pairs<double>(const int32_t*, const int32_t*, const double*, int64_t, const double*,
-                                       int32_t*, double*, double*, int64_t);
+                                       int32_t*, double*, double*, int64_t, int);
 
 }  // namespace cpu
 }  // namespace ctgs

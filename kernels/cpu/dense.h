@@ -47,10 +47,12 @@ void jagged_remap(const S* old_buf, int64_t old_rows, S* new_buf, int C, const i
 
 // Per-primitive error statistics from a forward's blended pairs (pix[k], prim[k], w[k]), k < n_pairs, and the
 // error image e [H*W]: count[i] = #pairs of i, contrib[i] = sum of their w, err[i] = sum of e[pix] w, summed
-// in pair order (the order of PyTorch's index_add_ on one thread). Outputs [n_prims], overwritten.
+// in pair order (the order of PyTorch's index_add_) by one thread; with more (from 65536 pairs on), each sums a
+// contiguous chunk in pair order and the chunks are added in order (deterministic for a thread count).
+// Outputs [n_prims], overwritten.
 template <typename S>
 void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64_t n_pairs, const S* e,
-                      int32_t* count, S* contrib, S* err, int64_t n_prims);
+                      int32_t* count, S* contrib, S* err, int64_t n_prims, int threads);
 
 // View-dependent colour (kernels/cpu/sh.cpp, ctgs/render/sh.py): colors [n, 3] = SH_deg(normalize(mean -
 // center)) + 0.5 from sh [n, K, 3] (K >= (deg + 1)^2, coefficients past the degree unused); and its backward:

@@ -234,13 +234,33 @@ def test_accumulate_pairs_matches_pytorch_index_add(dtype):
     pix = torch.randint(0, hw, (P,), generator=gen, dtype=torch.int32)
     prim = torch.randint(0, n - 1, (P,), generator=gen, dtype=torch.int32)  # primitive n-1 never blended
     w, e = torch.rand(P, generator=gen, dtype=dtype), torch.rand(30, 40, generator=gen, dtype=dtype)
-    count, contrib, err = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n)
+    count, contrib, err = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n, 1)
     assert torch.equal(count, torch.bincount(prim, minlength=n).to(torch.int32))
     assert torch.equal(contrib, w.new_zeros(n).index_add_(0, prim, w))
     assert torch.equal(err, w.new_zeros(n).index_add_(0, prim, e.reshape(-1)[pix] * w))
     assert count[-1] == 0 and contrib[-1] == 0 and err[-1] == 0
     with pytest.raises(RuntimeError, match="out of range"):
-        fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e[:2], n)
+        fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e[:2], n, 1)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_accumulate_pairs_in_chunks_per_thread(threads):
+    # More threads: each sums a contiguous chunk of the pairs in order, the chunks are added in order.
+    gen = torch.Generator().manual_seed(7)
+    P, n, hw = 200003, 501, 4000
+    pix = torch.randint(0, hw, (P,), generator=gen, dtype=torch.int32)
+    prim = torch.randint(0, n - 1, (P,), generator=gen, dtype=torch.int32)
+    w, e = torch.rand(P, generator=gen, dtype=torch.float64), torch.rand(hw, generator=gen, dtype=torch.float64)
+    count, contrib, err = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n, threads)
+    again = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n, threads)
+    assert all(torch.equal(a, b) for a, b in zip((count, contrib, err), again))  # deterministic
+    assert torch.equal(count, torch.bincount(prim, minlength=n).to(torch.int32))
+    torch.testing.assert_close(contrib, w.new_zeros(n).index_add_(0, prim, w), rtol=1e-13, atol=0)
+    torch.testing.assert_close(err, w.new_zeros(n).index_add_(0, prim, e[pix] * w), rtol=1e-13, atol=0)
+    bad = pix.clone()
+    bad[P - 5] = hw
+    with pytest.raises(RuntimeError, match=f"pair {P - 5} out of range"):
+        fused.cpu_ext().accumulate_pairs_cpu(bad, prim, w, e, n, threads)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
