@@ -54,8 +54,13 @@ def _values_ok_fused(s: SurfelInputs) -> bool:
     """True if the compiled check (one pass per tensor, no temporaries) found every value check of
     validate_inputs passed; False if it cannot run here or some check may fail (then the PyTorch checks run
     and name the problem). A training step's inputs are ~1-2M values: the PyTorch checks cost ~1.5 ms."""
-    from ctgs.fused import cpu_ext
+    import ctgs.render._ext as ext_mod
 
+    # Only once the extension is loaded (by a CPU render): validating must never trigger its build, e.g. for
+    # the reference backend.
+    ext = ext_mod._cpu_module
+    if ext is None:
+        return False
     ts = [getattr(s, name) for name in _SURFEL_FLOATS]
     m = s.means
     if not all(isinstance(t, torch.Tensor) for t in ts + [s.tex_res, s.tex_offset]):
@@ -72,9 +77,6 @@ def _values_ok_fused(s: SurfelInputs) -> bool:
             and tuple(s.tex_offset.shape) == (n,) and s.tex_offset.dtype == torch.int64
             and s.tex_offset.is_contiguous() and s.tex_res.device.type == "cpu"
             and s.tex_offset.device.type == "cpu"):
-        return False
-    ext = cpu_ext()
-    if ext is None:
         return False
     with torch.no_grad():
         # (the SH of a step below degree 3 is a slice: a small copy)

@@ -3,6 +3,7 @@ lazy JIT build and its error messages, and the NaN-poisoned output buffers."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from dataclasses import replace
@@ -217,6 +218,7 @@ def test_compiled_value_check_agrees_with_pytorch(dtype):
     checks raise on (anywhere in a tensor larger than one parallel chunk), so the messages stay theirs."""
     from scenes import random_scene
 
+    ext.load_cpu()  # the compiled check runs once the extension is loaded (never builds it by itself)
     case = random_scene(50, seed=4, dtype=dtype, max_res=8)
     s, cam = case.surfels, case.camera
     big = torch.rand(70000, 3, dtype=dtype) - 0.5  # > 2 chunks of 16k values
@@ -246,3 +248,12 @@ def test_compiled_value_check_agrees_with_pytorch(dtype):
         assert not api._values_ok_fused(b), name
         with pytest.raises(ValueError, match=name):
             api.validate_inputs(b, cam, None, None)
+
+
+def test_validation_never_builds_the_extension():
+    """render(backend='reference') validates its inputs without loading (or building) the CPU extension."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    code = (f"import torch, sys; sys.path.insert(0, {here!r}); from scenes import random_scene; "
+            "import ctgs.render._ext as e; from ctgs.render import render; c = random_scene(5); "
+            "render(c.surfels, c.camera, backend='reference'); assert e._cpu_module is None")
+    subprocess.run([sys.executable, "-c", code], check=True)
