@@ -380,7 +380,7 @@ bool surfel_values_ok_cpu(Tensor means, Tensor quats, Tensor scales, Tensor opac
   TORCH_CHECK(dt == at::kFloat || dt == at::kDouble, "surfel_values_ok: means must be float32 or float64");
   const int64_t n = means.size(0);
   for (const Tensor* t : {&means, &quats, &scales, &opacities, &sh, &texel_size, &textures})
-    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous() && t->scalar_type() == dt && (t->dim() == 0 || t->size(0) == n || t == &textures),
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous() && t->scalar_type() == dt && (t == &textures || t->size(0) == n),
                 "surfel_values_ok: float tensors must be contiguous CPU tensors of means' dtype with N rows");
   TORCH_CHECK(quats.numel() == 4 * n && scales.numel() == 2 * n && opacities.numel() == n &&
                   (texel_size.numel() == n || texel_size.numel() == 2 * n),

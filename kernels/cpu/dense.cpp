@@ -309,10 +309,12 @@ void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64
     int32_t* c = t == 0 ? count : count_t.data() + size_t(t - 1) * n_prims;
     S* s = t == 0 ? contrib : contrib_t.data() + size_t(t - 1) * n_prims;
     S* r = t == 0 ? err : err_t.data() + size_t(t - 1) * n_prims;
-    std::fill(c, c + n_prims, 0);
-    std::fill(s, s + n_prims, S(0));
-    std::fill(r, r + n_prims, S(0));
-    // Chunks by the thread count actually granted (the buffers of threads that did not start stay 0).
+    if (t == 0) {  // the other threads' buffers start at 0 (and stay so for threads that did not start)
+      std::fill(c, c + n_prims, 0);
+      std::fill(s, s + n_prims, S(0));
+      std::fill(r, r + n_prims, S(0));
+    }
+    // Chunks by the thread count actually granted.
     const int64_t k0 = n_pairs * t / got, k1 = n_pairs * (t + 1) / got;
     for (int64_t k = k0; k < k1; ++k) {
       const int32_t i = prim[k];
