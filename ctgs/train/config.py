@@ -100,6 +100,9 @@ class TrainConfig:
                             "fewer padding texels, every downscaled size still even)")
     texture_sigma: float = _f(3.0, "textures cover at most +-this many standard deviations (the renderer's cutoff "
                               "is 3; beyond the texture a surfel shows its SH colour)")
+    texture_trim: float = _f(0.0, "> 0: after the last iteration, crop every texture symmetrically to the texels "
+                             "whose activated offset reaches this in some channel, dropping textures with none "
+                             "(rendered colours move by less than this; 0 = off, the paper)")
     min_t2p_exp: int = _f(1, "smallest texel-size exponent: texel >= 2**this pixels of the closest camera")
     # ---- baselines (2dgs, fixed_texture): 3DGS-style densification ----
     fixed_texture_res: int = _f(16, "texels per axis of the fixed_texture baseline")
@@ -174,7 +177,7 @@ _RANGES = [
     ("max_primitives", _ge(0), ">= 0 (0 = unlimited)"),
     ("max_texture_res", lambda v: v >= 2 and (v & (v - 1)) == 0, "a power of two >= 2"),
     ("min_t2p_exp", lambda v: 0 <= v <= 30, "in 0..30"),
-    ("texture_sigma", lambda v: 0 < v <= 3, "in (0, 3] standard deviations"), ("fixed_texture_res", _ge(1), ">= 1"),
+    ("texture_sigma", lambda v: 0 < v <= 3, "in (0, 3] standard deviations"), ("texture_trim", lambda v: 0 <= v < 1, "in [0, 1) (activated texel units)"), ("fixed_texture_res", _ge(1), ">= 1"),
     ("densify_from", _ge(0), ">= 0"), ("densify_until", _ge(0), ">= 0"), ("densify_every", _gt(0), "> 0"),
     ("densify_grad_threshold", _gt(0), "> 0"), ("percent_dense", _gt(0), "> 0"),
     ("opacity_reset_every", _gt(0), "> 0"), ("prune_opacity_2dgs", _prob, "in [0, 1)"),

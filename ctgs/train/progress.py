@@ -34,7 +34,7 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                 progress.update(task, completed=ev.it, speed=speed, info=info)
             elif isinstance(ev, Eval):
                 test = f"{ev.test_psnr:.2f}"
-            elif isinstance(ev, Routine) and ev.kind in ("texture_start", "full"):
+            elif isinstance(ev, Routine) and ev.kind in ("texture_start", "full", "trim"):
                 progress.console.log(f"it {ev.it} {ev.kind}: " + ", ".join(
                     f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in ev.stats.items()))
             elif isinstance(ev, Planned):

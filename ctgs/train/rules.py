@@ -28,7 +28,7 @@ recipe is reproduced exactly; elsewhere:
   far denser than a pixel (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's
   Mip-NeRF 360 models hold 0.1-0.3 primitives per pixel);
 - settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
-  texel values (tau_ds), learning rates (x scene extent for positions), the 2DGS baseline's densification
+  texel values (tau_ds, texture_trim), learning rates (x scene extent for positions), the 2DGS baseline's densification
   threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
   image size), start_texels (texels across the primitive itself).
 

@@ -166,3 +166,60 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torc
         edit.replace_blocks(model, opt, new_res, blocks)
         model.t2p_exp[accepted] += 1
     return accepted, e_d
+
+
+@torch.no_grad()
+def trim_res(model, eps: float) -> torch.Tensor:
+    """[N, 2] int32: each texture cropped symmetrically to the texels whose activated offset reaches eps in some
+    channel ((0, 0) where none does). Primitives without a texture keep (0, 0).
+
+    A symmetric crop by c texels per side keeps every remaining texel at its world position (the renderer
+    centres texel i at (i - (res - 1) / 2) x texel size), and a texel outside the grid reads as offset 0, so
+    the crop changes each texture lookup by less than eps per channel: every rendered colour (a weighted sum
+    of lookups, weights <= 1, then max(., 0)) moves by less than eps.
+    """
+    from ctgs.model import jagged
+
+    res = model.tex_res.long()
+    out = res.clone()
+    n = res.shape[0]
+    if model.num_texels == 0 or n == 0:
+        return out.to(torch.int32)
+    pid, iu, iv = jagged.texel_coords(model.tex_res)
+    act = 2 * torch.sigmoid(model.textures_raw.detach()) - 1  # [T, 3]
+    keep = act.abs().amax(1) >= eps
+    big = torch.iinfo(torch.int64).max
+    lo = torch.full((n, 2), big, dtype=torch.long, device=res.device)
+    hi = torch.full((n, 2), -1, dtype=torch.long, device=res.device)
+    p = pid[keep]
+    for axis, coord in ((0, iu[keep]), (1, iv[keep])):
+        lo[:, axis].scatter_reduce_(0, p, coord, "amin")
+        hi[:, axis].scatter_reduce_(0, p, coord, "amax")
+    has = hi[:, 0] >= 0
+    crop = torch.minimum(lo, res - 1 - hi).clamp_min(0)  # texels that may go on each side
+    out = torch.where(has[:, None], res - 2 * crop, torch.zeros_like(res))
+    return out.to(torch.int32)
+
+
+@torch.no_grad()
+def trim(model, opt, eps: float) -> dict:
+    """Crop every texture to what it holds (trim_res), Adam moments with it (opt may be None: a trained model
+    alone). Returns {"textures_dropped", "texels_before", "texels_after"}."""
+    if model.texture_mode != "content_aware" or eps <= 0 or model.num_texels == 0:
+        return {"textures_dropped": 0, "texels_before": model.num_texels, "texels_after": model.num_texels}
+    before, had = model.num_texels, model.tex_res.long().prod(1) > 0
+    new_res = trim_res(model, eps)
+    if opt is not None:
+        edit.relayout(model, opt, new_res)
+    else:
+        from ctgs.model import jagged
+
+        n = model.num_primitives
+        idx = torch.arange(n, device=model.means.device)
+        shift = torch.zeros(n, 2, dtype=torch.long, device=model.means.device)
+        (raw,), off = jagged.remap([model.textures_raw.detach()], model.tex_res, model.tex_offset, idx, shift, new_res)
+        model.tex_res = new_res.clone()
+        model.tex_offset = off
+        model.textures_raw = raw.contiguous().requires_grad_(model.textures_raw.requires_grad)
+    dropped = int((had & (model.tex_res.long().prod(1) == 0)).sum())
+    return {"textures_dropped": dropped, "texels_before": before, "texels_after": model.num_texels}

@@ -337,6 +337,13 @@ class Trainer:
                     self._log({"type": "plan", "it": it, "iterations": planned,
                                "budget_left_s": round(self.planner.budget_s_left(), 2)})
                     yield Planned(it, planned, self.planner.plan.budget_s)
+        if cfg.method == "content_aware" and cfg.texture_trim > 0:
+            # Model only what the textures hold: texels below texture_trim in every channel go (texels.trim;
+            # idempotent, so a resumed run that trims again changes nothing).
+            stats = texels.trim(self.model, self.opt, cfg.texture_trim)
+            self._log({"type": "routine", "it": self.it, "kind": "trim", **stats, "n": self.model.num_primitives,
+                       "texels": self.model.num_texels})
+            yield Routine(self.it, "trim", stats)
         p, s = self.evaluate()
         self._log({"type": "test", "it": self.it, "psnr": p, "ssim": s})
         yield Eval(self.it, p, s)

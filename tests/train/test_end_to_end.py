@@ -11,10 +11,12 @@ import json
 import os
 
 import pytest
+import torch
 
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.io.run_model import load_run
+from ctgs.train import texels
 
 ITERATIONS = 400
 # Measured: 16.19 dB test PSNR at 400 iterations of the fast preset on this 96x72 scene (16.50 before it took mult4
@@ -46,6 +48,12 @@ def test_short_run_reaches_a_quality_floor_and_runs_every_routine(run):
         assert sum(r[key] for r in full) > 0, key
     assert any(r["kind"] == "late" for r in log if r["type"] == "routine")
     model = load_run(run_dir).model
+    # The fast preset trims textures after the last iteration, before the final evaluation: model.pt holds the
+    # trimmed textures (nothing left to crop), and the last test line scores that model.
+    trims = [r for r in log if r["type"] == "routine" and r["kind"] == "trim"]
+    assert len(trims) == 1 and trims[0]["texels_after"] == model.num_texels <= trims[0]["texels_before"]
+    assert [r["type"] for r in log[log.index(trims[0]):]] == ["routine", "test"]
+    assert torch.equal(texels.trim_res(model, 0.004), model.tex_res.cpu())
     # Textures of different texel sizes: the allocation adapted to content.
     assert model.num_texels > 0 and len(set(model.t2p_exp.tolist())) >= 3
     assert summary["params_per_observed_value"] == pytest.approx(model.num_params() / summary["observed_values"])
