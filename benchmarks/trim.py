@@ -39,8 +39,19 @@ def evaluate(run: str, out: str) -> dict:
         return json.load(fh)
 
 
-def trimmed_copy(run: str, dest: str, eps: float) -> tuple[dict, float]:
-    """Write RUN's model trimmed at eps into dest (a run folder); returns (trim stats, max |render change|)."""
+def allocation(model, scene_dir: str) -> dict | None:
+    """The demo scene's allocation ratios (ctgs.train.allocation; None for other scenes)."""
+    if not os.path.exists(os.path.join(scene_dir, "demo_meta.json")):
+        return None
+    from ctgs.scene.demo import load_demo_meta
+    from ctgs.train.allocation import allocation_measures
+
+    return allocation_measures(model, load_demo_meta(scene_dir))["ratios"]
+
+
+def trimmed_copy(run: str, dest: str, eps: float) -> tuple[dict, float, dict | None, dict | None]:
+    """Write RUN's model trimmed at eps into dest (a run folder); returns (trim stats, max |render change|,
+    allocation ratios before and after on the demo scene)."""
     import torch
 
     from ctgs.io import atomic
@@ -59,13 +70,15 @@ def trimmed_copy(run: str, dest: str, eps: float) -> tuple[dict, float]:
     scene = load_scene(r.scene_dir, images=r.images, holdout=r.holdout)
     with torch.no_grad():
         before = [render(model.render_inputs(), v.camera, backend="cpu", sh_degree=model.sh_degree) for v in scene.test]
+    alloc_before = allocation(model, r.scene_dir)
     stats = texels.trim(model, None, eps)
+    alloc_after = allocation(model, r.scene_dir)
     with torch.no_grad():
         after = [render(model.render_inputs(), v.camera, backend="cpu", sh_degree=model.sh_degree) for v in scene.test]
     change = max(float((a.rgb - b.rgb).abs().max()) for a, b in zip(after, before))
     ckpt["model"] = model.state_dict()
     atomic.torch_save(ckpt, os.path.join(dest, MODEL_FILE))
-    return stats, change
+    return stats, change, alloc_before, alloc_after
 
 
 def main() -> None:
@@ -83,14 +96,17 @@ def main() -> None:
             summary = json.load(fh)
         values = summary["observed_values"]
         base = evaluate(run, os.path.join(args.work, label, "eval_untrimmed"))
+        base_row = len(rows)
         rows.append({"label": label, "run": run, "eps": 0.0, "observed_values": values, "metrics": base,
-                     "stats": None, "max_change": 0.0})
+                     "stats": None, "max_change": 0.0, "allocation": None})
         for eps in args.eps:
             dest = os.path.join(args.work, label, f"trim_{eps:g}")
-            stats, change = trimmed_copy(run, dest, eps)
+            stats, change, alloc_before, alloc_after = trimmed_copy(run, dest, eps)
+            if alloc_before is not None:
+                rows[base_row]["allocation"] = alloc_before
             m = evaluate(dest, os.path.join(dest, "eval"))
             rows.append({"label": label, "run": run, "eps": eps, "observed_values": values, "metrics": m,
-                         "stats": stats, "max_change": change})
+                         "stats": stats, "max_change": change, "allocation": alloc_after})
             print(label, eps, stats, f"max change {change:.5f}", f"PSNR {base['psnr']:.3f} -> {m['psnr']:.3f}",
                   flush=True)
     import torch
@@ -116,6 +132,16 @@ def main() -> None:
                      f"{'-' if textured is None else textured} | {m['texels']} | {m['params']} | "
                      f"{m['params'] / r['observed_values']:.2f} | {m['bytes_on_disk'] / 1e6:.2f} | {m['fps']:.1f} | "
                      f"{r['max_change']:.4f} |")
+    alloc = [r for r in rows if r.get("allocation")]
+    if alloc:
+        lines += ["", "On the demo scene, the allocation ratios of ctgs.train.allocation (what `make bench-claims` "
+                  "checks; median over primitives with a texture):", "",
+                  "| run | eps | texel size flat : photo | params per area photo : flat | texels per area photo : flat |",
+                  "| --- | ---: | ---: | ---: | ---: |"]
+        for r in alloc:
+            a = r["allocation"]
+            lines.append(f"| {r['label']} | {r['eps']:g} | {a['texel_size_prim_flat_over_photo']:.2f} | "
+                         f"{a['params_per_area_photo_over_flat']:.2f} | {a['texels_per_area_photo_over_flat']:.2f} |")
     lines += ["", "Runs: " + ", ".join(f"{r['label']} = `{r['run']}`" for r in rows if r["eps"] == 0.0), ""]
     out = os.path.join(ROOT, "benchmarks", "results", f"trim_{args.out}")
     with open(out + ".md", "w") as fh:
