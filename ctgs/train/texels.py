@@ -181,10 +181,9 @@ def trim_res(model, eps: float) -> torch.Tensor:
     from ctgs.model import jagged
 
     res = model.tex_res.long()
-    out = res.clone()
     n = res.shape[0]
     if model.num_texels == 0 or n == 0:
-        return out.to(torch.int32)
+        return res.to(torch.int32)
     pid, iu, iv = jagged.texel_coords(model.tex_res)
     act = 2 * torch.sigmoid(model.textures_raw.detach()) - 1  # [T, 3]
     keep = act.abs().amax(1) >= eps
