@@ -46,15 +46,22 @@ def select(model, opt: SurfelAdam, idx: torch.Tensor, fresh: torch.Tensor | None
 
 
 @torch.no_grad()
-def relayout(model, opt: SurfelAdam, new_res: torch.Tensor) -> None:
-    """Give every primitive resolution new_res [N, 2], keeping content centred (crop or pad)."""
+def relayout(model, opt: SurfelAdam | None, new_res: torch.Tensor) -> None:
+    """Give every primitive resolution new_res [N, 2], keeping content centred (crop or pad); opt None: a
+    trained model alone (no Adam moments to move)."""
     n = model.num_primitives
     idx = torch.arange(n, device=model.means.device)
     shift = torch.zeros(n, 2, dtype=torch.long, device=model.means.device)
-    bufs = [model.textures_raw.detach(), opt.exp_avg[TEX_PARAM], opt.exp_avg_sq[TEX_PARAM]]
-    (raw, m, v), off = jagged.remap(bufs, model.tex_res, model.tex_offset, idx, shift, new_res)
+    bufs = [model.textures_raw.detach()]
+    if opt is not None:
+        bufs += [opt.exp_avg[TEX_PARAM], opt.exp_avg_sq[TEX_PARAM]]
+    out, off = jagged.remap(bufs, model.tex_res, model.tex_offset, idx, shift, new_res)
     model.tex_res = new_res.to(torch.int32).clone()
-    _set_textures(model, opt, raw, m, v, off)
+    if opt is None:
+        model.textures_raw = _leaf(out[0])
+        model.tex_offset = off
+    else:
+        _set_textures(model, opt, *out, off)
 
 
 @torch.no_grad()

@@ -207,18 +207,6 @@ def trim(model, opt, eps: float) -> dict:
     if model.texture_mode != "content_aware" or eps <= 0 or model.num_texels == 0:
         return {"textures_dropped": 0, "texels_before": model.num_texels, "texels_after": model.num_texels}
     before, had = model.num_texels, model.tex_res.long().prod(1) > 0
-    new_res = trim_res(model, eps)
-    if opt is not None:
-        edit.relayout(model, opt, new_res)
-    else:
-        from ctgs.model import jagged
-
-        n = model.num_primitives
-        idx = torch.arange(n, device=model.means.device)
-        shift = torch.zeros(n, 2, dtype=torch.long, device=model.means.device)
-        (raw,), off = jagged.remap([model.textures_raw.detach()], model.tex_res, model.tex_offset, idx, shift, new_res)
-        model.tex_res = new_res.clone()
-        model.tex_offset = off
-        model.textures_raw = raw.contiguous().requires_grad_(model.textures_raw.requires_grad)
+    edit.relayout(model, opt, trim_res(model, eps))
     dropped = int((had & (model.tex_res.long().prod(1) == 0)).sum())
     return {"textures_dropped": dropped, "texels_before": before, "texels_after": model.num_texels}
