@@ -1,7 +1,10 @@
 // Per-primitive preprocessing and per-tile depth-sorted lists for the CPU backend.
 #include <algorithm>
+#include <cstdint>
+#include <cstring>
 
 #include "rasterize.h"
+#include "lanes.h"
 #include "spans.h"
 
 namespace ctgs {
@@ -22,6 +25,87 @@ std::vector<double> prof_read(bool reset) {
   return out;
 }
 
+
+namespace {
+// The order of std::sort over (depth, index) pairs, whose depths are finite (culling keeps z >= near):
+// float32 keys by an LSD radix sort (three stable 11-bit passes over an order-preserving uint32 form of
+// the depth; the input is in index order, so equal depths stay in index order), ~0.1 ms instead of
+// ~0.85 ms for 18k primitives; float64 (the test path) by std::sort.
+inline uint32_t depth_key(float z) {
+  z = z + 0.0f;  // -0 -> +0: equal depths must get equal keys
+  uint32_t b;
+  std::memcpy(&b, &z, sizeof b);
+  return (b & 0x80000000u) ? ~b : (b | 0x80000000u);
+}
+
+inline void sort_by_depth(std::vector<std::pair<double, int32_t>>& order) { std::sort(order.begin(), order.end()); }
+
+inline void sort_by_depth(std::vector<std::pair<float, int32_t>>& order) {
+  const size_t n = order.size();
+  if (n < 64) {
+    std::sort(order.begin(), order.end());
+    return;
+  }
+  constexpr int BITS = 11, NB = 1 << BITS, PASSES = 3;
+  std::vector<uint32_t> key(n), key2(n);
+  std::vector<int32_t> idx(n), idx2(n);
+  for (size_t k = 0; k < n; ++k) {
+    key[k] = depth_key(order[k].first);
+    idx[k] = int32_t(k);
+  }
+  std::vector<uint32_t> count(size_t(NB) * PASSES, 0);
+  for (size_t k = 0; k < n; ++k)
+    for (int p = 0; p < PASSES; ++p) ++count[size_t(p) * NB + ((key[k] >> (BITS * p)) & (NB - 1))];
+  for (int p = 0; p < PASSES; ++p) {
+    uint32_t* c = count.data() + size_t(p) * NB;
+    uint32_t sum = 0;
+    for (int b = 0; b < NB; ++b) {
+      const uint32_t cb = c[b];
+      c[b] = sum;
+      sum += cb;
+    }
+    for (size_t k = 0; k < n; ++k) {
+      const uint32_t pos = c[(key[k] >> (BITS * p)) & (NB - 1)]++;
+      key2[pos] = key[k];
+      idx2[pos] = idx[k];
+    }
+    key.swap(key2);
+    idx.swap(idx2);
+  }
+  std::vector<std::pair<float, int32_t>> sorted(n);
+  for (size_t k = 0; k < n; ++k) sorted[k] = order[idx[k]];
+  order.swap(sorted);
+}
+
+// One primitive's row spans; the rect shrinks to their bounding box. Multiversioned (lanes.h): the AVX2
+// clone rounds with roundsd where baseline x86-64 calls ceil() and floor() in the C library.
+template <typename S>
+CTGS_INLINE PixelRect prim_spans_impl(const SurfelPrim<S>& P, const Intrinsics<S>& K, const PixelRect r,
+                                      int32_t* xs) {
+  const SpanConic c = span_conic(P);
+  PixelRect t = {r.x1 + 1, r.y1 + 1, r.x0 - 1, r.y0 - 1};
+  for (int y = r.y0; y <= r.y1; ++y, xs += 2) {
+    int lo, hi;
+    if (span_of_row(c, K, y, r.x0, r.x1, &lo, &hi)) {
+      t = PixelRect{std::min(t.x0, lo), std::min(t.y0, y), std::max(t.x1, hi), std::max(t.y1, y)};
+    } else {
+      lo = 0;
+      hi = -1;
+    }
+    xs[0] = lo;
+    xs[1] = hi;
+  }
+  return t.x0 <= t.x1 ? t : PixelRect{0, 0, -1, -1};
+}
+CTGS_LANE_CLONES PixelRect prim_spans(const SurfelPrim<float>& P, const Intrinsics<float>& K, const PixelRect r,
+                                      int32_t* xs) {
+  return prim_spans_impl(P, K, r, xs);
+}
+CTGS_LANE_CLONES PixelRect prim_spans(const SurfelPrim<double>& P, const Intrinsics<double>& K, const PixelRect r,
+                                      int32_t* xs) {
+  return prim_spans_impl(P, K, r, xs);
+}
+}  // namespace
 
 template <typename S>
 void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, std::vector<PixelRect>& rects,
@@ -53,23 +137,8 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
   // Spans row by row; the rect shrinks to their bounding box.
 #pragma omp parallel for schedule(dynamic, 64) num_threads(nt)
   for (int i = 0; i < N; ++i) {
-    const PixelRect r = rects[i];
-    if (r.x0 > r.x1 || r.y0 > r.y1) continue;
-    const SpanConic c = span_conic(prims[i]);
-    int32_t* xs = spans.xs.data() + 2 * spans.offset[i];
-    PixelRect t = {r.x1 + 1, r.y1 + 1, r.x0 - 1, r.y0 - 1};
-    for (int y = r.y0; y <= r.y1; ++y, xs += 2) {
-      int lo, hi;
-      if (span_of_row(c, a.K, y, r.x0, r.x1, &lo, &hi)) {
-        t = PixelRect{std::min(t.x0, lo), std::min(t.y0, y), std::max(t.x1, hi), std::max(t.y1, y)};
-      } else {
-        lo = 0;
-        hi = -1;
-      }
-      xs[0] = lo;
-      xs[1] = hi;
-    }
-    rects[i] = t.x0 <= t.x1 ? t : PixelRect{0, 0, -1, -1};
+    if (rects[i].x0 > rects[i].x1 || rects[i].y0 > rects[i].y1) continue;
+    rects[i] = prim_spans(prims[i], a.K, rects[i], spans.xs.data() + 2 * spans.offset[i]);
   }
   if (bins == nullptr) return;
   // Tile lists from the 3-sigma rects (not the spans): the same lists as the CUDA backend's
@@ -89,7 +158,7 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
   order.reserve(N);
   for (int i = 0; i < N; ++i)
     if (bounds[i].x0 <= bounds[i].x1 && bounds[i].y0 <= bounds[i].y1) order.emplace_back(prims[i].mu.z, i);
-  std::sort(order.begin(), order.end());
+  sort_by_depth(order);
   bins->list.resize(off[num_tiles]);
   std::vector<int64_t> cursor(off.begin(), off.end() - 1);
   for (const auto& zi : order) {

@@ -22,6 +22,41 @@ namespace {
 constexpr int64_t CHUNK = 1 << 14;
 }  // namespace
 
+namespace {
+// One chunk of Adam. The per-element lr is a template argument, not a test inside the loop: with the test
+// there GCC left the loop scalar (4.5 ms for 2.4M texel values at 1 thread on the dev VM, against 1.1 ms
+// like this, close to the 0.95 ms any pass over the same four arrays takes). Same expression, same order:
+// the results are the scalar loop's, bit for bit (IEEE division and square root are exact per element).
+template <typename S, bool LR_VEC>
+CTGS_INLINE int64_t adam_range(S* p, const S* g, S* m, S* v, int64_t k0, int64_t k1, const S* lr_vec, S lr_s,
+                               S b1, S b2, S c1, S c2, S ibc1, S ibc2, S e) {
+  int64_t b = 0;
+#pragma omp simd reduction(+ : b)
+  for (int64_t k = k0; k < k1; ++k) {
+    const S gk = g[k];
+    const S mk = b1 * m[k] + c1 * gk;
+    const S vk = b2 * v[k] + c2 * (gk * gk);
+    m[k] = mk;
+    v[k] = vk;
+    const S step = (LR_VEC ? lr_vec[k] : lr_s) * (mk * ibc1) / (std::sqrt(vk * ibc2) + e);
+    const S pk = p[k] - step;
+    p[k] = pk;
+    b += !(pk - pk == S(0));  // NaN or +-inf (x - x is NaN for both)
+  }
+  return b;
+}
+
+#define CTGS_ADAM_PART(S)                                                                                      \
+  CTGS_LANE_CLONES int64_t adam_part(S* p, const S* g, S* m, S* v, int64_t k0, int64_t k1, const S* lr_vec, \
+                                     S lr_s, S b1, S b2, S c1, S c2, S ibc1, S ibc2, S e) {                 \
+    return lr_vec ? adam_range<S, true>(p, g, m, v, k0, k1, lr_vec, lr_s, b1, b2, c1, c2, ibc1, ibc2, e)   \
+                  : adam_range<S, false>(p, g, m, v, k0, k1, lr_vec, lr_s, b1, b2, c1, c2, ibc1, ibc2, e); \
+  }
+CTGS_ADAM_PART(float)
+CTGS_ADAM_PART(double)
+#undef CTGS_ADAM_PART
+}  // namespace
+
 template <typename S>
 int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, double lr, double beta1,
                   double beta2, double bc1, double bc2, double eps, int threads) {
@@ -29,23 +64,8 @@ int64_t adam_step(S* p, const S* g, S* m, S* v, int64_t n, const S* lr_vec, doub
   const S ibc1 = S(1) / S(bc1), ibc2 = S(1) / S(bc2), e = S(eps), lr_s = S(lr);
   int64_t bad = 0;
 #pragma omp parallel for schedule(static) num_threads(std::max(1, threads)) reduction(+ : bad)
-  for (int64_t c0 = 0; c0 < n; c0 += CHUNK) {
-    const int64_t c1e = std::min(n, c0 + CHUNK);
-    int64_t b = 0;
-#pragma omp simd reduction(+ : b)
-    for (int64_t k = c0; k < c1e; ++k) {
-      const S gk = g[k];
-      const S mk = b1 * m[k] + c1 * gk;
-      const S vk = b2 * v[k] + c2 * (gk * gk);
-      m[k] = mk;
-      v[k] = vk;
-      const S step = (lr_vec ? lr_vec[k] : lr_s) * (mk * ibc1) / (std::sqrt(vk * ibc2) + e);
-      const S pk = p[k] - step;
-      p[k] = pk;
-      b += !(pk - pk == S(0));  // NaN or +-inf (x - x is NaN for both)
-    }
-    bad += b;
-  }
+  for (int64_t c0 = 0; c0 < n; c0 += CHUNK)
+    bad += adam_part(p, g, m, v, c0, std::min(n, c0 + CHUNK), lr_vec, lr_s, b1, b2, c1, c2, ibc1, ibc2, e);
   return bad;
 }
 
