@@ -299,6 +299,25 @@ Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_thread
   return g;
 }
 
+// texel_activation_backward_cpu(y, grad_y + texel_abs_backward_cpu(y, weight, tex_offset, tex_res, scale)) in
+// one pass, bit for bit (ctgs/fused.py: the texture regulariser's gradient folded into the activation's).
+Tensor texel_activation_backward_l1_cpu(Tensor y, Tensor grad_y, Tensor weight, Tensor tex_offset, Tensor tex_res,
+                                        double scale, int64_t num_threads) {
+  check_texel_l1(y, weight, tex_offset, tex_res);
+  TORCH_CHECK(grad_y.device().is_cpu() && grad_y.is_contiguous() && grad_y.scalar_type() == y.scalar_type() &&
+              grad_y.sizes() == y.sizes(), "texel_activation_backward_l1: grad must match y ", y.sizes(), ", got ",
+              grad_y.sizes());
+  Tensor g = torch::empty_like(y);
+  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
+  AT_DISPATCH_FLOATING_TYPES(y.scalar_type(), "ctgs_texel_activation_backward_l1_cpu", [&] {
+    ctgs::cpu::texel_activation_backward_l1<scalar_t>(
+        y.data_ptr<scalar_t>(), grad_y.data_ptr<scalar_t>(), g.data_ptr<scalar_t>(), weight.data_ptr<scalar_t>(),
+        reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()), tex_res.data_ptr<int32_t>(),
+        int(weight.numel()), scalar_t(scale), threads);
+  });
+  return g;
+}
+
 // Per-primitive (count int32, contrib, err) [n] from a forward's blended pairs (forward_pairs_cpu: pix, prim
 // int32 [P], w [P]) and the error image e [H, W] (kernels/cpu/dense.h accumulate_pairs).
 std::vector<Tensor> accumulate_pairs_cpu(Tensor pix, Tensor prim, Tensor w, Tensor e, int64_t n, int64_t num_threads) {
@@ -560,6 +579,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("texel_abs_backward_cpu", &texel_abs_backward_cpu, "scale * gradient of texel_abs_forward_cpu w.r.t. y");
   m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
   m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
+  m.def("texel_activation_backward_l1_cpu", &texel_activation_backward_l1_cpu,
+        "gradient of texel_activation_cpu with texel_abs_backward_cpu's gradient added to grad_y first");
   m.def("accumulate_pairs_cpu", &accumulate_pairs_cpu,
         "per-primitive count, contrib and error sums over a forward's blended pairs");
   m.def("sh_color_cpu", &sh_color_cpu, "SH(normalize(mean - centre)) + 0.5 per primitive");

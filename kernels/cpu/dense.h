@@ -35,6 +35,13 @@ template <typename S>
 void texel_activation(const S* x, S* y, int64_t n, int threads);
 template <typename S>
 void texel_activation_backward(const S* y, const S* grad_y, S* grad_x, int64_t n, int threads);
+// The same backward with the texture regulariser's gradient folded in (packed layout, as texel_l1):
+// grad_x = (grad_y + g_l1) (1 - y) (1 + y) / 2, g_l1 = (scale weight[i]) sign(y) on primitive i's texels
+// (0 where weight[i] = 0): what autograd computes from texel_l1(activated)'s backward plus the sum of the
+// two gradients of y, bit for bit, without the [T, 3] gradient tensor and the extra pass of that sum.
+template <typename S>
+void texel_activation_backward_l1(const S* y, const S* grad_y, S* grad_x, const S* weight,
+                                  const long long* tex_offset, const int* tex_res, int n_prims, S scale, int threads);
 
 // Jagged texture re-layout (ctgs/model/jagged.py remap): new primitive j copies primitive src[j]'s
 // texels re-centred, new texel (iu, iv) <- old (iu + floor((ru_old - ru_new) / 2) + shift[j, 0], iv + ...),

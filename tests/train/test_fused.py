@@ -288,3 +288,50 @@ def test_texel_l1_on_activated_textures_matches_the_raw_form(dtype):
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     torch.testing.assert_close(a, b, rtol=tol, atol=tol)
     torch.testing.assert_close(ga, gb, rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_regulariser_folded_into_the_activation_backward_is_bit_identical(dtype):
+    """texel_l1 on the activation's own output defers its gradient to the activation's backward (one pass
+    instead of a [T, 3] gradient, autograd's sum and the activation backward): raw's gradient is the
+    plain chain's bit for bit, with a second consumer of y (as the render is), with zero weights and with
+    the term alone; with two terms on the same y, to rounding (three gradients of y summed in another order)."""
+    from ctgs.model.surfels import SurfelModel, jagged_offsets
+
+    gen = torch.Generator().manual_seed(9)
+    n = 301
+    tex_res = torch.randint(0, 7, (n, 2), generator=gen, dtype=torch.int32)
+    t = int((tex_res[:, 0].long() * tex_res[:, 1].long()).sum())
+    raw = torch.randn(t, 3, generator=gen, dtype=dtype) * 3
+    raw[:5] = 0.0  # sign(y) = 0
+    model = SurfelModel(
+        means=torch.randn(n, 3, dtype=dtype), log_scales=torch.zeros(n, 2, dtype=dtype),
+        quats=torch.randn(n, 4, dtype=dtype), opacity_logits=torch.zeros(n, dtype=dtype),
+        sh=torch.zeros(n, 1, 3, dtype=dtype), textures_raw=raw.requires_grad_(True),
+        k_min=torch.full((n,), 0.05, dtype=dtype), t2p_exp=torch.ones(n, dtype=torch.int32), tex_res=tex_res,
+        tex_offset=jagged_offsets(tex_res), texture_mode="content_aware")
+    weight = (torch.rand(n, generator=gen) > 0.3).to(dtype) * torch.rand(n, generator=gen, dtype=dtype)
+    other = torch.randn(t, 3, generator=gen, dtype=dtype)  # stands in for the render's use of y
+
+    def grads(defer: bool, with_other: bool = True, terms: int = 1):
+        y = model.textures
+        if not defer:
+            y = y.view_as(y)  # a new tensor object: no deferred holder, the plain autograd path
+        loss = (y * other).sum() if with_other else y.new_zeros(())
+        for k in range(terms):
+            loss = loss + (1e-3 * (k + 1)) * fused.texel_l1(model, weight * (k + 1), y)
+        (g,) = torch.autograd.grad(loss, model.textures_raw)
+        return g
+
+    assert hasattr(model.textures, "_ctgs_deferred_l1")
+    for kwargs in ({}, {"with_other": False}):
+        a, b = grads(True, **kwargs), grads(False, **kwargs)
+        assert torch.equal(a, b), kwargs
+        assert a.abs().sum() > 0
+    tol = 1e-6 if dtype == torch.float32 else 1e-14
+    torch.testing.assert_close(grads(True, terms=2), grads(False, terms=2), rtol=tol, atol=tol)
+    zero = torch.zeros_like(weight)
+    y = model.textures
+    (g,) = torch.autograd.grad((y * other).sum() + fused.texel_l1(model, zero, y), model.textures_raw)
+    (h,) = torch.autograd.grad((model.textures * other).sum(), model.textures_raw)
+    assert torch.equal(g, h)
