@@ -74,21 +74,16 @@ class _DeferredTexelL1:
     regulariser, autograd's sum of the two gradients of y, the activation backward), one pass instead of
     three over the texel buffer (~1 ms per step at 2.4M texel values on the dev VM)."""
 
-    __slots__ = ("terms", "abs_sums")
+    __slots__ = ("terms",)
 
     def __init__(self):
         self.terms: list = []
-        self.abs_sums: torch.Tensor | None = None  # [N] float64 sums of |y| per primitive, if the layout was given
 
 
 class _TexelActivation(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, raw, deferred, tex_offset, tex_res):
-        if tex_offset is None:
-            y = cpu_ext().texel_activation_cpu(raw, torch.get_num_threads())
-        else:  # and |y| summed per primitive on the way (the regulariser's value, see texel_l1)
-            y, deferred.abs_sums = cpu_ext().texel_activation_sums_cpu(raw, tex_offset, tex_res,
-                                                                       torch.get_num_threads())
+    def forward(ctx, raw, deferred):
+        y = cpu_ext().texel_activation_cpu(raw, torch.get_num_threads())
         ctx.save_for_backward(y)
         ctx.deferred = deferred
         return y
@@ -105,23 +100,15 @@ class _TexelActivation(torch.autograd.Function):
         if terms:
             weight, off, res, scale = terms[-1]
             return cpu_ext().texel_activation_backward_l1_cpu(y, grad, weight, off, res, scale,
-                                                              torch.get_num_threads()), None, None, None
-        return cpu_ext().texel_activation_backward_cpu(y, grad, torch.get_num_threads()), None, None, None
+                                                              torch.get_num_threads()), None
+        return cpu_ext().texel_activation_backward_cpu(y, grad, torch.get_num_threads()), None
 
 
-def texel_activation(raw: torch.Tensor, tex_offset: torch.Tensor | None = None,
-                     tex_res: torch.Tensor | None = None) -> torch.Tensor:
-    """Activated texel offsets 2 sigmoid(raw) - 1 (= tanh(raw / 2)), in [-1, 1], differentiable. With the
-    model's packed layout (tex_offset, tex_res), the same pass also sums |y| per primitive for texel_l1."""
+def texel_activation(raw: torch.Tensor) -> torch.Tensor:
+    """Activated texel offsets 2 sigmoid(raw) - 1 (= tanh(raw / 2)), in [-1, 1], differentiable."""
     if fusable(raw):
         deferred = _DeferredTexelL1()
-        # Training only (a differentiable raw): texel_l1's packed layout is a precondition there.
-        if tex_offset is not None and (not raw.requires_grad or not torch.is_grad_enabled() or raw.ndim != 2 or
-                                       raw.shape[1] != 3 or tex_offset.dtype != torch.int64 or
-                                       tex_res.dtype != torch.int32 or not tex_offset.is_contiguous() or
-                                       not tex_res.is_contiguous()):
-            tex_offset = tex_res = None
-        y = _TexelActivation.apply(raw, deferred, tex_offset, tex_res)
+        y = _TexelActivation.apply(raw, deferred)
         if y.requires_grad:
             y._ctgs_deferred_l1 = deferred  # texel_l1(textures=y) finds it here
         return y
@@ -136,12 +123,6 @@ class _TexelL1Deferred(torch.autograd.Function):
     def forward(ctx, y, weight, tex_offset, tex_res, deferred):
         ctx.save_for_backward(weight, tex_offset, tex_res)
         ctx.deferred = deferred
-        sums = deferred.abs_sums
-        if sums is not None and sums.shape == weight.shape:
-            # The activation's per-primitive sums: an [N] product instead of a pass over the texel buffer
-            # (summed per primitive, then in float64: the value may differ from texel_abs_forward_cpu's in
-            # the last bits; the gradient does not depend on it).
-            return torch.dot(weight.double(), sums).to(y.dtype)
         return cpu_ext().texel_abs_forward_cpu(y, weight, tex_offset, tex_res, torch.get_num_threads())
 
     @staticmethod

@@ -283,23 +283,6 @@ Tensor texel_activation_cpu(Tensor x, int64_t num_threads) {
   return y;
 }
 
-// (y = texel_activation_cpu(x), sums [N] float64 = per primitive the sum of |y| over its texels) for a packed
-// texture buffer (check_texel_l1's layout).
-std::vector<Tensor> texel_activation_sums_cpu(Tensor x, Tensor tex_offset, Tensor tex_res, int64_t num_threads) {
-  const int64_t N = tex_offset.numel();
-  check_texel_l1(x, torch::empty({N}, x.options()), tex_offset, tex_res);
-  Tensor y = torch::empty_like(x);
-  Tensor sums = torch::empty({N}, x.options().dtype(at::kDouble));
-  const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ctgs_texel_activation_sums_cpu", [&] {
-    ctgs::cpu::texel_activation_sums<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(),
-                                               reinterpret_cast<const long long*>(tex_offset.data_ptr<int64_t>()),
-                                               tex_res.data_ptr<int32_t>(), int(N), sums.data_ptr<double>(),
-                                               threads);
-  });
-  return {y, sums};
-}
-
 // grad_x = grad_y (1 - y^2) / 2 for y = texel_activation_cpu(x).
 Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_threads) {
   TORCH_CHECK(y.device().is_cpu() && y.is_contiguous() && (y.scalar_type() == at::kFloat || y.scalar_type() == at::kDouble),
@@ -596,8 +579,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("texel_abs_backward_cpu", &texel_abs_backward_cpu, "scale * gradient of texel_abs_forward_cpu w.r.t. y");
   m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
   m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
-  m.def("texel_activation_sums_cpu", &texel_activation_sums_cpu,
-        "texel_activation_cpu of a packed buffer and the per-primitive sums of |y| (float64 [N])");
   m.def("texel_activation_backward_l1_cpu", &texel_activation_backward_l1_cpu,
         "gradient of texel_activation_cpu with texel_abs_backward_cpu's gradient added to grad_y first");
   m.def("accumulate_pairs_cpu", &accumulate_pairs_cpu,

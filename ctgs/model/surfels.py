@@ -87,8 +87,7 @@ class SurfelModel:
 
     @property
     def textures(self) -> torch.Tensor:
-        # 2 sigmoid(raw) - 1, one fused pass on the CPU (with |y| summed per primitive for the regulariser)
-        return texel_activation(self.textures_raw, self.tex_offset, self.tex_res)
+        return texel_activation(self.textures_raw)  # 2 sigmoid(raw) - 1, one fused pass on the CPU
 
     @property
     def texel_size(self) -> torch.Tensor:

@@ -334,63 +334,6 @@ template void texel_activation_backward_l1<float>(const float*, const float*, fl
 template void texel_activation_backward_l1<double>(const double*, const double*, double*, const double*,
                                                    const long long*, const int*, int, double, int);
 
-namespace {
-template <typename S>
-CTGS_INLINE double act_sums_range_one(const S* x, S* y, int64_t cnt) {
-  using V = typename Lanes<S>::V;
-  constexpr int W = Lanes<S>::W;
-  V acc{};
-  int64_t k = 0;
-  for (; k + W <= cnt; k += W) {
-    const V yv = activation_lanes<S>(vload<V>(x + k));
-    vstore(y + k, yv);
-    acc += vabs<S>(yv);
-  }
-  if (k < cnt) {  // tail through zero-padded copies (|tanh(0)| = 0)
-    alignas(32) S a[W] = {}, b[W];
-    std::copy(x + k, x + cnt, a);
-    const V yv = activation_lanes<S>(vload<V>(a));
-    vstore(b, yv);
-    std::copy(b, b + (cnt - k), y + k);
-    acc += vabs<S>(yv);
-  }
-  return double(hsum<S>(acc));
-}
-
-template <typename S>
-CTGS_INLINE void act_sums_range(const S* x, S* y, const long long* tex_offset, const int* tex_res, int i0, int i1,
-                                double* sums) {
-  for (int i = i0; i < i1; ++i) {
-    const int64_t cnt = 3 * int64_t(tex_res[2 * i]) * tex_res[2 * i + 1];
-    const int64_t off = 3 * tex_offset[i];
-    sums[i] = cnt > 0 ? act_sums_range_one<S>(x + off, y + off, cnt) : 0.0;
-  }
-}
-
-CTGS_LANE_CLONES void act_sums_part(const float* x, float* y, const long long* off, const int* res, int i0, int i1,
-                                    double* sums) {
-  act_sums_range<float>(x, y, off, res, i0, i1, sums);
-}
-CTGS_LANE_CLONES void act_sums_part(const double* x, double* y, const long long* off, const int* res, int i0,
-                                    int i1, double* sums) {
-  act_sums_range<double>(x, y, off, res, i0, i1, sums);
-}
-}  // namespace
-
-template <typename S>
-void texel_activation_sums(const S* x, S* y, const long long* tex_offset, const int* tex_res, int n_prims,
-                           double* sums, int threads) {
-  constexpr int BLOCK = 256;
-  const int nb = (n_prims + BLOCK - 1) / BLOCK;
-#pragma omp parallel for schedule(dynamic, 4) num_threads(std::max(1, threads))
-  for (int b = 0; b < nb; ++b)
-    act_sums_part(x, y, tex_offset, tex_res, b * BLOCK, std::min(n_prims, (b + 1) * BLOCK), sums);
-}
-
-template void texel_activation_sums<float>(const float*, float*, const long long*, const int*, int, double*, int);
-template void texel_activation_sums<double>(const double*, double*, const long long*, const int*, int, double*,
-                                            int);
-
 template bool all_finite<float>(const float*, int64_t, int);
 template bool all_finite<double>(const double*, int64_t, int);
 

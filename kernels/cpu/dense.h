@@ -35,13 +35,6 @@ template <typename S>
 void texel_activation(const S* x, S* y, int64_t n, int threads);
 template <typename S>
 void texel_activation_backward(const S* y, const S* grad_y, S* grad_x, int64_t n, int threads);
-// texel_activation over a packed texture buffer (as texel_l1) that also sums |y| per primitive into
-// sums[i] (double): the texture regulariser's value is then sum_i weight[i] sums[i], an [N] product, once
-// the render has said which primitives it rasterized (ctgs/fused.py), instead of a pass over the buffer.
-template <typename S>
-void texel_activation_sums(const S* x, S* y, const long long* tex_offset, const int* tex_res, int n_prims,
-                           double* sums, int threads);
-
 // The same backward with the texture regulariser's gradient folded in (packed layout, as texel_l1):
 // grad_x = (grad_y + g_l1) (1 - y) (1 + y) / 2, g_l1 = (scale weight[i]) sign(y) on primitive i's texels
 // (0 where weight[i] = 0): what autograd computes from texel_l1(activated)'s backward plus the sum of the

@@ -335,38 +335,3 @@ def test_regulariser_folded_into_the_activation_backward_is_bit_identical(dtype)
     (g,) = torch.autograd.grad((y * other).sum() + fused.texel_l1(model, zero, y), model.textures_raw)
     (h,) = torch.autograd.grad((model.textures * other).sum(), model.textures_raw)
     assert torch.equal(g, h)
-
-
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_activation_with_per_primitive_sums_gives_the_regulariser_value(dtype):
-    """Given the packed layout, the activation also sums |y| per primitive (texel_activation_sums_cpu); the
-    regulariser's value is then an [N] product: equal to the pass over the buffer to rounding, y bit-equal
-    to the plain activation; without a differentiable raw the plain activation runs."""
-    from ctgs.model.surfels import SurfelModel, jagged_offsets
-
-    gen = torch.Generator().manual_seed(10)
-    n = 517
-    tex_res = torch.randint(0, 9, (n, 2), generator=gen, dtype=torch.int32)
-    t = int((tex_res[:, 0].long() * tex_res[:, 1].long()).sum())
-    model = SurfelModel(
-        means=torch.randn(n, 3, dtype=dtype), log_scales=torch.zeros(n, 2, dtype=dtype),
-        quats=torch.randn(n, 4, dtype=dtype), opacity_logits=torch.zeros(n, dtype=dtype),
-        sh=torch.zeros(n, 1, 3, dtype=dtype),
-        textures_raw=(torch.randn(t, 3, generator=gen, dtype=dtype) * 3).requires_grad_(True),
-        k_min=torch.full((n,), 0.05, dtype=dtype), t2p_exp=torch.ones(n, dtype=torch.int32), tex_res=tex_res,
-        tex_offset=jagged_offsets(tex_res), texture_mode="content_aware")
-    weight = torch.rand(n, generator=gen, dtype=dtype) * (torch.rand(n, generator=gen) > 0.2).to(dtype)
-    y = model.textures
-    sums = y._ctgs_deferred_l1.abs_sums
-    assert sums is not None and sums.dtype == torch.float64 and sums.shape == (n,)
-    assert torch.equal(y, fused.texel_activation(model.textures_raw.detach()))
-    per_prim = torch.zeros(n, dtype=torch.float64).index_add_(
-        0, torch.repeat_interleave(torch.arange(n), tex_res[:, 0].long() * tex_res[:, 1].long()),
-        y.detach().abs().sum(1).double())
-    tol = 1e-5 if dtype == torch.float32 else 1e-12
-    torch.testing.assert_close(sums, per_prim, rtol=tol, atol=tol)
-    value = fused.texel_l1(model, weight, y)
-    plain = fused.cpu_ext().texel_abs_forward_cpu(y.detach(), weight, model.tex_offset, model.tex_res, 1)
-    torch.testing.assert_close(value, plain, rtol=tol, atol=0)
-    with torch.no_grad():  # evaluation, export: the plain activation, nothing deferred
-        assert not hasattr(model.textures, "_ctgs_deferred_l1")
