@@ -106,25 +106,6 @@ CTGS_INLINE S hsum(typename Lanes<S>::V v) {
   return s;
 }
 
-// The lane sums of W vectors at once, as one vector (out[k] = the sum of in[k]'s lanes), by a pairwise
-// tree: each level adds the even and odd lanes of two vectors side by side, so W sums cost 2W - 1 adds
-// and shuffles instead of W (W - 1) scalar adds. Summation order per vector: ((l0 + l1) + (l2 + l3)) + ...
-CTGS_INLINE Lanes<float>::V pair_sums(Lanes<float>::V a, Lanes<float>::V b) {
-  return __builtin_shufflevector(a, b, 0, 2, 4, 6, 8, 10, 12, 14) +
-         __builtin_shufflevector(a, b, 1, 3, 5, 7, 9, 11, 13, 15);
-}
-CTGS_INLINE Lanes<double>::V pair_sums(Lanes<double>::V a, Lanes<double>::V b) {
-  return __builtin_shufflevector(a, b, 0, 2, 4, 6) + __builtin_shufflevector(a, b, 1, 3, 5, 7);
-}
-CTGS_INLINE Lanes<float>::V hsums(const Lanes<float>::V* v) {
-  const Lanes<float>::V w0 = pair_sums(v[0], v[1]), w1 = pair_sums(v[2], v[3]), w2 = pair_sums(v[4], v[5]),
-                        w3 = pair_sums(v[6], v[7]);
-  return pair_sums(pair_sums(w0, w1), pair_sums(w2, w3));
-}
-CTGS_INLINE Lanes<double>::V hsums(const Lanes<double>::V* v) {
-  return pair_sums(pair_sums(v[0], v[1]), pair_sums(v[2], v[3]));
-}
-
 // floor() for |x| < 2^31 (callers clamp first): truncate, then step down where that rounded up.
 template <typename S>
 CTGS_INLINE typename Lanes<S>::V vfloor(typename Lanes<S>::V x) {
