@@ -228,27 +228,38 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
       }
     }
     if (!any_pass) continue;
-    const S slx = hsum<S>(g.lx), sly = hsum<S>(g.ly), ss = hsum<S>(g.s);
-    const S smx = hsum<S>(g.mx), smy = hsum<S>(g.my);
+    // The 22 lane sums of this primitive and tile at once (lanes.h hsums: the same sums as hsum, bit for bit).
+    enum { H_LX, H_LY, H_S, H_MX, H_MY, H_ZI, H_U, H_V = H_U + 3, H_N = H_V + 3, H_SX = H_N + 3, H_SY, H_OP,
+           H_COL, H_KU = H_COL + 3, H_KV, H_COUNT };
+    V hv[H_COUNT];
+    hv[H_LX] = g.lx, hv[H_LY] = g.ly, hv[H_S] = g.s, hv[H_MX] = g.mx, hv[H_MY] = g.my, hv[H_ZI] = g.z_invalid;
+    for (int k = 0; k < 3; ++k) hv[H_U + k] = g.u[k], hv[H_V + k] = g.v[k], hv[H_N + k] = g.n[k];
+    hv[H_SX] = g.sx, hv[H_SY] = g.sy, hv[H_OP] = g.opacity;
+    for (int ch = 0; ch < 3; ++ch) hv[H_COL + ch] = g.color[ch];
+    hv[H_KU] = g.ku, hv[H_KV] = g.kv;
+    alignas(32) S hs[H_COUNT + 8];
+    hsums(hv, H_COUNT, hs);
+    const S slx = hs[H_LX], sly = hs[H_LY], ss = hs[H_S];
+    const S smx = hs[H_MX], smy = hs[H_MY];
     const S iz = S(1) / P.muz;
     S* row = b.g_thread + size_t(i) * G_STRIDE;
     // mu: -v_p (through lx, ly) + s n (through t) + the screen-space centre + z = mu.z where invalid.
     row[G_MU] += -(P.ux * slx + P.vx * sly) + P.nx * ss + smx * a.K.fx * iz;
     row[G_MU + 1] += -(P.uy * slx + P.vy * sly) + P.ny * ss + smy * a.K.fy * iz;
     row[G_MU + 2] += -(P.uz * slx + P.vz * sly) + P.nz * ss -
-                     (smx * (P.mx - a.K.cx) + smy * (P.my - a.K.cy)) * iz + hsum<S>(g.z_invalid);
+                     (smx * (P.mx - a.K.cx) + smy * (P.my - a.K.cy)) * iz + hs[H_ZI];
     // Rc row-major with columns u, v, n: element (row k, col c) at 3k + c.
     for (int k = 0; k < 3; ++k) {
-      row[G_RC + 3 * k] += hsum<S>(g.u[k]);
-      row[G_RC + 3 * k + 1] += hsum<S>(g.v[k]);
-      row[G_RC + 3 * k + 2] += hsum<S>(g.n[k]);
+      row[G_RC + 3 * k] += hs[H_U + k];
+      row[G_RC + 3 * k + 1] += hs[H_V + k];
+      row[G_RC + 3 * k + 2] += hs[H_N + k];
     }
-    row[G_SCALE] += hsum<S>(g.sx);
-    row[G_SCALE + 1] += hsum<S>(g.sy);
-    row[G_OPACITY] += hsum<S>(g.opacity);
-    for (int ch = 0; ch < 3; ++ch) row[G_COLOR + ch] += hsum<S>(g.color[ch]);
-    row[G_TEXEL] += hsum<S>(g.ku);
-    row[G_TEXEL + 1] += hsum<S>(g.kv);
+    row[G_SCALE] += hs[H_SX];
+    row[G_SCALE + 1] += hs[H_SY];
+    row[G_OPACITY] += hs[H_OP];
+    for (int ch = 0; ch < 3; ++ch) row[G_COLOR + ch] += hs[H_COL + ch];
+    row[G_TEXEL] += hs[H_KU];
+    row[G_TEXEL + 1] += hs[H_KV];
   }
 }
 
