@@ -404,12 +404,23 @@ void accumulate_pairs(const int32_t* pix, const int32_t* prim, const S* w, int64
     }
     // Chunks by the thread count actually granted.
     const int64_t k0 = n_pairs * t / got, k1 = n_pairs * (t + 1) / got;
-    for (int64_t k = k0; k < k1; ++k) {
+    // The forward lists a primitive's pixels of one tile together: sum each run in registers (loaded from
+    // and stored to the buffers at the run's ends, so every sum sees the same additions in the same order
+    // as one read-modify-write per pair, without the store-to-load chain through memory).
+    int64_t k = k0;
+    while (k < k1) {
       const int32_t i = prim[k];
-      const S wk = w[k];
-      c[i] += 1;
-      s[i] += wk;
-      r[i] += e[pix[k]] * wk;
+      int32_t ci = c[i];
+      S si = s[i], ri = r[i];
+      for (; k < k1 && prim[k] == i; ++k) {
+        const S wk = w[k];
+        ci += 1;
+        si += wk;
+        ri += e[pix[k]] * wk;
+      }
+      c[i] = ci;
+      s[i] = si;
+      r[i] = ri;
     }
   }
   if (nt > 1) {

@@ -15,6 +15,22 @@ namespace cpu {
 
 namespace {
 
+// One tile's blended pairs while it is rasterised: arrays grown W entries ahead, written without a
+// per-entry capacity check (each lane writes its slot and the count advances by the lanes that blended).
+template <typename S>
+struct TilePairs {
+  std::vector<int32_t> pix, prim;
+  std::vector<S> w;
+  size_t n = 0;
+  CTGS_INLINE void room(size_t extra) {
+    if (n + extra <= pix.size()) return;
+    const size_t cap = std::max<size_t>(std::max<size_t>(2 * pix.size(), n + extra), 4096);
+    pix.resize(cap);
+    prim.resize(cap);
+    w.resize(cap);
+  }
+};
+
 template <typename S>
 struct ForwardTileArgs {
   const SceneArgs<S>* a;
@@ -25,7 +41,7 @@ struct ForwardTileArgs {
   int32_t* count;  // this thread's statistics [N] (null without an error image)
   S* contrib;
   S* err;
-  BlendPairs<S>* pairs;  // this tile's blended pairs (null unless recorded)
+  struct TilePairs<S>* pairs;  // this tile's blended pairs (null unless recorded)
 };
 
 // One tile: list entries [begin, end).
@@ -124,12 +140,15 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
         vstore(T + p0, sel(blend, T_next, Tv));
         vstore(last + p0, seli(blend, I{} + jpos, vload<I>(last + p0)));
         if (f.pairs) {
-          for (int k = 0; k < W; ++k)
-            if (blend[k]) {
-              f.pairs->pix.push_back(int32_t(int64_t(y) * Wimg + x + k));
-              f.pairs->prim.push_back(i);
-              f.pairs->w.push_back(w[k]);
-            }
+          TilePairs<S>& tp = *f.pairs;
+          tp.room(W);
+          const int32_t row = int32_t(int64_t(y) * Wimg + x);
+          for (int k = 0; k < W; ++k) {  // in lane order, as before: the same list
+            tp.pix[tp.n] = row + k;
+            tp.prim[tp.n] = i;
+            tp.w[tp.n] = w[k];
+            tp.n += blend[k] != 0;
+          }
         }
         if (stats) {
           n_blend -= blend;
@@ -194,7 +213,7 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins, Fr
   // Per-thread statistics, reduced at the end: race-free and deterministic for a fixed thread count.
   std::vector<int32_t> count_buf(stats ? size_t(nt) * N : 0, 0);
   std::vector<S> contrib_buf(stats ? size_t(nt) * N : 0, S(0)), err_buf(stats ? size_t(nt) * N : 0, S(0));
-  std::vector<BlendPairs<S>> tile_pairs(out.pairs ? num_tiles : 0);
+  std::vector<TilePairs<S>> tile_pairs(out.pairs ? num_tiles : 0);
 
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
   for (int tile = 0; tile < num_tiles; ++tile) {
@@ -208,14 +227,14 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins, Fr
   }
   if (out.pairs) {
     size_t total = 0;
-    for (const auto& t : tile_pairs) total += t.pix.size();
+    for (const auto& t : tile_pairs) total += t.n;
     out.pairs->pix.reserve(total);
     out.pairs->prim.reserve(total);
     out.pairs->w.reserve(total);
     for (const auto& t : tile_pairs) {
-      out.pairs->pix.insert(out.pairs->pix.end(), t.pix.begin(), t.pix.end());
-      out.pairs->prim.insert(out.pairs->prim.end(), t.prim.begin(), t.prim.end());
-      out.pairs->w.insert(out.pairs->w.end(), t.w.begin(), t.w.end());
+      out.pairs->pix.insert(out.pairs->pix.end(), t.pix.begin(), t.pix.begin() + t.n);
+      out.pairs->prim.insert(out.pairs->prim.end(), t.prim.begin(), t.prim.begin() + t.n);
+      out.pairs->w.insert(out.pairs->w.end(), t.w.begin(), t.w.begin() + t.n);
     }
   }
   timer.lap(PROF_FWD_RASTER);
