@@ -72,7 +72,8 @@ class _DeferredTexelL1:
     backward then adds that term's gradient to the render's gradient of y in its own pass
     (texel_activation_backward_l1_cpu): bit-identical to the plain chain (a [T, 3] gradient from the
     regulariser, autograd's sum of the two gradients of y, the activation backward), one pass instead of
-    three over the texel buffer (~1 ms per step at 2.4M texel values on the dev VM)."""
+    three over the texel buffer (~1 ms per step at 2.4M texel values on the dev VM). The term's gradient
+    w.r.t. y itself is therefore never formed: torch.autograd.grad(loss, y) misses it; ask for raw's."""
 
     __slots__ = ("terms",)
 
@@ -156,8 +157,9 @@ def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) 
     a scalar, differentiable w.r.t. model.textures_raw, not w.r.t. weight. weight: [N] per-primitive
     factors (ctgs.train.loss.texture_weights: the rasterized mask, times 1 - transmittance on option);
     a bool mask is taken as 0/1. textures: the activated offsets this step's render used (its
-    SurfelInputs.textures), if the caller has them: the term is then taken on them (no second activation,
-    and autograd sums its gradient with the render's before the one activation backward)."""
+    SurfelInputs.textures), if the caller has them: the term is then taken on them (no second activation;
+    when they are texel_activation's own output, the term's gradient is added inside the activation's
+    backward, see _DeferredTexelL1: differentiate w.r.t. textures_raw, not w.r.t. those offsets)."""
     raw = model.textures_raw
     n = model.tex_res.shape[0]
     if weight.shape != (n,):

@@ -24,7 +24,7 @@ struct TilePairs {
   size_t n = 0;
   CTGS_INLINE void room(size_t extra) {
     if (n + extra <= pix.size()) return;
-    const size_t cap = std::max<size_t>(std::max<size_t>(2 * pix.size(), n + extra), 4096);
+    const size_t cap = std::max<size_t>(std::max<size_t>(2 * pix.size(), n + extra), 1024);
     pix.resize(cap);
     prim.resize(cap);
     w.resize(cap);
