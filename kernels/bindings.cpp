@@ -283,13 +283,17 @@ Tensor texel_activation_cpu(Tensor x, int64_t num_threads) {
   return y;
 }
 
+// grad_y: a contiguous CPU tensor of y's dtype and shape.
+void check_grad_like(const Tensor& y, const Tensor& grad_y, const char* what) {
+  TORCH_CHECK(grad_y.device().is_cpu() && grad_y.is_contiguous() && grad_y.scalar_type() == y.scalar_type() &&
+              grad_y.sizes() == y.sizes(), what, ": grad must match y ", y.sizes(), ", got ", grad_y.sizes());
+}
+
 // grad_x = grad_y (1 - y^2) / 2 for y = texel_activation_cpu(x).
 Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_threads) {
   TORCH_CHECK(y.device().is_cpu() && y.is_contiguous() && (y.scalar_type() == at::kFloat || y.scalar_type() == at::kDouble),
               "texel_activation_backward: y must be a contiguous float CPU tensor");
-  TORCH_CHECK(grad_y.device().is_cpu() && grad_y.is_contiguous() && grad_y.scalar_type() == y.scalar_type() &&
-              grad_y.sizes() == y.sizes(), "texel_activation_backward: grad must match y ", y.sizes(), ", got ",
-              grad_y.sizes());
+  check_grad_like(y, grad_y, "texel_activation_backward");
   Tensor g = torch::empty_like(y);
   const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
   AT_DISPATCH_FLOATING_TYPES(y.scalar_type(), "ctgs_texel_activation_backward_cpu", [&] {
@@ -304,9 +308,7 @@ Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_thread
 Tensor texel_activation_backward_l1_cpu(Tensor y, Tensor grad_y, Tensor weight, Tensor tex_offset, Tensor tex_res,
                                         double scale, int64_t num_threads) {
   check_texel_l1(y, weight, tex_offset, tex_res);
-  TORCH_CHECK(grad_y.device().is_cpu() && grad_y.is_contiguous() && grad_y.scalar_type() == y.scalar_type() &&
-              grad_y.sizes() == y.sizes(), "texel_activation_backward_l1: grad must match y ", y.sizes(), ", got ",
-              grad_y.sizes());
+  check_grad_like(y, grad_y, "texel_activation_backward_l1");
   Tensor g = torch::empty_like(y);
   const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
   AT_DISPATCH_FLOATING_TYPES(y.scalar_type(), "ctgs_texel_activation_backward_l1_cpu", [&] {

@@ -66,8 +66,6 @@ class SurfelAdam:
         kept while p's shape and the lr values stay the same (the SH bands' lrs are constant): building it
         is a [N, K, 3] copy, ~0.25 ms per step at 18k primitives."""
         key = (tuple(p.shape), p.dtype, tuple(lr.shape), tuple(lr.detach().flatten().tolist()))
-        if not hasattr(self, "_lr_cache"):  # an instance restored without __init__
-            self._lr_cache = {}
         hit = self._lr_cache.get(name)
         if hit is not None and hit[0] == key:
             return hit[1]
