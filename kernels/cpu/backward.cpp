@@ -40,7 +40,14 @@ struct BackwardTileArgs {
   S* v_tex;       // [T, 3] this thread's texel gradients
   bool atomics;   // v_tex is shared: add atomically
   S* bg_thread;   // [3] this thread's background gradient
+  // With several threads: this thread's first-touch flags per primitive (SEEN_*), else nullptr. g_thread rows
+  // are then zeroed on first write, and with lazy_tex a primitive's block of v_tex on first visit, so that
+  // neither buffer is cleared nor reduced whole.
+  unsigned char* seen;
+  bool lazy_tex;
 };
+
+enum : unsigned char { SEEN_ROW = 1, SEEN_TEX = 2 };
 
 // Per-lane sums of one primitive over one tile.
 template <typename S>
@@ -114,6 +121,11 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
     const PixelRect& r = P.rect;
     const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
     if (ry0 > ry1) continue;
+    if (b.lazy_tex && !(b.seen[i] & SEEN_TEX)) {
+      const long long n = 3LL * a.tex_res[2 * i] * a.tex_res[2 * i + 1];
+      std::fill(b.v_tex + 3 * a.tex_offset[i], b.v_tex + 3 * a.tex_offset[i] + n, S(0));
+      b.seen[i] |= SEEN_TEX;
+    }
     const int32_t* sp = P.spans + 2 * (ry0 - r.y0);
     GradSums<S> g;
     g.opacity = g.sx = g.sy = g.mx = g.my = g.ku = g.kv = g.lx = g.ly = g.s = g.z_invalid = zero;
@@ -243,6 +255,10 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
     const S smx = hs[H_MX], smy = hs[H_MY];
     const S iz = S(1) / P.muz;
     S* row = b.g_thread + size_t(i) * G_STRIDE;
+    if (b.seen != nullptr && !(b.seen[i] & SEEN_ROW)) {
+      std::fill(row, row + G_STRIDE, S(0));
+      b.seen[i] |= SEEN_ROW;
+    }
     // mu: -v_p (through lx, ly) + s n (through t) + the screen-space centre + z = mu.z where invalid.
     row[G_MU] += -(P.ux * slx + P.vx * sly) + P.nx * ss + smx * a.K.fx * iz;
     row[G_MU + 1] += -(P.uy * slx + P.vy * sly) + P.ny * ss + smy * a.K.fy * iz;
@@ -297,29 +313,47 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
       lp[i] = lane_prim(prims[i], r, r.x0 <= r.x1 && r.y0 <= r.y1 ? spans.row(i, r.y0) : nullptr, spans.xs.data());
     }
   }
-  std::vector<S> gbuf(size_t(nt) * N * G_STRIDE, S(0));
+  // One thread: gradients straight into zeroed buffers, reduced in one pass. Several: per-thread rows and
+  // texel blocks zeroed on first touch and summed per primitive over the threads that touched them (in
+  // thread order, so the same sums as adding every thread's full buffer: untouched parts are zeros).
+  const bool multi = nt > 1;
+  std::unique_ptr<S[]> gbuf(new S[size_t(nt) * N * G_STRIDE]);
+  if (!multi) std::fill(gbuf.get(), gbuf.get() + size_t(N) * G_STRIDE, S(0));
+  std::vector<unsigned char> seen(multi ? size_t(nt) * N : 0, 0);
   std::vector<S> bgbuf(size_t(nt) * 3, S(0));
   // Thread 0 writes texel gradients straight into the output, threads 1.. into private copies.
   const size_t tex_n = size_t(3) * size_t(a.T);
-  const bool private_tex = nt > 1 && tex_n * (nt - 1) * sizeof(S) <= MAX_PRIVATE_TEXEL_BYTES;
+  const bool private_tex = multi && tex_n * (nt - 1) * sizeof(S) <= MAX_PRIVATE_TEXEL_BYTES;
+  // Per-primitive lazy zeroing needs disjoint blocks; the model keeps them packed in primitive order, which is
+  // what is checked (other layouts, e.g. blocks shared between primitives, zero and reduce whole copies).
+  bool packed = private_tex;
+  for (int i = 0, last = -1; packed && i < N; ++i) {
+    if (a.tex_res[2 * i] * a.tex_res[2 * i + 1] <= 0) continue;
+    if (last >= 0 && a.tex_offset[i] < a.tex_offset[last] + (long long)a.tex_res[2 * last] * a.tex_res[2 * last + 1])
+      packed = false;
+    last = i;
+  }
   std::unique_ptr<S[]> tbuf(private_tex ? new S[tex_n * (nt - 1)] : nullptr);
-  const size_t tex_zero_n = private_tex ? tex_n * nt : tex_n;
+  const size_t tex_zero_n = private_tex && !packed ? tex_n * nt : tex_n;
   // Zeroed in parallel: for large jagged textures (hundreds of MB) this first touch is a visible cost.
 #pragma omp parallel for schedule(static) num_threads(nt)
   for (long long k = 0; k < (long long)tex_zero_n; ++k) {
     if (size_t(k) < tex_n) out.v_textures[k] = S(0);
     else tbuf[k - tex_n] = S(0);
   }
-  const bool use_atomics = nt > 1 && !private_tex;
+  const bool use_atomics = multi && !private_tex;
   timer.lap(PROF_BWD_SETUP);
 
+  const std::vector<int> order = tile_order(bins.offsets, num_tiles, nt);
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
-  for (int tile = 0; tile < num_tiles; ++tile) {
+  for (int k = 0; k < num_tiles; ++k) {
+    const int tile = order[k];
     const int tid = omp_get_thread_num();
     BackwardTileArgs<S> b{&a, &bins, lp, final_T, n_contrib, v_rgb, v_alpha, v_depth,
-                          ntx, gbuf.data() + size_t(tid) * N * G_STRIDE,
+                          ntx, gbuf.get() + size_t(tid) * N * G_STRIDE,
                           (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n,
-                          use_atomics, bgbuf.data() + 3 * tid};
+                          use_atomics, bgbuf.data() + 3 * tid,
+                          multi ? seen.data() + size_t(tid) * N : nullptr, packed && tid > 0};
     backward_tile(b, tile);
   }
   timer.lap(PROF_BWD_RASTER);
@@ -328,7 +362,8 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   for (int i = 0; i < N; ++i) {
     S row[G_STRIDE] = {};
     for (int t = 0; t < nt; ++t) {
-      const S* src = gbuf.data() + (size_t(t) * N + i) * G_STRIDE;
+      if (multi && !(seen[size_t(t) * N + i] & SEEN_ROW)) continue;
+      const S* src = gbuf.get() + (size_t(t) * N + i) * G_STRIDE;
       for (int k = 0; k < G_STRIDE; ++k) row[k] += src[k];
     }
     for (int k = 0; k < 3; ++k) out.v_mu_c[3 * i + k] = row[G_MU + k];
@@ -339,7 +374,18 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     for (int k = 0; k < 2; ++k) out.v_texel_size[2 * i + k] = row[G_TEXEL + k];
   }
   timer.lap(PROF_BWD_REDUCE);
-  if (private_tex) {
+  if (packed) {
+#pragma omp parallel for schedule(dynamic, 64) num_threads(nt)
+    for (int i = 0; i < N; ++i) {
+      const long long n = 3LL * a.tex_res[2 * i] * a.tex_res[2 * i + 1];
+      S* dst = out.v_textures + 3 * a.tex_offset[i];
+      for (int t = 0; t + 1 < nt; ++t) {
+        if (!(seen[size_t(t + 1) * N + i] & SEEN_TEX)) continue;
+        const S* src = tbuf.get() + size_t(t) * tex_n + 3 * a.tex_offset[i];
+        for (long long k = 0; k < n; ++k) dst[k] += src[k];
+      }
+    }
+  } else if (private_tex) {
 #pragma omp parallel for schedule(static) num_threads(nt)
     for (long long k = 0; k < (long long)tex_n; ++k) {
       S s = out.v_textures[k];

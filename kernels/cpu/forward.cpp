@@ -215,8 +215,10 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins, Fr
   std::vector<S> contrib_buf(stats ? size_t(nt) * N : 0, S(0)), err_buf(stats ? size_t(nt) * N : 0, S(0));
   std::vector<TilePairs<S>> tile_pairs(out.pairs ? num_tiles : 0);
 
+  const std::vector<int> order = tile_order(bins->offsets.data(), num_tiles, nt);
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
-  for (int tile = 0; tile < num_tiles; ++tile) {
+  for (int k = 0; k < num_tiles; ++k) {
+    const int tile = order[k];
     const int tid = omp_get_thread_num();
     ForwardTileArgs<S> f{&a, &out, lp, bins->list.data(), ntx,
                          stats ? count_buf.data() + size_t(tid) * N : nullptr,

@@ -2,6 +2,7 @@
 // tensors). Templated on the scalar S (float, double); explicit instantiations live in the .cpp files.
 #pragma once
 
+#include <algorithm>
 #include <chrono>
 #include <cstdint>
 #include <vector>
@@ -29,6 +30,19 @@ struct TileBinsView {
   const int64_t* offsets;  // [num_tiles + 1]
   const int32_t* list;     // [pairs]
 };
+
+// The order in which `nt` threads pull tiles one at a time: longest lists first, so that the tiles left when
+// a thread runs dry are the cheapest ones (less waiting at the end of the loop). One thread keeps raster
+// order, so that its per-primitive sums are added in the same order as they always were.
+inline std::vector<int> tile_order(const int64_t* offsets, int num_tiles, int nt) {
+  std::vector<int> order(num_tiles);
+  for (int k = 0; k < num_tiles; ++k) order[k] = k;
+  if (nt > 1)
+    std::stable_sort(order.begin(), order.end(), [offsets](int x, int y) {
+      return offsets[x + 1] - offsets[x] > offsets[y + 1] - offsets[y];
+    });
+  return order;
+}
 
 // Per-row pixel spans of every primitive (spans.h): row y of primitive i covers pixels
 // xs[2 k], xs[2 k + 1] (inclusive; empty if the first is larger), k = offset[i] + y - row0[i], for
