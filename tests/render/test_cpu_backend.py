@@ -120,11 +120,13 @@ def test_deterministic_across_thread_counts():
         torch.testing.assert_close(x, y, atol=1e-12 * y.abs().max().item(), rtol=0)
 
 
-@pytest.mark.parametrize("layout", ["packed", "reversed", "shared"])
+@pytest.mark.parametrize("layout", ["packed", "gaps", "reversed", "shared"])
 def test_texel_gradients_with_two_threads_any_block_layout(layout):
-    """With 2 threads the second thread's texel gradients go to a private copy added at the end: whatever the
-    jagged layout (packed in primitive order as the model keeps it, stored in reverse, or one block shared by
-    every textured primitive), the texel gradients agree with one thread's to rounding."""
+    """With 2 threads the second thread's texel gradients go to a private copy: zeroed and added per primitive
+    block when the blocks are in primitive order (packed, or with unused texels between them and untextured
+    primitives among them), whole otherwise (stored in reverse, or one block shared by every textured
+    primitive). Whatever the layout the texel gradients agree with one thread's to rounding, and texels that
+    belong to no primitive get exactly zero."""
 
     case = random_scene(60, seed=5, width=64, height=48)
     s = case.surfels
@@ -143,6 +145,17 @@ def test_texel_gradients_with_two_threads_any_block_layout(layout):
         res = s.tex_res.clone()
         res[sizes > 0] = s.tex_res[big]
         s = replace(s, tex_res=res, tex_offset=torch.where(sizes > 0, s.tex_offset[big], s.tex_offset))
+    elif layout == "gaps":  # primitive order, 5 unused texels before each block, every third primitive untextured
+        res = s.tex_res.clone()
+        res[::3] = 0
+        sizes = (res[:, 0] * res[:, 1]).long()
+        starts = torch.cumsum(sizes + 5, 0) - sizes
+        tex = torch.full((int(starts[-1]) + 1, 3), 0.3, dtype=s.textures.dtype)
+        for i in range(s.num_primitives):
+            n = int(sizes[i])
+            tex[int(starts[i]):int(starts[i]) + n] = s.textures[int(s.tex_offset[i]):int(s.tex_offset[i]) + n]
+        s = replace(s, textures=tex, tex_res=res, tex_offset=starts)
+        assert int(sizes.gt(0).sum()) > 10
     old = torch.get_num_threads()
     grads = []
     try:
@@ -155,3 +168,8 @@ def test_texel_gradients_with_two_threads_any_block_layout(layout):
         torch.set_num_threads(old)
     assert grads[0].abs().sum() > 0
     torch.testing.assert_close(grads[1], grads[0], atol=1e-12 * grads[0].abs().max().item(), rtol=0)
+    if layout == "gaps":
+        owned = torch.zeros(s.textures.shape[0], dtype=torch.bool)
+        for i in range(s.num_primitives):
+            owned[int(s.tex_offset[i]):int(s.tex_offset[i]) + int(s.tex_res[i, 0] * s.tex_res[i, 1])] = True
+        assert torch.equal(grads[1][~owned], torch.zeros_like(grads[1][~owned]))
