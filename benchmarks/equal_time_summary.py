@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import statistics
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -31,10 +32,13 @@ def main() -> None:
         diffs.append(ca["psnr"] - g["psnr"])
         rows.append((seed, d["commit"], os.path.basename(path), ca, g))
     n = len(diffs)
-    mean = sum(diffs) / n
-    sd = math.sqrt(sum((x - mean) ** 2 for x in diffs) / (n - 1)) if n > 1 else float("nan")
+    mean = statistics.mean(diffs)
+    sd = statistics.stdev(diffs) if n > 1 else float("nan")
     t = mean / (sd / math.sqrt(n)) if n > 1 and sd > 0 else float("nan")
-    mean_of = lambda m, k: sum(r[3 if m == "ca" else 4][k] for r in rows) / n  # noqa: E731
+
+    def mean_of(method: str, key: str) -> float:
+        return statistics.mean(r[3 if method == "ca" else 4][key] for r in rows)
+
     lines = ["# Content-aware vs 2dgs at equal wall time, pooled over seeds (herzjesu25 images_8, preset fast)", "",
              f"Written by `benchmarks/equal_time_summary.py {' '.join(sys.argv[1:])}`. Each seed: benchmarks/"
              "equal_time.py (lengths chosen on validation views, test views left out of the choice; both chosen runs "

@@ -22,6 +22,7 @@ import argparse
 import glob
 import json
 import os
+import statistics
 import subprocess
 import sys
 
@@ -134,8 +135,7 @@ def write_table(out: str, names: list[str], args) -> None:
             sp = sorted(rows[(tag, pol, r, hi)]["it_per_s"] / rows[(tag, pol, r, lo)]["it_per_s"]
                         for (t2, p2, r, t) in rows if t2 == tag and p2 == pol and t == lo and (tag, pol, r, hi) in rows)
             if sp:
-                med = sp[len(sp) // 2] if len(sp) % 2 else (sp[len(sp) // 2 - 1] + sp[len(sp) // 2]) / 2
-                lines.append(f"\nMedian speedup {tag}, {pol}: {med:.2f}x over {len(sp)} repeats "
+                lines.append(f"\nMedian speedup {tag}, {pol}: {statistics.median(sp):.2f}x over {len(sp)} repeats "
                              f"(range {sp[0]:.2f}-{sp[-1]:.2f}x).")
     for tag in names:
         keys = sorted(k for k in rows if k[0] == tag and k[1] == "active" and k[3] == lo)
