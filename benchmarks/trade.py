@@ -101,6 +101,18 @@ def allocation(run: str, scene_dir: str) -> dict:
     return allocation_measures(model, meta)["ratios"]
 
 
+def preset_spec(spec: str) -> tuple[str, list[str], str]:
+    """'fast:tau_ds=0.04,texture_trim=0' -> ('fast', ['--set', 'tau_ds=0.04', ...], 'fast_tau_ds0.04_texture_trim0')."""
+    preset, _, rest = spec.partition(":")
+    pairs = [kv for kv in rest.split(",") if kv]
+    for kv in pairs:
+        if "=" not in kv:
+            raise SystemExit(f"trade.py: --presets {spec!r}: write overrides as PRESET:KEY=VALUE[,KEY=VALUE]")
+    sets = [a for kv in pairs for a in ("--set", kv)]
+    tag = "_".join([preset, *(kv.replace("=", "") for kv in pairs)])
+    return preset, sets, tag
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", default="/tmp/ctgs_trade")
@@ -118,11 +130,12 @@ def main() -> None:
     for s in scenes(args):
         if args.scales and s["scale"] not in args.scales:
             continue
-        for p in args.presets:
-            rec = run_one(s, f"ca_{p}", ["--preset", p], args)
+        for spec in args.presets:
+            p, sets, tag = preset_spec(spec)
+            rec = run_one(s, f"ca_{tag}", ["--preset", p, *sets], args)
             if rec:
                 rows.append(rec)
-                rows_2 = run_one(s, f"2dgs_{p}", ["--preset", p, "--config", "2dgs", "--time-budget",
+                rows_2 = run_one(s, f"2dgs_{tag}", ["--preset", p, "--config", "2dgs", "--time-budget",
                                                   f"{rec['summary']['wall_seconds'] / 60:.3f}"], args)
                 if rows_2:
                     rows.append(rows_2)
