@@ -163,6 +163,10 @@ def main() -> None:
     ap.add_argument("--no-lpips", action="store_true")
     ap.add_argument("--note", default="", help="provenance of the run (config, commit) for the results")
     args = ap.parse_args()
+    try:
+        import matplotlib  # noqa: F401  (the plot: checked before the measurements, not after them)
+    except ImportError:
+        raise SystemExit("compress_curve.py: matplotlib is missing (it draws the plot): pip install -e '.[bench]'")
     from ctgs.scene import load_scene
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))

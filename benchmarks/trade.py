@@ -126,6 +126,10 @@ def main() -> None:
     ap.add_argument("--table-only", action="store_true")
     ap.add_argument("--tag", default=platform.node())
     args = ap.parse_args()
+    try:
+        import matplotlib  # noqa: F401  (the plots: checked before hours of training, not after them)
+    except ImportError:
+        raise SystemExit("trade.py: matplotlib is missing (it draws the plots): pip install -e '.[bench]'")
     rows = []
     for s in scenes(args):
         if args.scales and s["scale"] not in args.scales:
@@ -200,7 +204,7 @@ def plot(rows: list[dict], out: str) -> None:
                 axes[0][j].annotate(label, (x_t, r["metrics"]["psnr"]), fontsize=6)
         for ax in (axes[0][j], axes[1][j]):
             ax.ticklabel_format(useOffset=False)
-            ax.set_xlim(left=0)  # time and parameters from zero: two-point panels stay readable
+            ax.set_xlim(left=0, right=ax.get_xlim()[1] * 1.15)  # from zero, and room for the labels
         axes[0][j].set_title(f"{scene} {scale}")
         axes[0][j].set_xlabel("wall time (min)")
         axes[1][j].set_xlabel("parameters (M)")
