@@ -139,7 +139,10 @@ def main() -> None:
             rec = run_one(s, f"ca_{tag}", ["--preset", p, *sets], args)
             if rec:
                 rows.append(rec)
-                rows_2 = run_one(s, f"2dgs_{tag}", ["--preset", p, "--config", "2dgs", "--time-budget",
+                # The 2dgs twin runs the bare preset (content-aware overrides do not apply to it); its name says
+                # which run's wall time it was given when that run had overrides.
+                twin = f"2dgs_{tag}" if not sets else f"2dgs_{p}_timed_as_ca_{tag}"
+                rows_2 = run_one(s, twin, ["--preset", p, "--config", "2dgs", "--time-budget",
                                                   f"{rec['summary']['wall_seconds'] / 60:.3f}"], args)
                 if rows_2:
                     rows.append(rows_2)
