@@ -11,6 +11,7 @@ Usage (each run is skipped when already done; several invocations with disjoint 
     .venv/bin/python benchmarks/trade.py --work /work/runs/trade [--scenes demo herzjesu]
         [--herzjesu /work/data/herzjesu25] [--budgets 5 15 45] [--presets preview fast balanced]
         [--scales 192x144 images_8 ...] [--only SUBSTRING ...] [--table-only] [--threads 1]
+        [--re-eval-missing-lpips]
 The herzjesu scene must exist (`ctgs sfm ../shared/data/herzjesu25/images -o SCENE`). Test views follow the
 protocol (every 8th); nothing here chooses a setting.
 """
@@ -31,6 +32,7 @@ sys.path.insert(0, ROOT)
 # Two image scales per scene: (label, demo size | herzjesu image folder).
 DEMO_SCALES = [("192x144", (192, 144)), ("384x288", (384, 288))]
 HERZ_SCALES = [("images_8", "images_8"), ("images_4", "images_4")]
+METRIC_KEYS = ("psnr", "ssim", "lpips", "points", "texels", "params", "fps", "bytes_on_disk", "resolution")
 
 
 def ctgs(*args: str, log: str) -> None:
@@ -67,7 +69,17 @@ def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
     run = os.path.join(args.work, "runs", f"{s['scene']}_{s['scale']}_{name}")
     rec_path = os.path.join(run, "trade_record.json")
     if os.path.exists(rec_path):
-        return json.load(open(rec_path))
+        rec = json.load(open(rec_path))
+        if args.re_eval_missing_lpips and rec["metrics"]["lpips"] is None and not args.table_only:
+            # The run was evaluated without the LPIPS weights (`make lpips-weights`): evaluate it again, metrics only.
+            log = run + ".log"
+            ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"), log=log)
+            metrics = json.load(open(os.path.join(run, "eval", "metrics.json")))
+            rec["metrics"] = {k: metrics[k] for k in METRIC_KEYS}
+            rec["re_evaluated"] = time.strftime("%Y-%m-%d %H:%M")
+            with open(rec_path, "w") as fh:
+                json.dump(rec, fh, indent=1)
+        return rec
     if args.table_only or (args.only and not any(o in os.path.basename(run) for o in args.only)):
         return None
     os.makedirs(os.path.dirname(run), exist_ok=True)
@@ -83,8 +95,7 @@ def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
     metrics = json.load(open(os.path.join(run, "eval", "metrics.json")))
     rec = {"scene": s["scene"], "scale": s["scale"], "name": name, "run": run, "train_args": train_args,
            "command_wall_s": wall, "summary": summary,
-           "metrics": {k: metrics[k] for k in ("psnr", "ssim", "lpips", "points", "texels", "params", "fps",
-                                               "bytes_on_disk", "resolution")}}
+           "metrics": {k: metrics[k] for k in METRIC_KEYS}}
     if s["scene"] == "demo":
         rec["allocation"] = allocation(run, s["dir"])
     with open(rec_path, "w") as fh:
@@ -124,6 +135,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--scales", nargs="*", default=None, help="only these scales (192x144 384x288 images_8 images_4)")
     ap.add_argument("--table-only", action="store_true")
+    ap.add_argument("--re-eval-missing-lpips", action="store_true",
+                    help="evaluate finished runs again whose records have no LPIPS (weights were missing)")
     ap.add_argument("--tag", default=platform.node())
     args = ap.parse_args()
     try:
