@@ -143,6 +143,10 @@ def main() -> None:
         import matplotlib  # noqa: F401  (the plots: checked before hours of training, not after them)
     except ImportError:
         raise SystemExit("trade.py: matplotlib is missing (it draws the plots): pip install -e '.[bench]'")
+    from ctgs.metrics.vgg_weights import find_vgg16
+
+    if find_vgg16().state is None and not args.table_only:  # LPIPS is a column: found out now, not after the runs
+        raise SystemExit("trade.py: the LPIPS weights are missing: run `make lpips-weights` first")
     rows = []
     for s in scenes(args):
         if args.scales and s["scale"] not in args.scales:
