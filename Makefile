@@ -129,7 +129,7 @@ bench-claims: $(STAMP)
 
 # The speed/accuracy trade: presets and time budgets vs 2dgs on the demo and on herzjesu25 (hours).
 HERZJESU ?= ../shared/data/herzjesu25
-bench-trade: $(STAMP)
+bench-trade: $(STAMP) lpips-weights
 	$(PY) -m pip install -q -e ".[bench]"
 	test -d out/herzjesu25/sparse || $(CTGS) sfm $(HERZJESU)/images -o out/herzjesu25
 	$(PY) benchmarks/trade.py --work out/trade --herzjesu out/herzjesu25

@@ -51,11 +51,15 @@ def scenes(args) -> list[dict]:
         from ctgs.scene.demo import make_demo_scene
 
         for label, (w, h) in DEMO_SCALES:
+            if args.scales and label not in args.scales:
+                continue
             d = make_demo_scene(os.path.join(args.work, f"demo_{label}"), num_views=24, width=w, height=h,
                                 points=3000)
             out.append({"scene": "demo", "scale": label, "dir": d, "images": "images", "pixels": w * h})
     if "herzjesu" in args.scenes:
         for label, folder in HERZ_SCALES:
+            if args.scales and label not in args.scales:
+                continue
             from ctgs.io.images import image_info
 
             first = sorted(os.listdir(os.path.join(args.herzjesu, folder)))[0]
@@ -70,7 +74,8 @@ def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
     rec_path = os.path.join(run, "trade_record.json")
     if os.path.exists(rec_path):
         rec = json.load(open(rec_path))
-        if args.re_eval_missing_lpips and rec["metrics"]["lpips"] is None and not args.table_only:
+        selected = not args.only or any(o in os.path.basename(run) for o in args.only)
+        if args.re_eval_missing_lpips and rec["metrics"]["lpips"] is None and selected and not args.table_only:
             # The run was evaluated without the LPIPS weights (`make lpips-weights`): evaluate it again, metrics only.
             log = run + ".log"
             ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"), log=log)
