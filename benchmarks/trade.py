@@ -241,8 +241,9 @@ def plot(rows: list[dict], out: str) -> None:
                Line2D([], [], color="tab:blue", marker="o", ls="", label="2dgs"),
                Line2D([], [], color="k", marker="s", ls="", label="preset at its length"),
                Line2D([], [], color="k", marker="o", ls="", label="--time-budget")]
-    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8)
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    wide = len(groups) > 1  # one column of panels is too narrow for the legend on one row
+    fig.legend(handles=handles, loc="lower center", ncol=4 if wide else 2, fontsize=8)
+    fig.tight_layout(rect=(0, 0.05 if wide else 0.09, 1, 1))
     fig.savefig(out + ".png", dpi=110)
 
 
