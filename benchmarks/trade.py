@@ -72,9 +72,9 @@ def scenes(args) -> list[dict]:
 def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
     run = os.path.join(args.work, "runs", f"{s['scene']}_{s['scale']}_{name}")
     rec_path = os.path.join(run, "trade_record.json")
+    selected = not args.only or any(o in os.path.basename(run) for o in args.only)
     if os.path.exists(rec_path):
         rec = json.load(open(rec_path))
-        selected = not args.only or any(o in os.path.basename(run) for o in args.only)
         if args.re_eval_missing_lpips and rec["metrics"]["lpips"] is None and selected and not args.table_only:
             # The run was evaluated without the LPIPS weights (`make lpips-weights`): evaluate it again, metrics only.
             log = run + ".log"
@@ -85,7 +85,7 @@ def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
             with open(rec_path, "w") as fh:
                 json.dump(rec, fh, indent=1)
         return rec
-    if args.table_only or (args.only and not any(o in os.path.basename(run) for o in args.only)):
+    if args.table_only or not selected:
         return None
     os.makedirs(os.path.dirname(run), exist_ok=True)
     log = run + ".log"
@@ -153,9 +153,7 @@ def main() -> None:
     if find_vgg16().state is None and not args.table_only:  # LPIPS is a column: found out now, not after the runs
         raise SystemExit("trade.py: the LPIPS weights are missing: run `make lpips-weights` first")
     rows = []
-    for s in scenes(args):
-        if args.scales and s["scale"] not in args.scales:
-            continue
+    for s in scenes(args):  # already limited to --scales
         for spec in args.presets:
             p, sets, tag = preset_spec(spec)
             rec = run_one(s, f"ca_{tag}", ["--preset", p, *sets], args)
