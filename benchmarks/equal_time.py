@@ -66,7 +66,8 @@ def train(args, method: str, iters: int, split: str) -> dict:
         with open(os.path.join(run, "eval", "metrics.json")) as fh:
             m = json.load(fh)
         rec.update({"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "fps": m["fps"],
-                    "mb": m["bytes_on_disk"] / 1e6})
+                    "mb": m["bytes_on_disk"] / 1e6,
+                    "per_view_psnr": {r["name"]: r["psnr"] for r in m.get("per_image", [])}})
     with open(rec_path, "w") as fh:
         json.dump(rec, fh, indent=1)
     return rec
