@@ -81,6 +81,7 @@ def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
             ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"), log=log)
             metrics = json.load(open(os.path.join(run, "eval", "metrics.json")))
             rec["metrics"] = {k: metrics[k] for k in METRIC_KEYS}
+            rec["per_view_psnr"] = per_view(metrics)
             rec["re_evaluated"] = time.strftime("%Y-%m-%d %H:%M")
             with open(rec_path, "w") as fh:
                 json.dump(rec, fh, indent=1)
@@ -100,12 +101,17 @@ def run_one(s: dict, name: str, train_args: list[str], args) -> dict | None:
     metrics = json.load(open(os.path.join(run, "eval", "metrics.json")))
     rec = {"scene": s["scene"], "scale": s["scale"], "name": name, "run": run, "train_args": train_args,
            "command_wall_s": wall, "summary": summary,
-           "metrics": {k: metrics[k] for k in METRIC_KEYS}}
+           "metrics": {k: metrics[k] for k in METRIC_KEYS}, "per_view_psnr": per_view(metrics)}
     if s["scene"] == "demo":
         rec["allocation"] = allocation(run, s["dir"])
     with open(rec_path, "w") as fh:
         json.dump(rec, fh, indent=1)
     return rec
+
+
+def per_view(metrics: dict) -> dict:
+    """{view name: test PSNR}: a mean over 3-4 views can be carried by one (benchmarks/per_view.py, blame.py)."""
+    return {r["name"]: r["psnr"] for r in metrics.get("per_image", [])}
 
 
 def allocation(run: str, scene_dir: str) -> dict:
@@ -200,6 +206,19 @@ def write(rows: list[dict], args) -> None:
             f"{m['bytes_on_disk'] / 1e6:.2f} | {m['fps']:.1f} | "
             f"{al.get('texel_size_prim_flat_over_photo', float('nan')):.1f} | "
             f"{al.get('params_per_area_photo_over_flat', float('nan')):.1f} |")
+    with_views = [r for r in rows if r.get("per_view_psnr")]
+    if with_views:  # records written before per-view PSNR was kept have none
+        lines += ["", "Test PSNR per view (the mean above is over these; the first view of a one-sided trajectory "
+                  "is an extrapolation: benchmarks/results/train_findings.md, 'What the first test view measures'):", ""]
+        for scene, scale in sorted({(r["scene"], r["scale"]) for r in with_views}):
+            group = [r for r in with_views if (r["scene"], r["scale"]) == (scene, scale)]
+            names = sorted({v for r in group for v in r["per_view_psnr"]})
+            lines += [f"| {scene} {scale} | run | " + " | ".join(names) + " |",
+                      "| --- | --- |" + " ---: |" * len(names)]
+            for r in group:
+                pv = r["per_view_psnr"]
+                lines.append(f"| | {r['name']} | " + " | ".join(f"{pv[n]:.2f}" if n in pv else "-" for n in names) + " |")
+            lines.append("")
     with open(out + ".md", "w") as fh:
         fh.write("\n".join(lines) + "\n")
     plot(rows, out)
