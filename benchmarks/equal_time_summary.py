@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paired_stats import paired, sentence  # noqa: E402
 
 
 def main() -> None:
@@ -32,9 +33,7 @@ def main() -> None:
         diffs.append(ca["psnr"] - g["psnr"])
         rows.append((seed, d["commit"], os.path.basename(path), ca, g))
     n = len(diffs)
-    mean = statistics.mean(diffs)
-    sd = statistics.stdev(diffs) if n > 1 else float("nan")
-    t = mean / (sd / math.sqrt(n)) if n > 1 and sd > 0 else float("nan")
+    st = paired(diffs)
 
     def mean_of(method: str, key: str) -> float:
         return statistics.mean(r[3 if method == "ca" else 4][key] for r in rows)
@@ -55,9 +54,21 @@ def main() -> None:
               f"{mean_of('ca', 'params') / 1e6:.2f}M params; 2dgs {mean_of('g', 'psnr'):.2f} dB / SSIM "
               f"{mean_of('g', 'ssim'):.3f} / LPIPS {mean_of('g', 'lpips'):.3f}, {mean_of('g', 'primitives'):.0f} primitives, "
               f"{mean_of('g', 'params') / 1e6:.2f}M params.",
-              f"Paired PSNR difference (content-aware - 2dgs): mean {mean:+.2f} dB, standard deviation {sd:.2f} dB, "
-              f"content-aware ahead on {sum(x > 0 for x in diffs)} of {n} seeds, paired t = {t:.2f} with {n - 1} degrees "
-              "of freedom (|t| > 3.18 would be needed for 5% two-sided at 3 degrees of freedom)."]
+              sentence("Paired PSNR difference (content-aware - 2dgs)", st)]
+    # Per-view differences, for the seeds whose records kept each view's PSNR (equal_time.py since session 10).
+    views = [(ca["per_view_psnr"], g["per_view_psnr"]) for _, _, _, ca, g in rows
+             if ca.get("per_view_psnr") and g.get("per_view_psnr")]
+    if views:
+        lines += ["", f"Per test view, over the {len(views)} seed(s) whose records keep each view's PSNR "
+                  "(the first view of herzjesu25's one-sided trajectory is an extrapolation; "
+                  "benchmarks/results/train_findings.md):", "",
+                  "| view | content-aware mean | 2dgs mean | paired difference |", "| --- | ---: | ---: | --- |"]
+        for name in sorted(views[0][0]):
+            d = [a[name] - b[name] for a, b in views]
+            s_v = paired(d)
+            extra = f", t = {s_v['t']:.2f}, p = {s_v['p']:.3f}" if s_v["n"] > 1 else ""
+            lines.append(f"| {name} | {statistics.mean(a[name] for a, _ in views):.2f} | "
+                         f"{statistics.mean(b[name] for _, b in views):.2f} | {s_v['mean']:+.2f} dB{extra} |")
     out = os.path.join(ROOT, "benchmarks", "results", args.out + ".md")
     with open(out, "w") as fh:
         fh.write("\n".join(lines) + "\n")
