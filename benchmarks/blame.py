@@ -7,7 +7,9 @@ in pixels) and re-renders the view with each of them alone removed (opacity 0). 
 raises PSNR is one the training views constrained badly. For each it reports what the training views saw
 of it: how many training frusta hold its centre, its summed weight over all training views, the training
 view where it weighs most, and how close it sits to a training camera (distance to the nearest training
-camera centre / that camera's median SfM-point depth).
+camera centre / that camera's median SfM-point depth). It also says how much of the view no primitive covers
+(accumulated opacity < 0.9: the black background shows there) and what share of the view's squared error
+sits in those pixels: the other way a view far from the training cameras loses.
 
 Read-only diagnosis of a finished run: nothing here feeds a setting (test views are for measuring).
 
@@ -28,6 +30,7 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+OPEN_ALPHA = 0.9  # a pixel with less accumulated opacity shows the background (black in the protocol's renders)
 
 
 def _depth(cam, pts):
@@ -70,6 +73,12 @@ def blame(run_dir: str, view: str | None, candidates: int) -> dict:
             raise SystemExit(f"{run_dir}: no test view named {name} (test views: {', '.join(scores)})")
         tv = next(v for v in scene.test if v.name == name)
         gt = torch.from_numpy(tv.image)
+        full = render(inp, tv.camera, sh_degree=deg)
+        se = ((full.rgb.clamp(0, 1) - gt) ** 2).mean(-1)
+        open_px = full.alpha < OPEN_ALPHA  # where the background shows: no primitive covers the pixel
+        coverage = {"alpha_threshold": OPEN_ALPHA, "open_fraction": float(open_px.float().mean()),
+                    "open_error_share": float(se[open_px].sum() / se.sum().clamp_min(1e-20)),
+                    "psnr_covered_only": float(-10 * torch.log10(se[~open_px].mean())) if bool((~open_px).any()) else None}
         c_test = contrib(tv.camera)
         c_train = torch.stack([contrib(v.camera) for v in scene.train])  # [V, N]
         mu = model.means.detach().float()
@@ -103,6 +112,7 @@ def blame(run_dir: str, view: str | None, candidates: int) -> dict:
         together = psnr(rgb(dataclasses.replace(inp, opacities=op), tv.camera), gt) - scores[name]
     qs = torch.tensor([0.001, 0.01, 0.05, 0.5])
     return {"run": os.path.abspath(run_dir), "view": name, "view_psnr": scores[name], "test_psnr": scores,
+            "coverage": coverage,
             "primitives": model.num_primitives, "candidates": candidates, "rows": rows,
             "removed_together": {"count": int(all_removed.sum()), "gain_db": together},
             "near_train_camera_rel_quantiles": dict(zip(["0.1%", "1%", "5%", "50%"], rel.quantile(qs).tolist()))}
@@ -147,6 +157,11 @@ def main() -> None:
                      f"{r['max_scale']:.3f} | {r['tex_res'][0]}x{r['tex_res'][1]} | {r['dist_to_test_camera']:.2f} | "
                      f"{r['train_frusta_holding_centre']} | {r['train_contrib_px']:.0f} | {r['train_view_most']} "
                      f"({r['train_contrib_px_there']:.0f}) | {r['near_train_camera_rel']:.3f} |")
+    cv = res["coverage"]
+    pc = cv["psnr_covered_only"]
+    lines += ["", f"Pixels where the background shows (accumulated opacity < {cv['alpha_threshold']}): "
+              f"{100 * cv['open_fraction']:.1f}% of the view, {100 * cv['open_error_share']:.0f}% of its squared error; "
+              f"PSNR over the other pixels {'-' if pc is None else f'{pc:.2f}'} dB (whole view {res['view_psnr']:.2f})."]
     rt = res["removed_together"]
     lines += ["", f"Removing every primitive with a gain above 0.05 dB together ({rt['count']}): "
               f"{rt['gain_db']:+.2f} dB on {res['view']}. Distance to the nearest training camera / its median "

@@ -73,4 +73,6 @@ def test_blame_ranks_the_planted_floater_first(tmp_path):
     assert all(r["gain_db"] < top["gain_db"] / 2 for r in res["rows"][1:])
     assert res["removed_together"]["gain_db"] >= top["gain_db"] - 0.5
     assert res["primitives"] == planted + 1
+    cov = res["coverage"]
+    assert 0.0 <= cov["open_fraction"] <= 1.0 and 0.0 <= cov["open_error_share"] <= 1.0
 
