@@ -8,7 +8,7 @@ CTGS := $(VENV)/bin/ctgs
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: setup test test-fast demo all table lpips-weights cuda-check bench bench-claims bench-trade clean wheel-check
+.PHONY: setup test test-fast demo all table lpips-weights cuda-check bench bench-claims bench-trade bench-paired clean wheel-check
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -133,6 +133,12 @@ bench-trade: $(STAMP) lpips-weights
 	$(PY) -m pip install -q -e ".[bench]"
 	test -d out/herzjesu25/sparse || $(CTGS) sfm $(HERZJESU)/images -o out/herzjesu25
 	$(PY) benchmarks/trade.py --work out/trade --herzjesu out/herzjesu25
+
+# balanced vs fast on herzjesu25 192x128 over four seeds, paired by seed (~40 min on 2 cores).
+bench-paired: $(STAMP) lpips-weights
+	test -d out/herzjesu25/sparse || $(CTGS) sfm $(HERZJESU)/images -o out/herzjesu25
+	$(PY) benchmarks/paired.py --scene out/herzjesu25 --images images_8 --a balanced --b fast --seeds 0 1 2 3 \
+		--work out/paired --tag $$(hostname)
 
 clean:
 	rm -rf build out runs .pytest_cache
