@@ -55,6 +55,9 @@ def main() -> None:
               f"{mean_of('g', 'ssim'):.3f} / LPIPS {mean_of('g', 'lpips'):.3f}, {mean_of('g', 'primitives'):.0f} primitives, "
               f"{mean_of('g', 'params') / 1e6:.2f}M params.",
               sentence("Paired PSNR difference (content-aware - 2dgs)", st)]
+    for key, note in (("ssim", ""), ("lpips", "; lower is better")):
+        sk = paired([r[3][key] - r[4][key] for r in rows])
+        lines.append(f"Paired {key.upper()} difference: mean {sk['mean']:+.4f}, p = {sk['p']:.3f}{note}.")
     # Per-view differences, for the seeds whose records kept each view's PSNR (equal_time.py since session 10).
     views = [(ca["per_view_psnr"], g["per_view_psnr"]) for _, _, _, ca, g in rows
              if ca.get("per_view_psnr") and g.get("per_view_psnr")]
