@@ -187,6 +187,11 @@ def _index_array(labels: np.ndarray, k: int) -> np.ndarray:
     return labels.astype("u1" if k <= 1 << 8 else "<u2" if k <= 1 << 16 else "<u4")
 
 
+# Largest position shift fixed-point means may cause, in pixels of the primitive's closest training camera; beyond
+# it positions are stored as float32 (compress_model). Normal ranges stay far below (demo 192 px: ~0.005 px).
+MEANS_MAX_SHIFT_PX = 0.1
+
+
 def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
     """Encode `model` per `spec` into sections (primitives Morton-sorted when spec.sort)."""
     from ctgs.io.kmeans import scalar_kmeans, vector_kmeans
@@ -203,7 +208,21 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
     def add(name: str, array: np.ndarray, encoding: dict) -> None:
         sections.append(Section(name, array, encoding))
 
-    add("means", *quantize.encode(means[order], spec.means))
+    stored, enc = quantize.encode(means[order], spec.means)
+    if spec.means in quantize.FIXED_CODECS and n:
+        # One fixed-point range for every position: a single far primitive (a stray floater hundreds of scene units
+        # out) makes the step coarse for all the others. Measure the shift in pixels of each primitive's closest
+        # training camera (k_min = world size of one of its pixels) and keep float32 positions when any exceeds
+        # MEANS_MAX_SHIFT_PX.
+        shift = np.abs(quantize.decode(stored, enc) - means[order]).max(1) / np.maximum(npf(model.k_min)[order], 1e-12)
+        if float(shift.max()) > MEANS_MAX_SHIFT_PX:
+            stats["means_fallback"] = {
+                "asked": spec.means, "stored": "f32", "max_shift_px": float(shift.max()),
+                "over_limit": int((shift > MEANS_MAX_SHIFT_PX).sum()), "limit_px": MEANS_MAX_SHIFT_PX,
+                "range": [[float(x) for x in means.min(0)], [float(x) for x in means.max(0)]]}
+            spec = replace(spec, means="f32")
+            stored, enc = quantize.encode(means[order], "f32")
+    add("means", stored, enc)
     add("log_scales", *quantize.encode(npf(model.log_scales)[order], spec.scales))
     quats = npf(model.quats)[order]
     if spec.quats in quantize.FIXED_CODECS:  # unit quaternions: every component in [-1, 1]

@@ -68,3 +68,8 @@ def command(model_dir: str, out_dir: str, target: str, texels: str | None, codeb
     click.echo(f"{model_dir}: {before / 1e6:.3f} MB -> {out_dir}: {after / 1e6:.3f} MB "
                f"(x{before / max(after, 1):.2f} smaller); target {target}, texels {tex['mode']}{k}{rmse} "
                f"({packed.stats['seconds']:.1f} s)")
+    fb = packed.stats.get("means_fallback")
+    if fb:
+        click.echo(f"positions stored as f32, not {fb['asked']}: the model spans {[f'{x:.4g}' for x in fb['range'][0]]} to {[f'{x:.4g}' for x in fb['range'][1]]} "
+                   f"(a far primitive), and {fb['asked']} would move {fb['over_limit']} primitive(s) by up to "
+                   f"{fb['max_shift_px']:.2f} px (limit {fb['limit_px']} px of the closest training camera)")

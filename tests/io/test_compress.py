@@ -283,3 +283,26 @@ def test_write_packed_refuses_foreign_folder(tmp_path):
     with pytest.raises(UserError, match="not a ctgs model folder"):
         write_packed_model(packed, str(tmp_path / "run"))
     assert (tmp_path / "run" / "model.pt").read_bytes() == b"x"
+
+
+def test_far_primitive_keeps_positions_float(tmp_path):
+    """One primitive 1000 units out would make q16's step coarse for every other: positions stay float32, and
+    the stage says so. Without it q16 is kept (the error bound of test_attribute_codec_error_bounds)."""
+    from ctgs.io.compress import MEANS_MAX_SHIFT_PX, unpack_model
+
+    model = random_model(n=120, seed=5)
+    normal = compress_model(model, Spec(texels="f32", sort=False, means="q16"))
+    assert "means_fallback" not in normal.stats and normal.header["spec"]["means"] == "q16"
+    model.means.data[7] = torch.tensor([1000.0, -20.0, 3.0], dtype=model.means.dtype)
+    packed = compress_model(model, Spec(texels="f32", sort=False, means="q16"))
+    fb = packed.stats["means_fallback"]
+    assert fb["asked"] == "q16" and fb["stored"] == "f32" and fb["max_shift_px"] > MEANS_MAX_SHIFT_PX
+    assert packed.header["spec"]["means"] == "f32"
+    arrays = {s.name: s for s in packed.sections}
+    back = unpack_model(packed.header, {k: v.array for k, v in arrays.items()}, {k: v.encoding for k, v in arrays.items()})
+    assert torch.equal(back.means.float(), model.means.float())
+    write_model(model, str(tmp_path / "model"))
+    res = CliRunner().invoke(main, ["compress", str(tmp_path / "model"), "-o", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    assert "positions stored as f32, not q16" in res.output
+    assert json.load(open(tmp_path / "c" / "manifest.json"))["compression"]["means_fallback"]["stored"] == "f32"
