@@ -51,6 +51,7 @@ ACT_LIMIT = 1.0 - 1e-6
 OPACITY_EPS = 1e-4
 # Morton sort: bits per axis of the quantised position (30-bit codes).
 MORTON_BITS = 10
+MORTON_TRIM = 1e-3
 
 
 @dataclass(frozen=True)
@@ -155,7 +156,10 @@ def morton_order(means: np.ndarray) -> np.ndarray:
     """[N] permutation sorting positions [N, 3] along a Z-order curve over their bounding box."""
     if len(means) == 0:
         return np.zeros(0, np.int64)
-    lo, span = means.min(0), np.ptp(means, 0)
+    # Box of the 0.1-99.9% quantiles, not the extremes: a few far primitives would otherwise squeeze everything else
+    # into a handful of cells (positions outside are clamped to the box's faces).
+    lo, hi = np.quantile(means, MORTON_TRIM, 0), np.quantile(means, 1 - MORTON_TRIM, 0)
+    span = hi - lo
     q = np.clip((means - lo) / np.where(span > 0, span, 1.0) * ((1 << MORTON_BITS) - 1), 0,
                 (1 << MORTON_BITS) - 1).astype(np.uint64)
     code = np.zeros(len(means), np.uint64)
@@ -187,9 +191,49 @@ def _index_array(labels: np.ndarray, k: int) -> np.ndarray:
     return labels.astype("u1" if k <= 1 << 8 else "<u2" if k <= 1 << 16 else "<u4")
 
 
-# Largest position shift fixed-point means may cause, in pixels of the primitive's closest training camera; beyond
-# it positions are stored as float32 (compress_model). Normal ranges stay far below (demo 192 px: ~0.005 px).
+# Largest position shift fixed-point means may cause, in pixels of the primitive's closest training camera. A primitive
+# q16 would move further is stored apart, as float32 (`means_outliers`); the fixed-point range is chosen to minimise
+# the bytes of both (_encode_means). Normal ranges stay far below (demo 192 px: ~0.005 px).
 MEANS_MAX_SHIFT_PX = 0.1
+# Ranges tried for fixed-point positions: the bounding box of all centres but the m farthest from their median
+# (Chebyshev distance), m = 0, 1, 2, 4, ... up to this fraction of the primitives.
+MEANS_MAX_TRIM = 0.1
+
+
+def _encode_means(means: np.ndarray, k_min: np.ndarray, codec: str) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+    """Fixed-point positions with a guaranteed error: (stored [N, 3], encoding, outlier rows [M], stats).
+
+    One range for every position lets a single far primitive (a stray floater hundreds of scene units out) make
+    the step coarse for all the others. Each candidate range (MEANS_MAX_TRIM) stores the primitives inside it
+    in fixed point and every primitive that would move by more than MEANS_MAX_SHIFT_PX pixels of its closest
+    training camera (k_min = world size of one of its pixels) as float32; the candidate with the fewest bytes
+    wins. Outlier rows of `stored` hold 0 (the reader overwrites them). M = N means "all float32"."""
+    n = len(means)
+    scale = np.maximum(k_min, 1e-12)
+    elem = 2 if quantize.FIXED_CODECS[codec] > 8 else 1
+    by_distance = np.argsort(np.abs(means - np.median(means, 0)).max(1), kind="stable")
+    trims = [0] + [1 << i for i in range(64) if (1 << i) <= MEANS_MAX_TRIM * n]
+    best = None
+    for m in trims:
+        kept = means[by_distance[:n - m]]
+        lo, hi = kept.min(0), kept.max(0)
+        stored, enc = quantize.encode(np.clip(means, lo, hi), codec, lo=lo, hi=hi)
+        shift = np.abs(quantize.decode(stored, enc) - means).max(1) / scale  # large outside the box
+        out = np.flatnonzero(shift > MEANS_MAX_SHIFT_PX)
+        cost = 3 * elem * n + 16 * len(out)  # fixed rows + (float32 row + uint32 index) per outlier
+        if best is None or cost < best[0]:
+            inside = np.setdiff1d(np.arange(n), out)
+            best = (cost, m, stored, enc, out, float(shift[inside].max()) if len(inside) else 0.0)
+    cost, m, stored, enc, out, inlier_shift = best
+    stored[out] = 0
+    full = quantize.encode(means, codec)
+    full_shift = float((np.abs(quantize.decode(*full) - means).max(1) / scale).max())
+    stats = {"asked": codec, "outliers": int(len(out)), "range_trimmed": int(m), "max_shift_px": inlier_shift,
+             "full_range_shift_px": full_shift, "limit_px": MEANS_MAX_SHIFT_PX,
+             "range": [[float(x) for x in means.min(0)], [float(x) for x in means.max(0)]]}
+    if cost >= 12 * n:  # float32 for every primitive is no larger
+        out = np.arange(n)
+    return stored, enc, out, stats
 
 
 def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
@@ -208,21 +252,20 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
     def add(name: str, array: np.ndarray, encoding: dict) -> None:
         sections.append(Section(name, array, encoding))
 
-    stored, enc = quantize.encode(means[order], spec.means)
     if spec.means in quantize.FIXED_CODECS and n:
-        # One fixed-point range for every position: a single far primitive (a stray floater hundreds of scene units
-        # out) makes the step coarse for all the others. Measure the shift in pixels of each primitive's closest
-        # training camera (k_min = world size of one of its pixels) and keep float32 positions when any exceeds
-        # MEANS_MAX_SHIFT_PX.
-        shift = np.abs(quantize.decode(stored, enc) - means[order]).max(1) / np.maximum(npf(model.k_min)[order], 1e-12)
-        if float(shift.max()) > MEANS_MAX_SHIFT_PX:
-            stats["means_fallback"] = {
-                "asked": spec.means, "stored": "f32", "max_shift_px": float(shift.max()),
-                "over_limit": int((shift > MEANS_MAX_SHIFT_PX).sum()), "limit_px": MEANS_MAX_SHIFT_PX,
-                "range": [[float(x) for x in means.min(0)], [float(x) for x in means.max(0)]]}
+        stored, enc, outliers, mstats = _encode_means(means[order], npf(model.k_min)[order], spec.means)
+        if len(outliers) == n:
+            stats["means_fallback"] = {**mstats, "stored": "f32"}
             spec = replace(spec, means="f32")
-            stored, enc = quantize.encode(means[order], "f32")
-    add("means", stored, enc)
+            add("means", *quantize.encode(means[order], "f32"))
+        else:
+            add("means", stored, enc)
+            if len(outliers):
+                stats["means_outliers"] = mstats
+                add("means_outlier_rows", outliers.astype("<u4"), {"kind": "int"})
+                add("means_outliers", means[order][outliers].astype("<f4"), {"kind": "float"})
+    else:
+        add("means", *quantize.encode(means[order], spec.means))
     add("log_scales", *quantize.encode(npf(model.log_scales)[order], spec.scales))
     quats = npf(model.quats)[order]
     if spec.quats in quantize.FIXED_CODECS:  # unit quaternions: every component in [-1, 1]
@@ -339,11 +382,17 @@ def unpack_model(header: dict, arrays: dict[str, np.ndarray], encodings: dict[st
     sh[:, 0, :] = val("sh_dc").reshape(n, 3)
     if k_sh > 1:
         sh[:, 1:, :] = val("sh_rest").reshape(n, 3, k_sh - 1).transpose(0, 2, 1)
+    means = val("means").reshape(n, 3)
+    if "means_outlier_rows" in arrays:  # primitives stored apart from the fixed-point range (_encode_means)
+        rows, far = val("means_outlier_rows").reshape(-1), val("means_outliers").reshape(-1, 3)
+        if len(rows) != len(far) or (len(rows) and (rows.min() < 0 or rows.max() >= n)):
+            raise ValueError(f"means_outlier_rows: {len(rows)} rows for {len(far)} positions, or a row beyond {n}")
+        means[rows] = far
     tex_res = torch.from_numpy(val("tex_res").reshape(n, 2).astype(np.int32))
     textures = val("textures") if "textures" in arrays else np.zeros((0, 3))
     textures = textures.reshape(t, 3)
     model = SurfelModel(
-        means=f(val("means").reshape(n, 3)), log_scales=f(val("log_scales").reshape(n, 2)),
+        means=f(means), log_scales=f(val("log_scales").reshape(n, 2)),
         quats=f(val("quats").reshape(n, 4)), opacity_logits=f(opacity), sh=f(sh), textures_raw=f(textures),
         k_min=f(val("k_min").reshape(n)), t2p_exp=torch.from_numpy(val("t2p_exp").reshape(n).astype(np.int32)),
         tex_res=tex_res, tex_offset=jagged_offsets(tex_res),

@@ -27,7 +27,11 @@ from ctgs.model.surfels import SurfelModel
 FORMAT_NAME = "ctgs-model"
 FORMAT_VERSION = 1
 PACKED_VERSION = 2
-READ_VERSIONS = (FORMAT_VERSION, PACKED_VERSION)
+# Version 2 plus position outliers (sections `means_outlier_rows` / `means_outliers`): written only by models that have
+# them, so that a reader without them refuses the file instead of misplacing those primitives.
+PACKED_OUTLIER_VERSION = 3
+PACKED_VERSIONS = (PACKED_VERSION, PACKED_OUTLIER_VERSION)
+READ_VERSIONS = (FORMAT_VERSION, *PACKED_VERSIONS)
 PACKED = "model.bin"
 MANIFEST = "manifest.json"
 PRIMITIVES = "primitives.ply"
@@ -171,7 +175,9 @@ def write_packed_model(packed, out_dir: str, *, extra: dict | None = None) -> di
         # SurfelModel.num_params of the decoded model (SH counted as stored, up to max_sh_degree).
         per_prim = 10 + 3 * (packed.header["max_sh_degree"] + 1) ** 2 + (packed.header["texture_mode"] != "none")
         manifest = {
-            "format": FORMAT_NAME, "version": PACKED_VERSION, "layout": "packed", "packed": PACKED,
+            "format": FORMAT_NAME, "layout": "packed", "packed": PACKED,
+            "version": PACKED_OUTLIER_VERSION if any(e["name"] == "means_outlier_rows" for e in entries)
+            else PACKED_VERSION,
             **packed.header,
             "num_params": per_prim * n + 3 * t,
             "file_bytes": {PACKED: offset},
@@ -207,7 +213,7 @@ def _read_packed(model_dir: str, manifest: dict, device) -> SurfelModel:
 def read_model(model_dir: str, device: torch.device | str = "cpu") -> tuple[SurfelModel, ModelFiles]:
     """Load a model folder (exported or compressed, any layout) as a SurfelModel."""
     manifest = read_manifest(model_dir)
-    if manifest["version"] == PACKED_VERSION:
+    if manifest["version"] in PACKED_VERSIONS:
         model = _read_packed(model_dir, manifest, device)
         return model, _model_files(model_dir, manifest, (MANIFEST, manifest.get("packed", PACKED)))
     ply_path = os.path.join(model_dir, manifest.get("primitives", PRIMITIVES))

@@ -68,8 +68,14 @@ def command(model_dir: str, out_dir: str, target: str, texels: str | None, codeb
     click.echo(f"{model_dir}: {before / 1e6:.3f} MB -> {out_dir}: {after / 1e6:.3f} MB "
                f"(x{before / max(after, 1):.2f} smaller); target {target}, texels {tex['mode']}{k}{rmse} "
                f"({packed.stats['seconds']:.1f} s)")
-    fb = packed.stats.get("means_fallback")
+    span = lambda m: f"{[f'{x:.4g}' for x in m['range'][0]]} to {[f'{x:.4g}' for x in m['range'][1]]}"  # noqa: E731
+    fb, far = packed.stats.get("means_fallback"), packed.stats.get("means_outliers")
     if fb:
-        click.echo(f"positions stored as f32, not {fb['asked']}: the model spans {[f'{x:.4g}' for x in fb['range'][0]]} to {[f'{x:.4g}' for x in fb['range'][1]]} "
-                   f"(a far primitive), and {fb['asked']} would move {fb['over_limit']} primitive(s) by up to "
-                   f"{fb['max_shift_px']:.2f} px (limit {fb['limit_px']} px of the closest training camera)")
+        click.echo(f"positions stored as f32, not {fb['asked']}: {fb['outliers']} of {packed.header['num_primitives']} "
+                   f"primitives would move by more than {fb['limit_px']} px of their closest training camera in "
+                   f"{fb['asked']} (the model spans {span(fb)})")
+    elif far:
+        click.echo(f"positions {far['asked']}, {far['outliers']} primitive(s) stored apart as f32: the model spans "
+                   f"{span(far)}, and one {far['asked']} range over all of it would move primitives by up to "
+                   f"{far['full_range_shift_px']:.2f} px (limit {far['limit_px']} px of the closest training camera; "
+                   f"now {far['max_shift_px']:.3f} px)")

@@ -285,22 +285,59 @@ def test_write_packed_refuses_foreign_folder(tmp_path):
     assert (tmp_path / "run" / "model.pt").read_bytes() == b"x"
 
 
-def test_far_primitive_keeps_positions_float(tmp_path):
-    """One primitive 1000 units out would make q16's step coarse for every other: positions stay float32, and
-    the stage says so. Without it q16 is kept (the error bound of test_attribute_codec_error_bounds)."""
-    from ctgs.io.compress import MEANS_MAX_SHIFT_PX, unpack_model
+def _unpack(packed):
+    from ctgs.io.compress import unpack_model
+
+    arrays = {s.name: s for s in packed.sections}
+    return unpack_model(packed.header, {k: v.array for k, v in arrays.items()}, {k: v.encoding for k, v in arrays.items()})
+
+
+def _shift_px(model, back):
+    return ((back.means.double() - model.means.double()).abs().amax(1) / model.k_min.double()).numpy()
+
+
+def test_far_primitive_stored_apart(tmp_path):
+    """One primitive 1000 units out would make one q16 range coarse for every other: it is stored apart as float32
+    (exactly), the others keep q16 within MEANS_MAX_SHIFT_PX of their closest camera, the file says version 3, and
+    the stage says so. Without it: plain q16, version 2, no outlier sections."""
+    from ctgs.io.compress import MEANS_MAX_SHIFT_PX
 
     model = random_model(n=120, seed=5)
     normal = compress_model(model, Spec(texels="f32", sort=False, means="q16"))
-    assert "means_fallback" not in normal.stats and normal.header["spec"]["means"] == "q16"
+    assert "means_outliers" not in normal.stats and "means_fallback" not in normal.stats
+    assert "means_outlier_rows" not in {s.name for s in normal.sections}
     model.means.data[7] = torch.tensor([1000.0, -20.0, 3.0], dtype=model.means.dtype)
+    full = compress_model(model, Spec(texels="f32", sort=False, means="f32"))
+    packed = compress_model(model, Spec(texels="f32", sort=False, means="q16"))
+    far = packed.stats["means_outliers"]
+    assert far["outliers"] == 1 and far["full_range_shift_px"] > MEANS_MAX_SHIFT_PX >= far["max_shift_px"]
+    assert packed.header["spec"]["means"] == "q16"
+    back = _unpack(packed)
+    shift = _shift_px(model, back)
+    assert shift[7] == 0 and shift.max() <= MEANS_MAX_SHIFT_PX
+    assert sum(s.array.nbytes for s in packed.sections) < sum(s.array.nbytes for s in full.sections)
+    # Morton-sorted too: the outlier rows follow the primitive order.
+    back_sorted = _unpack(compress_model(model, Spec(texels="f32", sort=True, means="q16")))
+    assert (back_sorted.means.double()[:, 0] == model.means.double()[7, 0]).sum() == 1
+    write_model(model, str(tmp_path / "model"))
+    res = CliRunner().invoke(main, ["compress", str(tmp_path / "model"), "-o", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    assert "1 primitive(s) stored apart as f32" in res.output
+    manifest = json.load(open(tmp_path / "c" / "manifest.json"))
+    assert manifest["version"] == 3 and manifest["compression"]["means_outliers"]["outliers"] == 1
+    assert torch.equal(read_model(str(tmp_path / "c"))[0].means.float().sort(0).values,
+                       back_sorted.means.float().sort(0).values)
+
+
+def test_positions_fall_back_to_float_when_q16_cannot_hold_them(tmp_path):
+    """Closest-camera pixels far smaller than q16's step for most primitives: float32 for all is smaller than
+    storing them apart, so positions are float32, bit-exact, and the stage says so."""
+    model = random_model(n=120, seed=5)
+    model.k_min.data[:] = 1e-9
     packed = compress_model(model, Spec(texels="f32", sort=False, means="q16"))
     fb = packed.stats["means_fallback"]
-    assert fb["asked"] == "q16" and fb["stored"] == "f32" and fb["max_shift_px"] > MEANS_MAX_SHIFT_PX
-    assert packed.header["spec"]["means"] == "f32"
-    arrays = {s.name: s for s in packed.sections}
-    back = unpack_model(packed.header, {k: v.array for k, v in arrays.items()}, {k: v.encoding for k, v in arrays.items()})
-    assert torch.equal(back.means.float(), model.means.float())
+    assert fb["stored"] == "f32" and fb["outliers"] == 120 and packed.header["spec"]["means"] == "f32"
+    assert torch.equal(_unpack(packed).means.float(), model.means.float())
     write_model(model, str(tmp_path / "model"))
     res = CliRunner().invoke(main, ["compress", str(tmp_path / "model"), "-o", str(tmp_path / "c")])
     assert res.exit_code == 0, res.output
