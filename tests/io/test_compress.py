@@ -316,6 +316,10 @@ def test_far_primitive_stored_apart(tmp_path):
     shift = _shift_px(model, back)
     assert shift[7] == 0 and shift.max() <= MEANS_MAX_SHIFT_PX
     assert sum(s.array.nbytes for s in packed.sections) < sum(s.array.nbytes for s in full.sections)
+    rows = next(s for s in packed.sections if s.name == "means_outlier_rows")
+    rows.array = np.array([120], dtype="<u4")  # beyond the model: refused, not silently dropped
+    with pytest.raises(ValueError, match="means_outlier_rows"):
+        _unpack(packed)
     # Morton-sorted too: the outlier rows follow the primitive order.
     back_sorted = _unpack(compress_model(model, Spec(texels="f32", sort=True, means="q16")))
     assert (back_sorted.means.double()[:, 0] == model.means.double()[7, 0]).sum() == 1
