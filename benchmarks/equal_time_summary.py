@@ -23,11 +23,13 @@ def main() -> None:
     ap.add_argument("results", nargs="+")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
-    rows, diffs = [], []
+    rows, diffs, setups = [], [], set()
     for path in args.results:
         with open(path) as fh:
             d = json.load(fh)
         seed = d["command"].split("--seed ")[1].split()[0] if "--seed " in d["command"] else "?"
+        opt = lambda k, default: d["command"].split(f"--{k} ")[1].split()[0] if f"--{k} " in d["command"] else default  # noqa: E731
+        setups.add(f"{os.path.basename(opt('scene', '?').rstrip('/'))} {opt('images', 'images_8')}, preset {opt('preset', 'fast')}")
         by = {r["method"]: r for r in d["test"]}
         ca, g = by.get("content-aware", by.get("ca")), by["2dgs"]
         diffs.append(ca["psnr"] - g["psnr"])
@@ -38,7 +40,7 @@ def main() -> None:
     def mean_of(method: str, key: str) -> float:
         return statistics.mean(r[3 if method == "ca" else 4][key] for r in rows)
 
-    lines = ["# Content-aware vs 2dgs at equal wall time, pooled over seeds (herzjesu25 images_8, preset fast)", "",
+    lines = [f"# Content-aware vs 2dgs at equal wall time, pooled over seeds ({'; '.join(sorted(setups))})", "",
              f"Written by `benchmarks/equal_time_summary.py {' '.join(sys.argv[1:])}`. Each seed: benchmarks/"
              "equal_time.py (lengths chosen on validation views, test views left out of the choice; both chosen runs "
              "trained side by side, 1 thread each, on the dev VM); its own file has the validation table.", "",
@@ -72,6 +74,10 @@ def main() -> None:
             extra = f", t = {s_v['t']:.2f}, p = {s_v['p']:.3f}" if s_v["n"] > 1 else ""
             lines.append(f"| {name} | {statistics.mean(a[name] for a, _ in views):.2f} | "
                          f"{statistics.mean(b[name] for _, b in views):.2f} | {s_v['mean']:+.2f} dB{extra} |")
+        first = sorted(views[0][0])[0]
+        rest = [statistics.mean(a[k] - b[k] for k in a if k != first) for a, b in views]
+        lines += ["", sentence(f"Breakdown, not the measure: the paired difference of the mean over the views other "
+                               f"than {first} (content-aware - 2dgs)", paired(rest))]
     out = os.path.join(ROOT, "benchmarks", "results", args.out + ".md")
     with open(out, "w") as fh:
         fh.write("\n".join(lines) + "\n")
