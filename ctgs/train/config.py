@@ -51,6 +51,8 @@ class TrainConfig:
                                      "initialisation and through splits (caps max_primitives; 0 = no cap, the paper)")
     init_opacity: float = _f(0.1, "initial opacity")
     random_rotation: bool = _f(True, "random initial rotations (else identity)")
+    init_shell: int = _f(0, "> 0: add up to this many initial points on a far shell, in directions the training "
+                            "views see past the SfM points (sky), coloured by those pixels (ctgs.train.shell)")
     init_normals: bool = _f(False, "orient initial surfels in the PCA plane of their 16 nearest SfM points "
                             "(overrides random_rotation; the paper starts from random rotations)")
     max_sh_degree: int = _f(3, "highest SH degree")
@@ -159,7 +161,7 @@ def _prob(v):
 
 _RANGES = [
     ("iterations", _ge(1), ">= 1"), ("schedule_scale", _ge(0), ">= 0 (0 = iterations / 30000)"),
-    ("time_budget", _ge(0), ">= 0 minutes (0 = none)"), ("holdout", _ge(0), ">= 0"), ("validation_holdout", _ge(0), ">= 0"), ("threads", _ge(0), ">= 0"),
+    ("time_budget", _ge(0), ">= 0 minutes (0 = none)"), ("holdout", _ge(0), ">= 0"), ("validation_holdout", _ge(0), ">= 0"), ("init_shell", _ge(0), ">= 0"), ("threads", _ge(0), ">= 0"),
     ("max_init_points", _ge(0), ">= 0"), ("primitives_per_pixel", _ge(0), ">= 0 (0 = no cap)"), ("init_opacity", lambda v: 0 < v < 1, "in (0, 1)"),
     ("max_sh_degree", lambda v: 0 <= v <= 3, "in 0..3"), ("sh_every", _gt(0), "> 0"),
     ("lr_position_init", _ge(0), ">= 0"), ("lr_position_final", _gt(0), "> 0 (exponential decay)"),

@@ -55,16 +55,21 @@ def pca_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
 
 def init_model(points: np.ndarray, colors: np.ndarray, *, max_points: int, opacity: float, max_sh_degree: int,
                random_rotation: bool, texture_mode: str, fixed_res: int, seed: int,
-               normals: bool = False) -> SurfelModel:
+               normals: bool = False, extra_points: np.ndarray | None = None,
+               extra_colors: np.ndarray | None = None) -> SurfelModel:
     """A SurfelModel with one surfel per (subsampled) SfM point. Textures empty (allocated at texture start),
     except the fixed_texture baseline whose fixed_res x fixed_res grids exist from the start.
     normals: orient each surfel in the PCA plane of its 16 nearest points (random angle in the plane);
-    else random_rotation (uniform random) or identity."""
+    else random_rotation (uniform random) or identity.
+    extra_points / extra_colors: appended after the cap (ctgs.train.shell's far shell), never subsampled."""
     if points is None or len(points) == 0:
         raise UserError("scene has no SfM points: run `ctgs sfm` first or check sparse/0/points3D.bin")
     if max_points and len(points) > max_points:
         idx = farthest_point_subsample(points, max_points, seed)
         points, colors = points[idx], colors[idx]
+    if extra_points is not None and len(extra_points):
+        points = np.concatenate([np.asarray(points, np.float64), np.asarray(extra_points, np.float64)])
+        colors = np.concatenate([np.asarray(colors, np.float64), np.asarray(extra_colors, np.float64)])
     pts = torch.from_numpy(np.asarray(points, dtype=np.float32))
     cols = torch.from_numpy(np.asarray(colors, dtype=np.float32))
     n = pts.shape[0]

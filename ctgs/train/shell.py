@@ -1,0 +1,61 @@
+"""Initial points on a far shell, where the training views see past the SfM points (sky, distant background).
+
+SfM leaves no points in the sky, so nothing starts there, and a short run may never grow primitives into it: at
+384x256 on herzjesu25 the content-aware `fast` runs left 4-7% of a validation view and 13-14% of the extrapolated
+test view uncovered (benchmarks/results/train_findings.md, "fast vs 2dgs at equal time at 384x256"). `init_shell`
+> 0 adds that many points on a sphere around the scene, in directions some training camera sees, each coloured by
+the mean of the training pixels it projects to; they then train like any other primitive (off in every preset until
+measured).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# Shell radius: this many times the radius holding 98% of the SfM points and every camera centre (around the SfM
+# points' median), so the shell lies beyond the reconstructed scene.
+SHELL_RADIUS_FACTOR = 3.0
+# Candidate directions per requested point (Fibonacci sphere); the visible ones are thinned to the request.
+CANDIDATES_PER_POINT = 40
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """[n, 3] unit vectors spread evenly over the sphere."""
+    i = np.arange(n, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+
+
+def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz [M, 3], rgb [M, 3] in [0, 1]) with M <= count: shell points that project into >= 1 training image."""
+    if count <= 0 or not len(views):
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    pts = np.asarray(points, np.float64)
+    centre = np.median(pts, 0) if len(pts) else np.zeros(3)
+    cams = np.stack([v.camera.center.detach().double().cpu().numpy() for v in views])
+    reach = max(float(np.quantile(np.linalg.norm(pts - centre, axis=1), 0.98)) if len(pts) else 0.0,
+                float(np.linalg.norm(cams - centre, axis=1).max()), 1e-6)
+    xyz = centre + SHELL_RADIUS_FACTOR * reach * fibonacci_sphere(count * CANDIDATES_PER_POINT)
+    colour_sum, seen = np.zeros_like(xyz), np.zeros(len(xyz))
+    for v in views:
+        c = v.camera
+        R, t = c.R.detach().double().cpu().numpy(), c.t.detach().double().cpu().numpy()
+        p = xyz @ R.T + t
+        z = p[:, 2]
+        front = z > c.near
+        u = np.where(front, c.fx * p[:, 0] / np.where(front, z, 1.0) + c.cx, -1.0)
+        w = np.where(front, c.fy * p[:, 1] / np.where(front, z, 1.0) + c.cy, -1.0)
+        inside = front & (u >= 0) & (u < c.width) & (w >= 0) & (w < c.height)
+        if not inside.any():
+            continue
+        img = v.image if isinstance(v.image, np.ndarray) else v.image.detach().cpu().numpy()
+        colour_sum[inside] += img[w[inside].astype(np.int64), u[inside].astype(np.int64), :3]
+        seen[inside] += 1
+    keep = np.flatnonzero(seen > 0)
+    if len(keep) > count:  # thin evenly along the Fibonacci order (which is spatially coherent)
+        keep = keep[np.linspace(0, len(keep) - 1, count).round().astype(np.int64)]
+    return xyz[keep], colour_sum[keep] / seen[keep, None]

@@ -1,0 +1,66 @@
+"""The far shell of initial points (ctgs.train.shell, config key init_shell)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from ctgs.render.camera import Camera
+from ctgs.train.shell import SHELL_RADIUS_FACTOR, fibonacci_sphere, shell_points
+
+
+def _view(colour, yaw=0.0, w=40, h=30):
+    c, s = np.cos(yaw), np.sin(yaw)
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3] = torch.tensor([[c, 0, -s], [0, 1, 0], [s, 0, c]], dtype=torch.float64)  # world -> camera
+    cam = Camera(fx=30.0, fy=30.0, cx=w / 2, cy=h / 2, width=w, height=h, viewmat=vm)
+    return SimpleNamespace(camera=cam, image=np.broadcast_to(np.asarray(colour, np.float32), (h, w, 3)).copy())
+
+
+def test_fibonacci_sphere_is_unit_and_spread():
+    d = fibonacci_sphere(500)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert abs(d.mean(0)).max() < 0.01  # no hemisphere favoured
+
+
+def test_shell_points_lie_where_a_camera_looks_and_take_its_colour():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(200, 3)) * 0.3 + np.array([0, 0, 3.0])
+    views = [_view((0.2, 0.4, 0.9))]
+    xyz, rgb = shell_points(pts, views, 50)
+    assert 0 < len(xyz) <= 50
+    centre = np.median(pts, 0)
+    reach = max(np.quantile(np.linalg.norm(pts - centre, axis=1), 0.98), np.linalg.norm(centre))
+    assert np.allclose(np.linalg.norm(xyz - centre, axis=1), SHELL_RADIUS_FACTOR * reach, rtol=1e-6)
+    cam = views[0].camera
+    p = xyz @ cam.R.numpy().T + cam.t.numpy()
+    u, v = cam.fx * p[:, 0] / p[:, 2] + cam.cx, cam.fy * p[:, 1] / p[:, 2] + cam.cy
+    assert (p[:, 2] > 0).all() and ((u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)).all()
+    assert np.allclose(rgb, [0.2, 0.4, 0.9], atol=1e-6)
+    # A second camera turned away sees other directions: more of the shell, and its colour where only it looks.
+    xyz2, rgb2 = shell_points(pts, views + [_view((1.0, 0.0, 0.0), yaw=np.pi)], 1000)
+    assert len(xyz2) > len(xyz) and np.isclose(rgb2[:, 0], 1.0).any() and np.isclose(rgb2[:, 0], 0.2).any()
+
+
+def test_no_shell_when_off():
+    xyz, rgb = shell_points(np.zeros((5, 3)), [_view((0.5, 0.5, 0.5))], 0)
+    assert xyz.shape == (0, 3) and rgb.shape == (0, 3)
+
+
+def test_init_shell_trains(tmp_path):
+    """A short run with init_shell starts with the shell's primitives on top of the SfM ones."""
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.train.trainer import Trainer
+
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=48, height=36, seed=0)
+
+    def first_count(run: str, sets: list[str]) -> int:
+        cfg = resolve_config(scene_dir, run, None, 1, sets + ["threads=1"], None, False, None, None, preset="fast")
+        return Trainer(cfg, _load_scene(cfg), run).model.num_primitives
+
+    base = first_count(str(tmp_path / "a"), [])
+    shell = first_count(str(tmp_path / "b"), ["init_shell=30"])
+    assert base < shell <= base + 30
