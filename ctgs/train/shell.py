@@ -19,6 +19,9 @@ import numpy as np
 SHELL_RADIUS_FACTOR = 3.0
 # Candidate directions per requested point (Fibonacci sphere); the visible ones are thinned to the request.
 CANDIDATES_PER_POINT = 40
+# A shell point counts for a view only where no SfM point projects within about this many pixels (cells of this size,
+# dilated by one): the shell fills what the views see past the reconstruction, not what lies behind it.
+OCCUPANCY_CELL_PX = 8
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:
@@ -30,8 +33,20 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
 
 
+def _project(xyz: np.ndarray, R: np.ndarray, t: np.ndarray, c) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel coordinates (u, w) of world points in camera c and whether each lands inside its image, in front."""
+    p = xyz @ R.T + t
+    z = p[:, 2]
+    front = z > c.near
+    zs = np.where(front, z, 1.0)
+    u = np.where(front, c.fx * p[:, 0] / zs + c.cx, -1.0)
+    w = np.where(front, c.fy * p[:, 1] / zs + c.cy, -1.0)
+    return u, w, front & (u >= 0) & (u < c.width) & (w >= 0) & (w < c.height)
+
+
 def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz [M, 3], rgb [M, 3] in [0, 1]) with M <= count: shell points that project into >= 1 training image."""
+    """(xyz [M, 3], rgb [M, 3] in [0, 1]) with M <= count: shell points that project into >= 1 training image at a
+    pixel no SfM point reaches (OCCUPANCY_CELL_PX), coloured by the mean of those pixels."""
     if count <= 0 or not len(views):
         return np.zeros((0, 3)), np.zeros((0, 3))
     pts = np.asarray(points, np.float64)
@@ -44,17 +59,25 @@ def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarra
     for v in views:
         c = v.camera
         R, t = c.R.detach().double().cpu().numpy(), c.t.detach().double().cpu().numpy()
-        p = xyz @ R.T + t
-        z = p[:, 2]
-        front = z > c.near
-        u = np.where(front, c.fx * p[:, 0] / np.where(front, z, 1.0) + c.cx, -1.0)
-        w = np.where(front, c.fy * p[:, 1] / np.where(front, z, 1.0) + c.cy, -1.0)
-        inside = front & (u >= 0) & (u < c.width) & (w >= 0) & (w < c.height)
+        # Cells of this view that SfM points reach (dilated by one cell): a shell point there would sit behind them.
+        gw, gh = -(-c.width // OCCUPANCY_CELL_PX), -(-c.height // OCCUPANCY_CELL_PX)
+        occupied = np.zeros((gh + 2, gw + 2), bool)
+        if len(pts):
+            u, w, ok = _project(pts, R, t, c)
+            occupied[(w[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1, (u[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1] = True
+            occupied = occupied | np.roll(occupied, 1, 0) | np.roll(occupied, -1, 0)
+            occupied = occupied | np.roll(occupied, 1, 1) | np.roll(occupied, -1, 1)
+        u, w, inside = _project(xyz, R, t, c)
         if not inside.any():
             continue
+        open_ = inside.copy()
+        open_[inside] = ~occupied[(w[inside] // OCCUPANCY_CELL_PX).astype(np.int64) + 1,
+                                  (u[inside] // OCCUPANCY_CELL_PX).astype(np.int64) + 1]
+        if not open_.any():
+            continue
         img = v.image if isinstance(v.image, np.ndarray) else v.image.detach().cpu().numpy()
-        colour_sum[inside] += img[w[inside].astype(np.int64), u[inside].astype(np.int64), :3]
-        seen[inside] += 1
+        colour_sum[open_] += img[w[open_].astype(np.int64), u[open_].astype(np.int64), :3]
+        seen[open_] += 1
     keep = np.flatnonzero(seen > 0)
     if len(keep) > count:  # thin evenly along the Fibonacci order (which is spatially coherent)
         keep = keep[np.linspace(0, len(keep) - 1, count).round().astype(np.int64)]

@@ -25,9 +25,10 @@ def test_fibonacci_sphere_is_unit_and_spread():
     assert abs(d.mean(0)).max() < 0.01  # no hemisphere favoured
 
 
-def test_shell_points_lie_where_a_camera_looks_and_take_its_colour():
+def test_shell_points_lie_where_a_camera_looks_past_the_sfm_points_and_take_its_colour():
     rng = np.random.default_rng(0)
-    pts = rng.normal(size=(200, 3)) * 0.3 + np.array([0, 0, 3.0])
+    # SfM points fill the left half of the (only) camera's image; the right half sees past them.
+    pts = np.stack([rng.uniform(-1.0, -0.1, 400), rng.uniform(-0.7, 0.7, 400), np.full(400, 2.0)], 1)
     views = [_view((0.2, 0.4, 0.9))]
     xyz, rgb = shell_points(pts, views, 50)
     assert 0 < len(xyz) <= 50
@@ -38,6 +39,9 @@ def test_shell_points_lie_where_a_camera_looks_and_take_its_colour():
     p = xyz @ cam.R.numpy().T + cam.t.numpy()
     u, v = cam.fx * p[:, 0] / p[:, 2] + cam.cx, cam.fy * p[:, 1] / p[:, 2] + cam.cy
     assert (p[:, 2] > 0).all() and ((u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)).all()
+    q = pts @ cam.R.numpy().T + cam.t.numpy()
+    sfm_u = cam.fx * q[:, 0] / q[:, 2] + cam.cx
+    assert u.min() > sfm_u.max()  # none behind the SfM points (their cells, dilated, lie left of every shell point)
     assert np.allclose(rgb, [0.2, 0.4, 0.9], atol=1e-6)
     # A second camera turned away sees other directions: more of the shell, and its colour where only it looks.
     xyz2, rgb2 = shell_points(pts, views + [_view((1.0, 0.0, 0.0), yaw=np.pi)], 1000)
@@ -55,7 +59,7 @@ def test_init_shell_trains(tmp_path):
     from ctgs.stages.train import _load_scene, resolve_config
     from ctgs.train.trainer import Trainer
 
-    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=48, height=36, seed=0)
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=40)
 
     def first_count(run: str, sets: list[str]) -> int:
         cfg = resolve_config(scene_dir, run, None, 1, sets + ["threads=1"], None, False, None, None, preset="fast")
