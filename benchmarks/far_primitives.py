@@ -28,6 +28,7 @@ import torch
 from ctgs.io.run_model import load_run
 from ctgs.render.api import render
 from ctgs.scene import load_scene
+from ctgs.train.shell import _project  # the same in-image test as the far shell's
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -93,23 +94,20 @@ def main() -> None:
                   f"beyond {args.factor:g}x (farthest {float(d.max()):.4g}, {float(d.max()) / med:.0f}x).", "",
                   "| primitive | distance (x median) | opacity | scales | texture | frusta | median depth | contrib | train dB lost without it |",
                   "| ---: | --- | ---: | --- | --- | ---: | ---: | ---: | ---: |"]
-        for i, p, dl in zip(far, pix, drop):
-            depths = []
-            for v in sc.train:
-                c = v.camera
-                q = c.R.double() @ x[i] + c.t.double()
-                if q[2] > c.near:
-                    u, w = c.fx * q[0] / q[2] + c.cx, c.fy * q[1] / q[2] + c.cy
-                    if 0 <= u < c.width and 0 <= w < c.height:
-                        depths.append(float(q[2]))
+        xs = x[far].numpy()
+        depth = np.full((len(sc.train), len(far)), np.nan)  # depth in each training camera whose image holds the centre
+        for j, v in enumerate(sc.train):
+            c = v.camera
+            R, t = c.R.double().numpy(), c.t.double().numpy()
+            inside = _project(xs, R, t, c)[2]
+            depth[j, inside] = (xs @ R.T + t)[inside, 2]
+        for k, (i, p, dl) in enumerate(zip(far, pix, drop)):
+            seen = depth[~np.isnan(depth[:, k]), k]
             tex = tuple(m.tex_res[i].tolist())
             lines.append(f"| {i} | {float(d[i]):.4g} ({float(d[i]) / med:.0f}x) | {float(op[i]):.3f} | "
                          f"{float(scales[i, 0]):.3g} x {float(scales[i, 1]):.3g} | "
-                         f"{'none' if tex == (0, 0) else f'{tex[0]}x{tex[1]}'} | {len(depths)} | "
-                         f"{np.median(depths):.3g} | {p:,.0f} | {dl:+.3f} |" if depths else
-                         f"| {i} | {float(d[i]):.4g} ({float(d[i]) / med:.0f}x) | {float(op[i]):.3f} | "
-                         f"{float(scales[i, 0]):.3g} x {float(scales[i, 1]):.3g} | "
-                         f"{'none' if tex == (0, 0) else f'{tex[0]}x{tex[1]}'} | 0 | - | {p:,.0f} | {dl:+.3f} |")
+                         f"{'none' if tex == (0, 0) else f'{tex[0]}x{tex[1]}'} | {len(seen)} | "
+                         f"{f'{np.median(seen):.3g}' if len(seen) else '-'} | {p:,.0f} | {dl:+.3f} |")
         lines.append("")
     out = os.path.join(ROOT, "benchmarks", "results", f"far_primitives_{args.out}.md")
     with open(out, "w") as fh:
