@@ -11,11 +11,20 @@ from ctgs.train.split import prune, split
 
 
 @torch.no_grad()
-def full_routine(model, opt, cfg, it: int, views, render_fn, cameras) -> dict:
+def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None) -> dict:
     """E over all training views; split (tau_tr), upscale top E (t2p_exp > min), downscale the others
-    (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log."""
+    (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
+
+    background: optional function model -> [N] bool of primitives the ranking leaves out (never split or upscaled;
+    the top fraction is taken among the others).
+    """
     E = compute_E(model, views, render_fn, cfg.lambda_ssim)
-    top = top_fraction_mask(E, cfg.top_fraction)
+    if background is None:
+        top = top_fraction_mask(E, cfg.top_fraction)
+    else:
+        bg = background(model)
+        top = torch.zeros_like(bg)
+        top[~bg] = top_fraction_mask(E[~bg], cfg.top_fraction)
     n0 = model.num_primitives
     n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E)
     up = texels.upscale(model, opt, top, cfg.min_t2p_exp)

@@ -4,8 +4,9 @@ SfM leaves no points in the sky, so nothing starts there, and a short run may ne
 384x256 on herzjesu25 the content-aware `fast` runs left 4-7% of a validation view and 13-14% of the extrapolated
 test view uncovered (benchmarks/results/train_findings.md, "fast vs 2dgs at equal time at 384x256"). `init_shell`
 > 0 adds that many points on a sphere around the scene, in directions some training camera sees, each coloured by
-the mean of the training pixels it projects to; they then train like any other primitive (off in every preset until
-measured).
+the mean of the training pixels it projects to. They train like any other primitive except that the split and upscale
+routines leave them out (`far_mask`): the background gets a few coarse primitives, and the top-E share the routines
+refine stays with the scene's own primitives (off in every preset until measured).
 """
 
 from __future__ import annotations
@@ -13,10 +14,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 # Shell radius: this many times the radius holding 98% of the SfM points and every camera centre (around the SfM
 # points' median), so the shell lies beyond the reconstructed scene.
 SHELL_RADIUS_FACTOR = 3.0
+# Primitives farther than this many times the reach from the centre count as background (`far_mask`): between the
+# reconstructed scene (<= 1x) and the shell (3x).
+FAR_FACTOR = 2.0
 # Candidate directions per requested point (Fibonacci sphere); the visible ones are thinned to the request.
 CANDIDATES_PER_POINT = 40
 # A shell point counts for a view only where no SfM point projects within about this many pixels (cells of this size,
@@ -44,16 +49,31 @@ def _project(xyz: np.ndarray, R: np.ndarray, t: np.ndarray, c) -> tuple[np.ndarr
     return u, w, front & (u >= 0) & (u < c.width) & (w >= 0) & (w < c.height)
 
 
+def scene_sphere(points: np.ndarray, views: list) -> tuple[np.ndarray, float]:
+    """(centre [3], reach): the SfM points' median and the radius around it that holds 98% of them and every
+    training camera centre."""
+    pts = np.asarray(points, np.float64)
+    centre = np.median(pts, 0) if len(pts) else np.zeros(3)
+    cams = np.stack([v.camera.center.detach().double().cpu().numpy() for v in views])
+    reach = max(float(np.quantile(np.linalg.norm(pts - centre, axis=1), 0.98)) if len(pts) else 0.0,
+                float(np.linalg.norm(cams - centre, axis=1).max()), 1e-6)
+    return centre, reach
+
+
+def far_mask(means, centre: np.ndarray, reach: float):
+    """[N] bool tensor: primitives beyond FAR_FACTOR x reach from the centre (the shell's, and anything that drifted
+    as far)."""
+    c = torch.as_tensor(centre, dtype=means.dtype, device=means.device)
+    return (means.detach() - c).norm(dim=1) > FAR_FACTOR * reach
+
+
 def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarray, np.ndarray]:
     """(xyz [M, 3], rgb [M, 3] in [0, 1]) with M <= count: shell points that project into >= 1 training image at a
     pixel no SfM point reaches (OCCUPANCY_CELL_PX), coloured by the mean of those pixels."""
     if count <= 0 or not len(views):
         return np.zeros((0, 3)), np.zeros((0, 3))
     pts = np.asarray(points, np.float64)
-    centre = np.median(pts, 0) if len(pts) else np.zeros(3)
-    cams = np.stack([v.camera.center.detach().double().cpu().numpy() for v in views])
-    reach = max(float(np.quantile(np.linalg.norm(pts - centre, axis=1), 0.98)) if len(pts) else 0.0,
-                float(np.linalg.norm(cams - centre, axis=1).max()), 1e-6)
+    centre, reach = scene_sphere(pts, views)
     xyz = centre + SHELL_RADIUS_FACTOR * reach * fibonacci_sphere(count * CANDIDATES_PER_POINT)
     colour_sum, seen = np.zeros_like(xyz), np.zeros(len(xyz))
     for v in views:

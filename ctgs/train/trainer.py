@@ -28,7 +28,7 @@ from ctgs.train.config import TrainConfig
 from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
 from ctgs.train.init import init_model
-from ctgs.train.shell import shell_points
+from ctgs.train.shell import far_mask, scene_sphere, shell_points
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
@@ -85,6 +85,8 @@ class Trainer:
         if self.device.type == "cpu":
             fused.tune_allocator()  # freed [T, 3] temporaries are reused, not faulted in afresh
         self.extent = float(scene.extent)
+        # init_shell: the sphere that tells the shell's far primitives from the scene's (ctgs.train.shell.far_mask).
+        self.sphere = scene_sphere(scene.points, scene.train) if cfg.init_shell > 0 else None
         self.train_views = make_views(scene.train, self.device)
         self.test_views = make_views(scene.test, self.device)
         if not self.train_views:
@@ -354,6 +356,13 @@ class Trainer:
         summary = self._finish(p, s)
         yield Done(self.it, summary)
 
+    def _background_mask(self):
+        """With init_shell: a function model -> [N] bool of the far primitives the split/upscale ranking leaves out."""
+        if self.sphere is None:
+            return None
+        centre, reach = self.sphere
+        return lambda model: far_mask(model.means, centre, reach)
+
     def _adapt(self, it: int):
         cfg, model, opt = self.cfg, self.model, self.opt
         if cfg.method == "content_aware":
@@ -366,7 +375,7 @@ class Trainer:
             kind = schedule.routine_kind(cfg, it)
             if kind == "full":
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
-                                                       self.cameras))
+                                                       self.cameras, self._background_mask()))
             elif kind == "late":
                 yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras))
             elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it):
