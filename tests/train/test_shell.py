@@ -68,3 +68,50 @@ def test_init_shell_trains(tmp_path):
     base = first_count(str(tmp_path / "a"), [])
     shell = first_count(str(tmp_path / "b"), ["init_shell=30"])
     assert base < shell <= base + 30
+
+
+def test_far_mask_and_scene_sphere():
+    from ctgs.train.shell import FAR_FACTOR, far_mask, scene_sphere
+
+    pts = np.random.default_rng(1).normal(size=(500, 3))
+    views = [_view((0.5, 0.5, 0.5))]  # camera at the origin
+    centre, reach = scene_sphere(pts, views)
+    assert np.allclose(centre, np.median(pts, 0))
+    assert reach >= np.quantile(np.linalg.norm(pts - centre, axis=1), 0.98) - 1e-12
+    means = torch.tensor(np.stack([centre, centre + [FAR_FACTOR * reach * 0.99, 0, 0],
+                                   centre + [0, 0, FAR_FACTOR * reach * 1.01]]), dtype=torch.float32)
+    assert far_mask(means, centre, reach).tolist() == [False, False, True]
+
+
+def test_full_routine_leaves_background_primitives_out_of_split_and_upscale(monkeypatch):
+    """The top fraction is taken among the non-background primitives; background ones are never split or upscaled,
+    however large their error."""
+    from dataclasses import replace
+
+    from ctgs.train import routines
+    from ctgs.train.config import TrainConfig
+    from train_helpers import camera, model, optimiser
+
+    n = 20
+    xs = torch.linspace(-1.0, 1.0, n)
+    m = model(means=torch.stack([xs, torch.zeros(n), torch.full((n,), 4.0)], 1), scales=[[0.3, 0.3]] * n,
+              opacities=[0.9] * n, tex_res=[[8, 8]] * n, t2p_exp=[3] * n)
+    opt = optimiser(m)
+    bg = torch.zeros(n, dtype=torch.bool)
+    bg[:5] = True  # the background holds the five largest errors
+    E = torch.cat([torch.linspace(10.0, 6.0, 5), torch.linspace(5.0, 0.5, n - 5)])
+    monkeypatch.setattr(routines, "compute_E", lambda *a, **k: E.clone())
+    cfg = replace(TrainConfig(), top_fraction=0.2, tau_tr_start=1e9, tau_tr_end=1e9, tau_ds=-1.0,
+                  prune_opacity=0.0, max_texture_res=64)
+    tag = m.means.detach()[:, 0].clone()  # identifies primitives through the routine (no splits: tau_tr huge)
+    exp0 = m.t2p_exp.clone()
+    stats = routines.full_routine(m, opt, cfg, 1, [], None, [camera()], background=lambda mm: bg.clone())
+    assert stats["split"] == 0 and m.num_primitives == n and torch.equal(m.means.detach()[:, 0], tag)
+    upscaled = m.t2p_exp < exp0
+    assert not upscaled[:5].any()  # background: never upscaled
+    assert upscaled.nonzero().flatten().tolist() == [5, 6, 7]  # 20% of the 15 others: the top 3 by E
+    # Without the mask the background takes the slots.
+    m2 = model(means=torch.stack([xs, torch.zeros(n), torch.full((n,), 4.0)], 1), scales=[[0.3, 0.3]] * n,
+               opacities=[0.9] * n, tex_res=[[8, 8]] * n, t2p_exp=[3] * n)
+    routines.full_routine(m2, optimiser(m2), cfg, 1, [], None, [camera()])
+    assert (m2.t2p_exp < 3).nonzero().flatten().tolist() == [0, 1, 2, 3]
