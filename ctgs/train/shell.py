@@ -4,9 +4,10 @@ SfM leaves no points in the sky, so nothing starts there, and a short run may ne
 384x256 on herzjesu25 the content-aware `fast` runs left 4-7% of a validation view and 13-14% of the extrapolated
 test view uncovered (benchmarks/results/train_findings.md, "fast vs 2dgs at equal time at 384x256"). `init_shell`
 > 0 adds that many points on a sphere around the scene, in directions some training camera sees, each coloured by
-the mean of the training pixels it projects to. They train like any other primitive except that the split and upscale
-routines leave them out (`far_mask`): the background gets a few coarse primitives, and the top-E share the routines
-refine stays with the scene's own primitives (off in every preset until measured).
+the mean of the training pixels it projects to. They train like the other primitives with two differences: the split
+and upscale routines leave them out (`far_mask`), so the top-E share the routines refine stays with the scene's own
+primitives; and in training renders they show only where the view sees past the SfM points (`composite`), so they
+cannot stand in for a transparent scene (off in every preset until measured).
 """
 
 from __future__ import annotations
@@ -67,6 +68,50 @@ def far_mask(means, centre: np.ndarray, reach: float):
     return (means.detach() - c).norm(dim=1) > FAR_FACTOR * reach
 
 
+def _occupied_cells(pts: np.ndarray, c) -> np.ndarray:
+    """[gh + 2, gw + 2] bool grid of OCCUPANCY_CELL_PX cells (one cell of border) that SfM points reach in camera c,
+    dilated by one cell."""
+    R, t = c.R.detach().double().cpu().numpy(), c.t.detach().double().cpu().numpy()
+    gw, gh = -(-c.width // OCCUPANCY_CELL_PX), -(-c.height // OCCUPANCY_CELL_PX)
+    occupied = np.zeros((gh + 2, gw + 2), bool)
+    if len(pts):
+        u, w, ok = _project(pts, R, t, c)
+        occupied[(w[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1, (u[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1] = True
+        occupied = occupied | np.roll(occupied, 1, 0) | np.roll(occupied, -1, 0)
+        occupied = occupied | np.roll(occupied, 1, 1) | np.roll(occupied, -1, 1)
+    return occupied
+
+
+def open_mask(points: np.ndarray, camera) -> np.ndarray:
+    """[H, W] bool: pixels of `camera` where it sees past the SfM points (no point within one dilated
+    OCCUPANCY_CELL_PX cell): where the shell may show in training renders (`composite`)."""
+    occ = _occupied_cells(np.asarray(points, np.float64), camera)[1:-1, 1:-1]
+    rows = np.arange(camera.height) // OCCUPANCY_CELL_PX
+    cols = np.arange(camera.width) // OCCUPANCY_CELL_PX
+    return ~occ[rows[:, None], cols[None, :]]
+
+
+def composite(render_fn, inputs, camera, far: torch.Tensor, open_px: torch.Tensor, background: torch.Tensor):
+    """Training render with the shell behind the scene only where the view sees past the SfM points.
+
+    Renders the scene's primitives (`far` False) over nothing and the far ones over `background`, then composites
+    rgb = scene + T_scene x (far render where `open_px`, else `background`). Where `open_px` is True everywhere
+    this is the single render of all primitives (the far ones lie behind the scene); elsewhere the far primitives
+    cannot stand in for a transparent scene, so a random `background` still asks the scene to cover what SfM
+    reconstructed. Returns (rgb [H, W, 3], [N] bool rasterized by either render or None).
+    """
+    from dataclasses import replace
+
+    near_in = replace(inputs, opacities=inputs.opacities * (~far).to(inputs.opacities.dtype))
+    far_in = replace(inputs, opacities=inputs.opacities * far.to(inputs.opacities.dtype))
+    a = render_fn(near_in, camera, background=torch.zeros_like(background))
+    b = render_fn(far_in, camera, background=background)
+    behind = torch.where(open_px[..., None], b.rgb, background.expand_as(b.rgb))
+    rgb = a.rgb + (1 - a.alpha)[..., None] * behind
+    ras = a.rasterized | b.rasterized if a.rasterized is not None and b.rasterized is not None else None
+    return rgb, ras
+
+
 def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarray, np.ndarray]:
     """(xyz [M, 3], rgb [M, 3] in [0, 1]) with M <= count: shell points that project into >= 1 training image at a
     pixel no SfM point reaches (OCCUPANCY_CELL_PX), coloured by the mean of those pixels."""
@@ -79,14 +124,7 @@ def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarra
     for v in views:
         c = v.camera
         R, t = c.R.detach().double().cpu().numpy(), c.t.detach().double().cpu().numpy()
-        # Cells of this view that SfM points reach (dilated by one cell): a shell point there would sit behind them.
-        gw, gh = -(-c.width // OCCUPANCY_CELL_PX), -(-c.height // OCCUPANCY_CELL_PX)
-        occupied = np.zeros((gh + 2, gw + 2), bool)
-        if len(pts):
-            u, w, ok = _project(pts, R, t, c)
-            occupied[(w[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1, (u[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1] = True
-            occupied = occupied | np.roll(occupied, 1, 0) | np.roll(occupied, -1, 0)
-            occupied = occupied | np.roll(occupied, 1, 1) | np.roll(occupied, -1, 1)
+        occupied = _occupied_cells(pts, c)  # a shell point there would sit behind the SfM points
         u, w, inside = _project(xyz, R, t, c)
         if not inside.any():
             continue

@@ -28,7 +28,7 @@ from ctgs.train.config import TrainConfig
 from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
 from ctgs.train.init import init_model
-from ctgs.train.shell import far_mask, scene_sphere, shell_points
+from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell_points
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
@@ -92,6 +92,9 @@ class Trainer:
         if not self.train_views:
             raise UserError(f"{scene.root}: no training images (check --images and holdout)")
         self.cameras = [v.camera for v in self.train_views]
+        # init_shell: per training view, the pixels where the shell may show in training renders (shell.composite).
+        self.open_px = None if self.sphere is None else {
+            v.name: torch.from_numpy(open_mask(scene.points, v.camera)).to(self.device) for v in self.train_views}
         self.pixels = float(np.median([v.camera.width * v.camera.height for v in self.train_views]))
         self.cfg = rules.resolve(cfg, self.pixels)
         self.planner = None
@@ -288,8 +291,13 @@ class Trainer:
             # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
             bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
             inputs = self.model.render_inputs()
-            out = self.render_fn(inputs, view.camera, background=bg)
-            terms = training_loss(out.rgb, view.image_t, self.model, view.camera, cfg, rasterized=out.rasterized,
+            if self.open_px is None:
+                out = self.render_fn(inputs, view.camera, background=bg)
+                rgb, rasterized = out.rgb, out.rasterized
+            else:
+                rgb, rasterized = composite(self.render_fn, inputs, view.camera, far_mask(self.model.means, *self.sphere),
+                                            self.open_px[view.name], self.background if bg is None else bg)
+            terms = training_loss(rgb, view.image_t, self.model, view.camera, cfg, rasterized=rasterized,
                                   textures=inputs.textures)
             loss = terms.total
             if cfg.debug_nan_at and it == cfg.debug_nan_at:

@@ -115,3 +115,47 @@ def test_full_routine_leaves_background_primitives_out_of_split_and_upscale(monk
                opacities=[0.9] * n, tex_res=[[8, 8]] * n, t2p_exp=[3] * n)
     routines.full_routine(m2, optimiser(m2), cfg, 1, [], None, [camera()])
     assert (m2.t2p_exp < 3).nonzero().flatten().tolist() == [0, 1, 2, 3]
+
+
+def test_composite_is_the_single_render_where_open_and_the_background_elsewhere():
+    from ctgs.render import render
+    from ctgs.train.shell import composite
+    from train_helpers import H, W, camera, model
+
+    # Two scene surfels in front (z 3-3.5), two far ones behind (z 40) covering the whole image.
+    m = model(means=[[-0.25, 0.0, 3.0], [0.3, 0.1, 3.5], [0.0, 0.0, 40.0], [3.0, 0.0, 40.0]],
+              scales=[[0.2, 0.15], [0.15, 0.2], [30.0, 30.0], [30.0, 30.0]], opacities=[0.7, 0.8, 0.9, 0.6],
+              tex_res=[[4, 4]] * 4)
+    far = torch.tensor([False, False, True, True])
+    bg = torch.tensor([0.9, 0.1, 0.4])
+    inp, cam = m.render_inputs(), camera()
+    fn = lambda i, c, background: render(i, c, backend="cpu", sh_degree=0, background=background)  # noqa: E731
+    whole = render(inp, cam, backend="cpu", sh_degree=0, background=bg)
+    rgb, ras = composite(fn, inp, cam, far, torch.ones(H, W, dtype=torch.bool), bg)
+    assert torch.allclose(rgb, whole.rgb, atol=1e-5)
+    assert torch.equal(ras, whole.rasterized)
+    # Nowhere open: the far surfels do not show; the scene alone over the background.
+    rgb0, _ = composite(fn, inp, cam, far, torch.zeros(H, W, dtype=torch.bool), bg)
+    o = inp.opacities.detach().clone()
+    o[far] = 0
+    from dataclasses import replace
+    near = render(replace(inp, opacities=o), cam, backend="cpu", sh_degree=0, background=bg)  # far ones at zero
+    assert torch.allclose(rgb0, near.rgb, atol=1e-5)
+    assert (rgb0 - whole.rgb).abs().max() > 0.05  # the far surfels did show in the single render
+    # Gradients reach the far surfels only through open pixels.
+    m.opacity_logits.grad = None
+    open_left = torch.zeros(H, W, dtype=torch.bool)
+    open_left[:, : W // 2] = True
+    composite(fn, m.render_inputs(), cam, far, open_left, bg)[0].sum().backward()
+    assert m.opacity_logits.grad[2:].abs().sum() > 0
+
+
+def test_open_mask_marks_pixels_past_the_sfm_points():
+    from ctgs.train.shell import open_mask
+
+    rng = np.random.default_rng(0)
+    pts = np.stack([rng.uniform(-1.0, -0.1, 400), rng.uniform(-0.7, 0.7, 400), np.full(400, 2.0)], 1)
+    cam = _view((0.5, 0.5, 0.5)).camera
+    mask = open_mask(pts, cam)
+    assert mask.shape == (cam.height, cam.width)
+    assert not mask[:, : cam.width // 2 - 2].any() and mask[:, -4:].all()
