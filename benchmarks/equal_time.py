@@ -15,7 +15,9 @@ each method may pick its length, on validation views only, among lengths that fi
 
 Usage: .venv/bin/python benchmarks/equal_time.py --scene /work/data/herzjesu25 --images images_8
        [--preset fast] [--ca-iters 1500 2000 3000] [--2dgs-iters 1000 1500 2000 3000] [--work DIR] [--tag vm]
-Writes benchmarks/results/equal_time_<tag>.{md,json}. Runs already done in --work are reused.
+       [--ca-set KEY=VALUE ...]   (overrides for the content-aware runs only)
+Writes benchmarks/results/equal_time_<tag>.{md,json}. Runs already done in --work are reused (so the 2dgs runs of an
+earlier benchmark with the same scene, preset and seed can be copied in when only the content-aware side changes).
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ def train(args, method: str, iters: int, split: str) -> dict:
            "--iterations", str(iters), "--set", f"threads={args.threads}", "--set", f"seed={args.seed}"]
     if method == "2dgs":
         cmd += ["--config", "2dgs"]
+    else:
+        for kv in args.ca_set:
+            cmd += ["--set", kv]
     if split == "val":
         cmd += ["--set", "validation_holdout=8"]
     log = run + ".log"
@@ -99,7 +104,10 @@ def main() -> None:
     ap.add_argument("--parallel", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tag", default=platform.node())
+    ap.add_argument("--ca-set", nargs="*", default=[], help="KEY=VALUE overrides for the content-aware runs")
     args = ap.parse_args()
+    if any("=" not in kv for kv in args.ca_set):
+        raise SystemExit(f"equal_time.py: write --ca-set overrides as KEY=VALUE, got {args.ca_set}")
     args.scene = os.path.abspath(args.scene)
 
     val = both(args, [("ca", n, "val") for n in args.ca_iters] + [("2dgs", n, "val") for n in args.gs_iters])
@@ -121,7 +129,8 @@ def write(args, val: list[dict], test: list[dict], limit: float) -> None:
                    "validation": val, "test": test}, fh, indent=1)
     name = {"ca": "content-aware", "2dgs": "2dgs"}
     lines = [f"# Content-aware vs 2dgs at equal wall time, lengths chosen on validation views "
-             f"({os.path.basename(args.scene)} {args.images}, preset {args.preset})", "",
+             f"({os.path.basename(args.scene)} {args.images}, preset {args.preset}"
+             f"{''.join(' --set ' + kv for kv in args.ca_set) + ' for content-aware' if args.ca_set else ''})", "",
              f"Written by `benchmarks/equal_time.py {' '.join(sys.argv[1:])}` on {time.strftime('%Y-%m-%d')}, "
              f"{machine}, commit {commit}, CPU backend, {args.threads} thread per training, {args.parallel} "
              "trainings side by side. Wall = the whole `ctgs train` command.", "",
