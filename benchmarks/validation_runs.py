@@ -1,0 +1,138 @@
+"""Groups of finished validation runs (`--set validation_holdout=K`), side by side and paired by seed.
+
+For tuning on validation views only: each run's validation views (the same split `ctgs train` made: every K-th
+training view from the K//2-th) are rendered from its model, and per view the PSNR, the open pixels (rendered
+alpha < 0.9: the black background shows) and the alpha of the scene's own primitives (the model with every
+primitive farther than 2x the scene's reach dropped, ctgs.train.shell.far_mask: below 1 where the scene is
+see-through and something far behind fills in) are reported, with the run's validation SSIM, primitives, params and
+train time from its train_summary.json. Groups are compared with the first group (the reference) by seed.
+
+Usage: .venv/bin/python benchmarks/validation_runs.py --group NAME=RUN_DIR[,RUN_DIR...] [--group ...] --out NAME
+Writes benchmarks/results/validation_<NAME>.md. The first group is the reference; runs pair by their seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import replace
+from types import SimpleNamespace
+
+import torch
+
+from ctgs.io.run_model import load_run
+from ctgs.render.api import render
+from ctgs.stages.train import _load_scene
+from ctgs.train.shell import far_mask, scene_sphere
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
+
+
+def psnr(se: torch.Tensor) -> float:
+    return float(-10 * torch.log10(se.mean()))
+
+
+def measure(run_dir: str) -> dict:
+    with open(os.path.join(run_dir, "config.toml"), "rb") as fh:
+        cfg = tomllib.load(fh)
+    if int(cfg.get("validation_holdout", 0)) <= 0:
+        raise SystemExit(f"{run_dir}: not a validation run (validation_holdout = 0); train with "
+                         "--set validation_holdout=8")
+    with open(os.path.join(run_dir, "train_summary.json")) as fh:
+        summary = json.load(fh)
+    run = load_run(run_dir)
+    model = run.model
+    scene = _load_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images, holdout=run.holdout,
+                                        validation_holdout=int(cfg["validation_holdout"])))
+    centre, reach = scene_sphere(scene.points, scene.train)
+    far = far_mask(model.means, centre, reach)
+    inputs = model.render_inputs()
+    opac = inputs.opacities.detach().clone()
+    opac[far] = 0
+    scene_only = replace(inputs, opacities=opac)
+    views = []
+    with torch.no_grad():
+        for v in scene.test:
+            out = render(inputs, v.camera, sh_degree=model.sh_degree)
+            se = ((out.rgb.clamp(0, 1) - torch.from_numpy(v.image)) ** 2).mean(-1)
+            a = render(scene_only, v.camera, sh_degree=model.sh_degree).alpha
+            views.append({"name": v.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean()),
+                          "scene_alpha": float(a.mean()), "scene_below": float((a < OPEN_ALPHA).float().mean())})
+    return {"run": run_dir, "seed": int(cfg.get("seed", 0)), "views": views,
+            "psnr": statistics.fmean(v["psnr"] for v in views), "ssim": summary["final_test_ssim"],
+            "summary_psnr": summary["final_test_psnr"], "primitives": summary["num_primitives"],
+            "params": summary["num_params"], "far": int(far.sum()), "train_s": summary["train_seconds"],
+            "iterations": summary["iterations"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--group", action="append", required=True, help="NAME=RUN_DIR[,RUN_DIR...]")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    groups = []
+    for spec in args.group:
+        if "=" not in spec:
+            raise SystemExit(f"validation_runs.py: write groups as NAME=RUN_DIR[,RUN_DIR...], got {spec!r}")
+        name, dirs = spec.split("=", 1)
+        groups.append((name, [measure(d) for d in dirs.split(",") if d]))
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=ROOT).stdout.strip()
+    ref_name, ref = groups[0]
+    ref_by_seed = {r["seed"]: r for r in ref}
+    view_names = [v["name"] for v in ref[0]["views"]]
+    lines = [f"# Validation runs side by side ({args.out})", "",
+             f"Written by `benchmarks/validation_runs.py {' '.join(sys.argv[1:])}` on {time.strftime('%Y-%m-%d')}, "
+             f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus), commit {commit}. Validation views "
+             "only (the protocol's test views were never trained on or rendered). PSNR = mean over the validation "
+             f"views of each view's PSNR (CPU backend, black background); open = rendered alpha < {OPEN_ALPHA}; scene "
+             "alpha = alpha without the primitives beyond 2x the scene's reach (`far`). Reference group: "
+             f"**{ref_name}**; differences pair runs by seed.", "",
+             "## Groups", "",
+             "| group | runs | val PSNR (by seed) | mean | vs reference | val SSIM | primitives | params | train s |",
+             "| --- | ---: | --- | ---: | ---: | ---: | ---: | --- | ---: |"]
+    for name, runs in groups:
+        runs = sorted(runs, key=lambda r: r["seed"])
+        mean = statistics.fmean(r["psnr"] for r in runs)
+        diffs = [r["psnr"] - ref_by_seed[r["seed"]]["psnr"] for r in runs if r["seed"] in ref_by_seed]
+        vs = "" if name == ref_name or not diffs else f"{statistics.fmean(diffs):+.2f} ({', '.join(f'{d:+.2f}' for d in diffs)})"
+        by_seed = " / ".join("%.2f" % r["psnr"] for r in runs)
+        params = " / ".join("%.2fM" % (r["params"] / 1e6) for r in runs)
+        lines.append(f"| {name} | {len(runs)} | {by_seed} | {mean:.2f} | {vs} | "
+                     f"{statistics.fmean(r['ssim'] for r in runs):.4f} | "
+                     f"{statistics.fmean(r['primitives'] for r in runs) / 1e3:.1f}k | "
+                     f"{params} | "
+                     f"{statistics.fmean(r['train_s'] for r in runs):.0f} |")
+    lines += ["", "## Per view (seed order)", "",
+              "| group | " + " | ".join(f"{n} PSNR | {n} open | {n} scene alpha (< 0.9)" for n in view_names) + " | far |",
+              "| --- | " + " | ".join("---: | ---: | ---:" for _ in view_names) + " | ---: |"]
+    for name, runs in groups:
+        runs = sorted(runs, key=lambda r: r["seed"])
+        cells = []
+        for i, _ in enumerate(view_names):
+            vs = [r["views"][i] for r in runs]
+            cells += [" / ".join(f"{v['psnr']:.2f}" for v in vs),
+                      " / ".join(f"{100 * v['open']:.2f}%" for v in vs),
+                      " / ".join(f"{v['scene_alpha']:.3f} ({100 * v['scene_below']:.1f}%)" for v in vs)]
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {' / '.join(str(r['far']) for r in runs)} |")
+    worst = max(abs(r["psnr"] - r["summary_psnr"]) for _, runs in groups for r in runs)
+    lines += ["", f"Check: these PSNR means differ from the runs' own validation PSNR (train_summary.json) by at most "
+              f"{worst:.3f} dB.", "", "Runs: " + "; ".join(f"{name}: " + ", ".join(r["run"] for r in runs)
+                                                          for name, runs in groups)]
+    out = os.path.join(ROOT, "benchmarks", "results", f"validation_{args.out}.md")
+    with open(out, "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
