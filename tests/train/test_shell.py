@@ -5,6 +5,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 
 from ctgs.render.camera import Camera
@@ -159,3 +160,43 @@ def test_open_mask_marks_pixels_past_the_sfm_points():
     mask = open_mask(pts, cam)
     assert mask.shape == (cam.height, cam.width)
     assert not mask[:, : cam.width // 2 - 2].any() and mask[:, -4:].all()
+
+
+@pytest.mark.slow
+def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_splits_far_primitives(tmp_path, monkeypatch):
+    """Through whole routines: every training render goes through shell.composite, and no split reaches a far
+    (shell) primitive, so their number never grows in a routine (upscales: the unit test above)."""
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.train import routines, shell, trainer as trainer_mod
+    from ctgs.train.trainer import Trainer
+
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=300)
+    cfg = resolve_config(scene_dir, str(tmp_path / "run"), None, 200, ["init_shell=40", "threads=1"], None, False,
+                         None, None, preset="fast")
+    calls = {"composite": 0}
+
+    def counted(*a, **k):
+        calls["composite"] += 1
+        return shell.composite(*a, **k)
+
+    monkeypatch.setattr(trainer_mod, "composite", counted)
+    seen = []
+    real_full = routines.full_routine
+
+    def watched(model, opt, cfg_, it, views, render_fn, cameras, background=None):
+        before = int(background(model).sum())
+        stats = real_full(model, opt, cfg_, it, views, render_fn, cameras, background)
+        seen.append((before, int(background(model).sum()), stats))
+        return stats
+
+    monkeypatch.setattr(trainer_mod, "full_routine", watched)
+    t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
+    far0 = int(shell.far_mask(t.model.means, *t.sphere).sum())
+    assert far0 > 0
+    for _ in t.run():
+        pass
+    assert calls["composite"] == 200
+    assert seen and any(s[2]["split"] + s[2]["upscaled"] > 0 for s in seen)  # the routines did refine the scene
+    for n_far, n_after, _ in seen:
+        assert n_after <= n_far  # no far children (primitives drift, but none is split off out there)
