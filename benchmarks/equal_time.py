@@ -17,7 +17,8 @@ Usage: .venv/bin/python benchmarks/equal_time.py --scene /work/data/herzjesu25 -
        [--preset fast] [--ca-iters 1500 2000 3000] [--2dgs-iters 1000 1500 2000 3000] [--work DIR] [--tag vm]
        [--ca-set KEY=VALUE ...]   (overrides for the content-aware runs only)
 Writes benchmarks/results/equal_time_<tag>.{md,json}. Runs already done in --work are reused (so the 2dgs runs of an
-earlier benchmark with the same scene, preset and seed can be copied in when only the content-aware side changes).
+earlier benchmark with the same scene, preset and seed can be copied in when only the content-aware side changes; the
+content-aware folders carry the --ca-set overrides in their names).
 """
 
 from __future__ import annotations
@@ -38,7 +39,9 @@ from trade import ctgs  # noqa: E402  (one logged `python -m ctgs` runner for th
 
 def train(args, method: str, iters: int, split: str) -> dict:
     """One `ctgs train` (+ export + eval on the test split) in its own folder; reused when done."""
-    run = os.path.join(args.work, f"{split}_{method}_{iters}")
+    # --ca-set goes into the content-aware folder names, so runs with other overrides are never reused for them.
+    extra = "".join("_" + kv.replace("=", "") for kv in args.ca_set) if method == "ca" else ""
+    run = os.path.join(args.work, f"{split}_{method}_{iters}{extra}")
     rec_path = os.path.join(run, "equal_time_record.json")
     if os.path.exists(rec_path):
         with open(rec_path) as fh:

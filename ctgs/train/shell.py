@@ -13,6 +13,7 @@ cannot stand in for a transparent scene (off in every preset until measured).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -100,8 +101,6 @@ def composite(render_fn, inputs, camera, far: torch.Tensor, open_px: torch.Tenso
     cannot stand in for a transparent scene, so a random `background` still asks the scene to cover what SfM
     reconstructed. Returns (rgb [H, W, 3], [N] bool rasterized by either render or None).
     """
-    from dataclasses import replace
-
     near_in = replace(inputs, opacities=inputs.opacities * (~far).to(inputs.opacities.dtype))
     far_in = replace(inputs, opacities=inputs.opacities * far.to(inputs.opacities.dtype))
     a = render_fn(near_in, camera, background=torch.zeros_like(background))
