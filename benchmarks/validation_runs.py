@@ -7,6 +7,10 @@ primitive farther than 2x the scene's reach dropped, ctgs.train.shell.far_mask: 
 see-through and something far behind fills in) are reported, with the run's validation SSIM, primitives, params and
 train time from its train_summary.json. Groups are compared with the first group (the reference) by seed.
 
+Also the fit of the path's end cameras: PSNR and open pixels on the first and last training views (by name). On a
+one-sided capture (herzjesu25) their outer edges are seen by one or two views, like the extrapolated test view the
+validation views cannot stand in for; a run that leaves them open does not fit its own training data there.
+
 Usage: .venv/bin/python benchmarks/validation_runs.py --group NAME=RUN_DIR[,RUN_DIR...] [--group ...] --out NAME
 Writes benchmarks/results/validation_<NAME>.md. The first group is the reference; runs pair by their seed.
 """
@@ -66,7 +70,12 @@ def measure(run_dir: str) -> dict:
             a = render(scene_only, v.camera, sh_degree=model.sh_degree).alpha
             views.append({"name": v.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean()),
                           "scene_alpha": float(a.mean()), "scene_below": float((a < OPEN_ALPHA).float().mean())})
-    return {"run": run_dir, "seed": int(cfg.get("seed", 0)), "views": views,
+        ends = []
+        for v in (scene.train[0], scene.train[-1]):
+            out = render(inputs, v.camera, sh_degree=model.sh_degree)
+            se = ((out.rgb.clamp(0, 1) - torch.from_numpy(v.image)) ** 2).mean(-1)
+            ends.append({"name": v.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean())})
+    return {"run": run_dir, "seed": int(cfg.get("seed", 0)), "views": views, "ends": ends,
             "psnr": statistics.fmean(v["psnr"] for v in views), "ssim": summary["final_test_ssim"],
             "summary_psnr": summary["final_test_psnr"], "primitives": summary["num_primitives"],
             "params": summary["num_params"], "far": int(far.sum()), "train_s": summary["train_seconds"],
@@ -124,6 +133,17 @@ def main() -> None:
                       " / ".join(f"{100 * v['open']:.2f}%" for v in vs),
                       " / ".join(f"{v['scene_alpha']:.3f} ({100 * v['scene_below']:.1f}%)" for v in vs)]
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {' / '.join(str(r['far']) for r in runs)} |")
+    end_names = [v["name"] for v in ref[0]["ends"]]
+    lines += ["", "## Path-end training views (training fit where the fewest views overlap; seed order)", "",
+              "| group | " + " | ".join(f"{n} PSNR | {n} open" for n in end_names) + " |",
+              "| --- | " + " | ".join("---: | ---:" for _ in end_names) + " |"]
+    for name, runs in groups:
+        runs = sorted(runs, key=lambda r: r["seed"])
+        cells = []
+        for i, _ in enumerate(end_names):
+            vs = [r["ends"][i] for r in runs]
+            cells += [" / ".join(f"{v['psnr']:.2f}" for v in vs), " / ".join(f"{100 * v['open']:.2f}%" for v in vs)]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     worst = max(abs(r["psnr"] - r["summary_psnr"]) for _, runs in groups for r in runs)
     lines += ["", f"Check: these PSNR means differ from the runs' own validation PSNR (train_summary.json) by at most "
               f"{worst:.3f} dB.", "", "Runs: " + "; ".join(f"{name}: " + ", ".join(r["run"] for r in runs)
