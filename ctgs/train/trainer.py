@@ -243,15 +243,25 @@ class Trainer:
         raise TrainingDiverged(f"{self.run_dir}: NaN/Inf in {bad} at iteration {self.it}; {where}")
 
     # ---- loop ------------------------------------------------------------------------------------
+    def _training_render(self, inputs, view, bg):
+        """(rgb, rasterized) of a training step: one render over `bg` (None: cfg.background), or with init_shell
+        the scene composited over the far primitives where the view sees past the SfM points (two renders)."""
+        if self.open_px is None:
+            out = self.render_fn(inputs, view.camera, background=bg)
+            return out.rgb, out.rasterized
+        return composite(self.render_fn, inputs, view.camera, far_mask(self.model.means, *self.sphere),
+                         self.open_px[view.name], self.background if bg is None else bg)
+
     def _calibrate(self) -> tuple[float, float]:
-        """Median seconds of a forward+backward and of a forward of the current model on a training view."""
+        """Median seconds of a training step's forward+backward (as the loop renders it) and of a forward of the
+        current model on a training view."""
         view = self.train_views[0]
         fb, fw = [], []
         for _ in range(3):
             t0 = time.perf_counter()
             inputs = self.model.render_inputs()
-            out = self.render_fn(inputs, view.camera)
-            training_loss(out.rgb, view.image_t, self.model, view.camera, self.cfg, rasterized=out.rasterized,
+            rgb, rasterized = self._training_render(inputs, view, None)
+            training_loss(rgb, view.image_t, self.model, view.camera, self.cfg, rasterized=rasterized,
                           textures=inputs.textures).total.backward()
             fb.append(time.perf_counter() - t0)
             with torch.no_grad():
@@ -291,12 +301,7 @@ class Trainer:
             # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
             bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
             inputs = self.model.render_inputs()
-            if self.open_px is None:
-                out = self.render_fn(inputs, view.camera, background=bg)
-                rgb, rasterized = out.rgb, out.rasterized
-            else:
-                rgb, rasterized = composite(self.render_fn, inputs, view.camera, far_mask(self.model.means, *self.sphere),
-                                            self.open_px[view.name], self.background if bg is None else bg)
+            rgb, rasterized = self._training_render(inputs, view, bg)
             terms = training_loss(rgb, view.image_t, self.model, view.camera, cfg, rasterized=rasterized,
                                   textures=inputs.textures)
             loss = terms.total

@@ -200,3 +200,29 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     assert seen and any(s[2]["split"] + s[2]["upscaled"] > 0 for s in seen)  # the routines did refine the scene
     for n_far, n_after, _ in seen:
         assert n_after <= n_far  # no far children (primitives drift, but none is split off out there)
+
+
+def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path, monkeypatch):
+    """With init_shell a training step renders twice (shell.composite); --time-budget's calibration must time that
+    step, not a single render, or the plan undercounts every step."""
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.train import shell, trainer as trainer_mod
+    from ctgs.train.trainer import Trainer
+
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=64, height=48, points=200)
+    calls = {"composite": 0}
+
+    def counted(*a, **k):
+        calls["composite"] += 1
+        return shell.composite(*a, **k)
+
+    monkeypatch.setattr(trainer_mod, "composite", counted)
+    for sets, expected in ((["init_shell=20", "threads=1"], 3), (["threads=1"], 0)):
+        calls["composite"] = 0
+        cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,
+                             preset="fast")
+        t = Trainer(cfg, _load_scene(cfg), str(tmp_path / f"run{expected}"))
+        step_s, render_s = t._calibrate()
+        assert step_s > 0 and render_s > 0
+        assert calls["composite"] == expected  # three timed steps, each through composite when there is a shell
