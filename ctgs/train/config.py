@@ -69,6 +69,8 @@ class TrainConfig:
     lr_sh_rest: float = _f(1.25e-4, "lr of the higher SH bands")
     lr_opacity: float = _f(0.05, "lr of opacity logits")
     lr_scale: float = _f(0.005, "lr of log scales")
+    lr_scale_final: float = _f(0.0, "> 0: the log-scale lr decays exponentially from lr_scale at iteration 0 to this "
+                               "at the last iteration (0 = constant lr_scale, the paper)")
     lr_rotation: float = _f(0.001, "lr of quaternions")
     lr_texture: float = _f(7e-4, "lr of raw texels (0 until texture_start)")
     lr_texture_final: float = _f(0.0, "> 0: the texel lr decays exponentially from lr_texture at texture_start "
@@ -169,7 +171,8 @@ _RANGES = [
     ("lr_position_init", _ge(0), ">= 0"), ("lr_position_final", _gt(0), "> 0 (exponential decay)"),
     ("lr_sh_dc", _ge(0), ">= 0"), ("lr_sh_rest", _ge(0), ">= 0"), ("lr_opacity", _ge(0), ">= 0"),
     ("lr_scale", _ge(0), ">= 0"), ("lr_rotation", _ge(0), ">= 0"), ("lr_texture", _gt(0), "> 0"),
-    ("lr_texture_final", _ge(0), ">= 0 (0 = constant lr_texture)"), ("adam_eps", _gt(0), "> 0"),
+    ("lr_texture_final", _ge(0), ">= 0 (0 = constant lr_texture)"),
+    ("lr_scale_final", _ge(0), ">= 0 (0 = constant lr_scale)"), ("adam_eps", _gt(0), "> 0"),
     ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
     ("lambda_texture", _ge(0), ">= 0"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
     ("routine_every", _gt(0), "> 0"), ("routine_until", _ge(0), ">= 0"), ("routine_margin", _ge(0), ">= 0"),

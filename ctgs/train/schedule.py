@@ -108,12 +108,21 @@ def texture_lr(cfg: TrainConfig, it: int) -> float:
     return math.exp(math.log(cfg.lr_texture) * (1 - t) + math.log(cfg.lr_texture_final) * t)
 
 
+def scale_lr(cfg: TrainConfig, it: int) -> float:
+    """lr_scale, constant (paper) or, with lr_scale_final > 0, decaying exponentially from iteration 0 to
+    lr_scale_final at the last iteration."""
+    if cfg.lr_scale_final <= 0:
+        return cfg.lr_scale
+    t = min(it / max(cfg.iterations, 1), 1.0)
+    return math.exp(math.log(cfg.lr_scale) * (1 - t) + math.log(cfg.lr_scale_final) * t)
+
+
 def learning_rates(cfg: TrainConfig, it: int, extent: float, k: int, device) -> dict:
     """Per-parameter learning rates at iteration `it`; `k` = SH coefficients per channel."""
     sh_lr = torch.full((1, k, 1), cfg.lr_sh_rest, device=device)
     sh_lr[:, 0] = cfg.lr_sh_dc
     tex = texture_lr(cfg, it)
     return {
-        "means": position_lr(cfg, it, extent), "log_scales": cfg.lr_scale, "quats": cfg.lr_rotation,
+        "means": position_lr(cfg, it, extent), "log_scales": scale_lr(cfg, it), "quats": cfg.lr_rotation,
         "opacity_logits": cfg.lr_opacity, "sh": sh_lr, "textures_raw": tex,
     }

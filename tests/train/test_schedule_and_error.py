@@ -118,3 +118,14 @@ def test_texture_lr_constant_by_default_and_exponential_decay_when_asked():
     assert math.isclose(schedule.texture_lr(d, mid), math.sqrt(7e-3 * 7e-4), rel_tol=1e-3)
     assert schedule.texture_lr(TrainConfig(method="2dgs"), 5000) == 0.0
     assert schedule.learning_rates(d, 500, 1.0, 16, "cpu")["textures_raw"] == schedule.texture_lr(d, 500)
+
+
+def test_scale_lr_constant_by_default_and_exponential_decay_when_asked():
+    c = TrainConfig()
+    assert schedule.scale_lr(c, 0) == 0.005 == schedule.scale_lr(c, 29999)
+    assert schedule.learning_rates(c, 10, 1.0, 16, "cpu")["log_scales"] == 0.005
+    d = TrainConfig(iterations=1500, lr_scale=0.015, lr_scale_final=0.005)
+    assert math.isclose(schedule.scale_lr(d, 0), 0.015) and math.isclose(schedule.scale_lr(d, 1500), 0.005)
+    assert math.isclose(schedule.scale_lr(d, 750), math.sqrt(0.015 * 0.005), rel_tol=1e-9)
+    assert schedule.scale_lr(d, 100) > schedule.scale_lr(d, 1000) > schedule.scale_lr(d, 1499)
+    assert schedule.learning_rates(d, 750, 1.0, 16, "cpu")["log_scales"] == schedule.scale_lr(d, 750)
