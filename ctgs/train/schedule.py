@@ -44,11 +44,15 @@ def every(cfg: TrainConfig, paper_period: float, it: int) -> bool:
     return math.floor(it / period + _EPS) > math.floor((it - 1) / period + _EPS)
 
 
+def _log_lerp(a: float, b: float, t: float) -> float:
+    """Exponential decay from a (t = 0) to b (t = 1)."""
+    return math.exp(math.log(a) * (1 - t) + math.log(b) * t)
+
+
 def position_lr(cfg: TrainConfig, it: int, extent: float) -> float:
     """3DGS exponential decay from lr_position_init to lr_position_final (x scene extent, world units)."""
     t = min(max(it / max(cfg.iterations, 1), 0.0), 1.0)
-    lr = math.exp(math.log(cfg.lr_position_init) * (1 - t) + math.log(cfg.lr_position_final) * t)
-    return lr * extent
+    return _log_lerp(cfg.lr_position_init, cfg.lr_position_final, t) * extent
 
 
 def tau_tr(cfg: TrainConfig, it: int) -> float:
@@ -105,7 +109,7 @@ def texture_lr(cfg: TrainConfig, it: int) -> float:
     if cfg.lr_texture_final <= 0:
         return cfg.lr_texture
     t = min((it - start) / max(cfg.iterations - start, 1), 1.0)
-    return math.exp(math.log(cfg.lr_texture) * (1 - t) + math.log(cfg.lr_texture_final) * t)
+    return _log_lerp(cfg.lr_texture, cfg.lr_texture_final, t)
 
 
 def scale_lr(cfg: TrainConfig, it: int) -> float:
@@ -114,7 +118,7 @@ def scale_lr(cfg: TrainConfig, it: int) -> float:
     if cfg.lr_scale_final <= 0:
         return cfg.lr_scale
     t = min(it / max(cfg.iterations, 1), 1.0)
-    return math.exp(math.log(cfg.lr_scale) * (1 - t) + math.log(cfg.lr_scale_final) * t)
+    return _log_lerp(cfg.lr_scale, cfg.lr_scale_final, t)
 
 
 def learning_rates(cfg: TrainConfig, it: int, extent: float, k: int, device) -> dict:
