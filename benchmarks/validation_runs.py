@@ -44,6 +44,28 @@ def psnr(se: torch.Tensor) -> float:
     return float(-10 * torch.log10(se.mean()))
 
 
+def fit(inputs, view, sh_degree: int) -> dict:
+    """A view's PSNR and its open pixels (rendered alpha < OPEN_ALPHA)."""
+    out = render(inputs, view.camera, sh_degree=sh_degree)
+    se = ((out.rgb.clamp(0, 1) - torch.from_numpy(view.image)) ** 2).mean(-1)
+    return {"name": view.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean())}
+
+
+def by_view_table(title: str, groups: list, key: str, columns: list, extra=None) -> list[str]:
+    """Markdown lines: one row per group, for each view of runs' `key` list the `columns` (header suffix, format of one
+    view's record) joined over the group's runs in seed order; `extra` = (header, format of a run), a last column."""
+    names = [v["name"] for v in groups[0][1][0][key]]
+    head = [f"{n} {h}" for n in names for h, _ in columns] + ([extra[0]] if extra else [])
+    lines = ["", title, "", "| group | " + " | ".join(head) + " |", "| --- | " + " | ".join("---:" for _ in head) + " |"]
+    for name, runs in groups:
+        runs = sorted(runs, key=lambda r: r["seed"])
+        cells = [" / ".join(f(r[key][i]) for r in runs) for i in range(len(names)) for _, f in columns]
+        if extra:
+            cells.append(" / ".join(extra[1](r) for r in runs))
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def measure(run_dir: str) -> dict:
     with open(os.path.join(run_dir, "config.toml"), "rb") as fh:
         cfg = tomllib.load(fh)
@@ -65,16 +87,10 @@ def measure(run_dir: str) -> dict:
     views = []
     with torch.no_grad():
         for v in scene.test:
-            out = render(inputs, v.camera, sh_degree=model.sh_degree)
-            se = ((out.rgb.clamp(0, 1) - torch.from_numpy(v.image)) ** 2).mean(-1)
             a = render(scene_only, v.camera, sh_degree=model.sh_degree).alpha
-            views.append({"name": v.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean()),
-                          "scene_alpha": float(a.mean()), "scene_below": float((a < OPEN_ALPHA).float().mean())})
-        ends = []
-        for v in (scene.train[0], scene.train[-1]):
-            out = render(inputs, v.camera, sh_degree=model.sh_degree)
-            se = ((out.rgb.clamp(0, 1) - torch.from_numpy(v.image)) ** 2).mean(-1)
-            ends.append({"name": v.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean())})
+            views.append({**fit(inputs, v, model.sh_degree), "scene_alpha": float(a.mean()),
+                          "scene_below": float((a < OPEN_ALPHA).float().mean())})
+        ends = [fit(inputs, v, model.sh_degree) for v in (scene.train[0], scene.train[-1])]
     return {"run": run_dir, "seed": int(cfg.get("seed", 0)), "views": views, "ends": ends,
             "psnr": statistics.fmean(v["psnr"] for v in views), "ssim": summary["final_test_ssim"],
             "summary_psnr": summary["final_test_psnr"], "primitives": summary["num_primitives"],
@@ -98,7 +114,6 @@ def main() -> None:
                             cwd=ROOT).stdout.strip()
     ref_name, ref = groups[0]
     ref_by_seed = {r["seed"]: r for r in ref}
-    view_names = [v["name"] for v in ref[0]["views"]]
     lines = [f"# Validation runs side by side ({args.out})", "",
              f"Written by `benchmarks/validation_runs.py {' '.join(sys.argv[1:])}` on {time.strftime('%Y-%m-%d')}, "
              f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus), commit {commit}. Validation views "
@@ -121,29 +136,13 @@ def main() -> None:
                      f"{statistics.fmean(r['primitives'] for r in runs) / 1e3:.1f}k | "
                      f"{params} | "
                      f"{statistics.fmean(r['train_s'] for r in runs):.0f} |")
-    lines += ["", "## Per view (seed order)", "",
-              "| group | " + " | ".join(f"{n} PSNR | {n} open | {n} scene alpha (< 0.9)" for n in view_names) + " | far |",
-              "| --- | " + " | ".join("---: | ---: | ---:" for _ in view_names) + " | ---: |"]
-    for name, runs in groups:
-        runs = sorted(runs, key=lambda r: r["seed"])
-        cells = []
-        for i, _ in enumerate(view_names):
-            vs = [r["views"][i] for r in runs]
-            cells += [" / ".join(f"{v['psnr']:.2f}" for v in vs),
-                      " / ".join(f"{100 * v['open']:.2f}%" for v in vs),
-                      " / ".join(f"{v['scene_alpha']:.3f} ({100 * v['scene_below']:.1f}%)" for v in vs)]
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {' / '.join(str(r['far']) for r in runs)} |")
-    end_names = [v["name"] for v in ref[0]["ends"]]
-    lines += ["", "## Path-end training views (training fit where the fewest views overlap; seed order)", "",
-              "| group | " + " | ".join(f"{n} PSNR | {n} open" for n in end_names) + " |",
-              "| --- | " + " | ".join("---: | ---:" for _ in end_names) + " |"]
-    for name, runs in groups:
-        runs = sorted(runs, key=lambda r: r["seed"])
-        cells = []
-        for i, _ in enumerate(end_names):
-            vs = [r["ends"][i] for r in runs]
-            cells += [" / ".join(f"{v['psnr']:.2f}" for v in vs), " / ".join(f"{100 * v['open']:.2f}%" for v in vs)]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    psnr_open = [("PSNR", lambda v: f"{v['psnr']:.2f}"), ("open", lambda v: f"{100 * v['open']:.2f}%")]
+    lines += by_view_table("## Per view (seed order)", groups, "views",
+                           psnr_open + [("scene alpha (< 0.9)",
+                                         lambda v: f"{v['scene_alpha']:.3f} ({100 * v['scene_below']:.1f}%)")],
+                           ("far", lambda r: str(r["far"])))
+    lines += by_view_table("## Path-end training views (training fit where the fewest views overlap; seed order)",
+                           groups, "ends", psnr_open)
     worst = max(abs(r["psnr"] - r["summary_psnr"]) for _, runs in groups for r in runs)
     lines += ["", f"Check: these PSNR means differ from the runs' own validation PSNR (train_summary.json) by at most "
               f"{worst:.3f} dB.", "", "Runs: " + "; ".join(f"{name}: " + ", ".join(r["run"] for r in runs)
