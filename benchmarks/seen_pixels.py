@@ -1,0 +1,223 @@
+"""Test-view pixels that no training view saw, and how each run does on the pixels that some did.
+
+On a one-sided camera path the protocol's first test view is an extrapolation: part of it lies outside every
+training camera's frustum, so no training signal says what belongs there (benchmarks/results/train_findings.md).
+This splits every test pixel by a rule that depends only on the cameras and the SfM points, not on any model:
+
+- the pixel's ray is sampled at DEPTHS z-depths between the 5th and 95th percentile depth of the SfM points that
+  project into the test view (uniform in inverse depth) and at infinity (its direction);
+- **seen**: at every sample the point lies inside (in front of) at least FEW + 1 = 3 training images;
+- **few**: at every sample inside at least one training image, at some inside only one or two;
+- **partly**: inside some training image at some samples, at others inside none;
+- **unseen**: at no sample inside any training image.
+Occlusion is ignored, so the classes are upper bounds on what the training images show.
+
+For each run and test view: the share of pixels in each class, the open pixels (rendered alpha < 0.9: the
+protocol's black background shows) in each, and PSNR over the seen pixels (classes seen and few) and over all
+pixels. Groups of runs
+(one per seed, in the same seed order in every group) are compared with the first group, paired by seed. A
+breakdown of finished runs on test views, not a measure to choose settings by.
+
+Usage: .venv/bin/python benchmarks/seen_pixels.py --group NAME=RUN[,RUN...] [--group ...] --out NAME
+Writes benchmarks/results/seen_pixels_<NAME>.md and .json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import time
+
+import numpy as np
+import torch
+
+from ctgs.io.run_model import load_run
+from ctgs.render.api import render
+from ctgs.scene import load_scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
+DEPTHS = 16
+FEW = 2  # "few": some depth sample lies in at most this many training images
+CLASSES = ("seen", "few", "partly", "unseen")
+
+
+@torch.no_grad()
+def seen_classes(test_cam, train_cams, points: np.ndarray, depths: int = DEPTHS) -> torch.Tensor:
+    """[H, W] int8: 0 seen, 1 few, 2 partly, 3 unseen (module docstring)."""
+    h, w = test_cam.height, test_cam.width
+    vm = test_cam.viewmat.double()
+    r, t = vm[:3, :3], vm[:3, 3]
+    pts = torch.from_numpy(np.asarray(points, np.float64))
+    pc = pts @ r.T + t
+    z = pc[:, 2]
+    u = test_cam.fx * pc[:, 0] / z.clamp_min(1e-9) + test_cam.cx
+    v = test_cam.fy * pc[:, 1] / z.clamp_min(1e-9) + test_cam.cy
+    inside = (z > test_cam.near) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    if int(inside.sum()) < 10:
+        raise ValueError("fewer than 10 SfM points project into the test view: no depth range to sample")
+    zs = z[inside]
+    lo, hi = float(torch.quantile(zs, 0.05)), float(torch.quantile(zs, 0.95))
+    inv = torch.linspace(1.0 / lo, 1.0 / hi, depths, dtype=torch.float64)
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    ray = torch.stack([(xs - test_cam.cx) / test_cam.fx, (ys - test_cam.cy) / test_cam.fy, torch.ones_like(xs)], -1)
+    ray_w = ray.reshape(-1, 3) @ r  # camera -> world directions (R^T d, as row vectors)
+    centre = -r.T @ t
+    lowest = torch.full((h * w,), len(train_cams), dtype=torch.int32)  # fewest images holding a sample
+    highest = torch.zeros(h * w, dtype=torch.int32)
+    for k in range(depths + 1):
+        hit = torch.zeros(h * w, dtype=torch.int32)
+        for cam in train_cams:
+            tv = cam.viewmat.double()
+            tr, tt = tv[:3, :3], tv[:3, 3]
+            if k < depths:
+                q = (centre + ray_w / inv[k]) @ tr.T + tt  # z-depth 1/inv[k] along the test camera's axis
+            else:
+                q = ray_w @ tr.T  # the direction: a point at infinity
+            qz = q[:, 2]
+            near = cam.near if k < depths else 0.0
+            qu = cam.fx * q[:, 0] / qz.clamp_min(1e-12) + cam.cx
+            qv = cam.fy * q[:, 1] / qz.clamp_min(1e-12) + cam.cy
+            hit += ((qz > near) & (qu >= 0) & (qu < cam.width) & (qv >= 0) & (qv < cam.height)).int()
+        lowest = torch.minimum(lowest, hit)
+        highest = torch.maximum(highest, hit)
+    cls = torch.full((h * w,), 2, dtype=torch.int8)  # partly
+    cls[lowest > FEW] = 0
+    cls[(lowest >= 1) & (lowest <= FEW)] = 1
+    cls[highest == 0] = 3
+    return cls.reshape(h, w)
+
+
+def psnr_of(se: torch.Tensor) -> float:
+    return float(-10 * torch.log10(se.mean())) if se.numel() else float("nan")
+
+
+def fmt_pct(x: float) -> str:
+    return "" if np.isnan(x) else f"{100 * x:.1f}%"
+
+
+def paired(diffs: list[float]) -> str:
+    d = np.asarray(diffs, np.float64)
+    if len(d) < 2:
+        return f"{d.mean():+.2f}"
+    return f"{d.mean():+.2f} ({' / '.join(f'{x:+.2f}' for x in d)})"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--group", action="append", required=True, help="NAME=RUN[,RUN...] (one run per seed)")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    groups = []
+    for spec in args.group:
+        name, runs = spec.split("=", 1)
+        groups.append((name, runs.split(",")))
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=ROOT).stdout.strip()
+
+    classes_cache: dict = {}
+    records = {}  # group -> list (per run) of {view: {...}}
+    scene_key = None
+    for name, runs in groups:
+        records[name] = []
+        for rd in runs:
+            run = load_run(rd)
+            scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
+            key = (os.path.realpath(run.scene_dir), run.images, run.holdout)
+            if scene_key is None:
+                scene_key = key
+            elif key != scene_key:
+                raise SystemExit(f"error: {rd} was trained on {key}, the first run on {scene_key}: compare runs of "
+                                 "one scene, image folder and split")
+            inputs = run.model.render_inputs()
+            per_view = {}
+            for view in scene.test:
+                if view.name not in classes_cache:
+                    classes_cache[view.name] = seen_classes(view.camera, [tv.camera for tv in scene.train],
+                                                            scene.points)
+                cls = classes_cache[view.name]
+                with torch.no_grad():
+                    out = render(inputs, view.camera, sh_degree=run.model.sh_degree)
+                gt = torch.from_numpy(view.image)
+                se = ((out.rgb.clamp(0, 1) - gt) ** 2).mean(-1)
+                opened = out.alpha < OPEN_ALPHA
+                rec = {"psnr": psnr_of(se), "seen_or_few_psnr": psnr_of(se[cls <= 1]), "share_of_error": {}}
+                for i, c in enumerate(CLASSES):
+                    m = cls == i
+                    rec[f"{c}_pixels"] = float(m.float().mean())
+                    rec[f"{c}_open"] = float(opened[m].float().mean()) if bool(m.any()) else float("nan")
+                    rec[f"{c}_psnr"] = psnr_of(se[m])
+                    rec["share_of_error"][c] = float(se[m].sum() / se.sum())
+                per_view[view.name] = rec
+            records[name].append({"run": rd, "views": per_view})
+
+    views = sorted(classes_cache)
+    ref_name = groups[0][0]
+    lines = [f"# Seen and unseen test pixels ({args.out})", "",
+             f"Written by `benchmarks/seen_pixels.py {' '.join('--group ' + g for g in args.group)} --out "
+             f"{args.out}` on {time.strftime('%Y-%m-%d')}, {platform.node()} ({platform.machine()}, "
+             f"{os.cpu_count()} cpus), commit {commit}. Renders: CPU backend, black background.",
+             "",
+             f"Each test pixel's ray is sampled at {DEPTHS} depths between the 5th and 95th percentile depth of the "
+             "SfM points in that view (uniform in inverse depth) and at infinity. **seen**: every sample lies inside "
+             f"at least {FEW + 1} training images; **few**: every sample inside at least one, some inside only "
+             f"1-{FEW}; **partly**: some samples inside none; **unseen**: no sample inside any (cameras and SfM "
+             f"points only, no model; occlusion ignored). open = rendered alpha < {OPEN_ALPHA}. seen-pixel PSNR = "
+             f"PSNR over the seen and few pixels together. Reference group: **{ref_name}**; differences pair runs by seed. A "
+             "breakdown of finished runs on test views: nothing is chosen from it.",
+             "", "## Pixel classes per test view", "", "| view | " + " | ".join(CLASSES) + " |",
+             "| --- |" + " ---: |" * len(CLASSES)]
+    first = records[ref_name][0]["views"]
+    for vname in views:
+        r = first[vname]
+        lines.append(f"| {vname} | " + " | ".join(f"{100 * r[f'{c}_pixels']:.1f}%" for c in CLASSES) + " |")
+
+    lines += ["", "## Per group and view (mean over runs; seen-pixel PSNR by run in seed order)", "",
+              "| group | view | PSNR | seen-pixel PSNR (by run) | " + " | ".join(f"open in {c}" for c in CLASSES)
+              + " | error share " + " / ".join(CLASSES) + " |", "| --- | --- | ---: | --- |" + " ---: |" * len(CLASSES)
+              + " --- |"]
+    for name, _ in groups:
+        for vname in views:
+            recs = [r["views"][vname] for r in records[name]]
+            mean = lambda key: float(np.mean([x[key] for x in recs]))  # noqa: E731 (nan: class absent)
+            seen_by_run = " / ".join(f"{x['seen_or_few_psnr']:.2f}" for x in recs)
+            share = " / ".join(f"{100 * np.mean([x['share_of_error'][c] for x in recs]):.0f}%" for c in CLASSES)
+            opens = " | ".join(fmt_pct(mean(f"{c}_open")) for c in CLASSES)
+            lines.append(f"| {name} | {vname} | {mean('psnr'):.2f} | {seen_by_run} | {opens} | {share} |")
+
+    lines += ["", "## Paired against the reference (mean over test views of each run, then by seed)", "",
+              "| group | test PSNR | vs reference | PSNR on seen + few | vs reference | PSNR on seen | vs reference |",
+              "| --- | ---: | --- | ---: | --- | ---: | --- |"]
+    summary = {}
+    for name, _ in groups:
+        allp = [float(np.mean([r["views"][v]["psnr"] for v in views])) for r in records[name]]
+        summary[name] = {"test_psnr": allp}
+        for key in ("seen_or_few_psnr", "seen_psnr"):
+            summary[name][key] = [float(np.mean([r["views"][v][key] for v in views])) for r in records[name]]
+    for name, _ in groups:
+        s, ref = summary[name], summary[ref_name]
+        n = min(len(s["test_psnr"]), len(ref["test_psnr"]))
+        cells = []
+        for key in ("test_psnr", "seen_or_few_psnr", "seen_psnr"):
+            diff = "" if name == ref_name else paired([s[key][i] - ref[key][i] for i in range(n)])
+            cells.append(f"{np.mean(s[key]):.2f} | {diff}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", "Runs: " + "; ".join(f"{name}: {', '.join(runs)}" for name, runs in groups), ""]
+
+    out = os.path.join(ROOT, "benchmarks", "results", f"seen_pixels_{args.out}")
+    with open(out + ".md.tmp", "w") as f:
+        f.write("\n".join(lines))
+    os.replace(out + ".md.tmp", out + ".md")
+    with open(out + ".json.tmp", "w") as f:
+        json.dump({"commit": commit, "groups": {n: records[n] for n, _ in groups}, "summary": summary}, f, indent=1)
+    os.replace(out + ".json.tmp", out + ".json")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
