@@ -13,8 +13,8 @@ This splits every test pixel by a rule that depends only on the cameras and the 
 Occlusion is ignored, so the classes are upper bounds on what the training images show.
 
 For each run and test view: the share of pixels in each class, the open pixels (rendered alpha < 0.9: the
-protocol's black background shows) in each, and PSNR over the seen pixels (classes seen and few) and over all
-pixels. Groups of runs
+protocol's black background shows) in each, the share of the view's squared error in each, and PSNR over all
+pixels, over the seen and few pixels together, and over the seen pixels alone. Groups of runs
 (one per seed, in the same seed order in every group) are compared with the first group, paired by seed. A
 breakdown of finished runs on test views, not a measure to choose settings by.
 
@@ -167,8 +167,7 @@ def main() -> None:
              "SfM points in that view (uniform in inverse depth) and at infinity. **seen**: every sample lies inside "
              f"at least {FEW + 1} training images; **few**: every sample inside at least one, some inside only "
              f"1-{FEW}; **partly**: some samples inside none; **unseen**: no sample inside any (cameras and SfM "
-             f"points only, no model; occlusion ignored). open = rendered alpha < {OPEN_ALPHA}. seen-pixel PSNR = "
-             f"PSNR over the seen and few pixels together. Reference group: **{ref_name}**; differences pair runs by seed. A "
+             f"points only, no model; occlusion ignored). open = rendered alpha < {OPEN_ALPHA}. Reference group: **{ref_name}**; differences pair runs by seed. A "
              "breakdown of finished runs on test views: nothing is chosen from it.",
              "", "## Pixel classes per test view", "", "| view | " + " | ".join(CLASSES) + " |",
              "| --- |" + " ---: |" * len(CLASSES)]
@@ -177,8 +176,8 @@ def main() -> None:
         r = first[vname]
         lines.append(f"| {vname} | " + " | ".join(f"{100 * r[f'{c}_pixels']:.1f}%" for c in CLASSES) + " |")
 
-    lines += ["", "## Per group and view (mean over runs; seen-pixel PSNR by run in seed order)", "",
-              "| group | view | PSNR | seen-pixel PSNR (by run) | " + " | ".join(f"open in {c}" for c in CLASSES)
+    lines += ["", "## Per group and view (mean over runs; PSNR on seen + few by run in seed order)", "",
+              "| group | view | PSNR | PSNR on seen + few (by run) | " + " | ".join(f"open in {c}" for c in CLASSES)
               + " | error share " + " / ".join(CLASSES) + " |", "| --- | --- | ---: | --- |" + " ---: |" * len(CLASSES)
               + " --- |"]
     for name, _ in groups:
