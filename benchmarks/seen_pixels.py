@@ -1,8 +1,9 @@
-"""Test-view pixels that no training view saw, and how each run does on the pixels that some did.
+"""Test-view pixels by how many training cameras saw them, and how each run does on each kind.
 
-On a one-sided camera path the protocol's first test view is an extrapolation: part of it lies outside every
-training camera's frustum, so no training signal says what belongs there (benchmarks/results/train_findings.md).
-This splits every test pixel by a rule that depends only on the cameras and the SfM points, not on any model:
+On a one-sided camera path the protocol's first test view is an extrapolation: part of it may lie outside every
+training camera's frustum, and more of it inside only one or two (benchmarks/results/train_findings.md).
+This splits every test pixel by a rule that depends only on the cameras and the SfM points, not on any model
+(ctgs.scene.coverage):
 
 - the pixel's ray is sampled at DEPTHS z-depths between the 5th and 95th percentile depth of the SfM points that
   project into the test view (uniform in inverse depth) and at infinity (its direction);
@@ -37,59 +38,10 @@ import torch
 from ctgs.io.run_model import load_run
 from ctgs.render.api import render
 from ctgs.scene import load_scene
+from ctgs.scene.coverage import CLASSES, DEPTHS, FEW, seen_classes
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
-DEPTHS = 16
-FEW = 2  # "few": some depth sample lies in at most this many training images
-CLASSES = ("seen", "few", "partly", "unseen")
-
-
-@torch.no_grad()
-def seen_classes(test_cam, train_cams, points: np.ndarray, depths: int = DEPTHS) -> torch.Tensor:
-    """[H, W] int8: 0 seen, 1 few, 2 partly, 3 unseen (module docstring)."""
-    h, w = test_cam.height, test_cam.width
-    vm = test_cam.viewmat.double()
-    r, t = vm[:3, :3], vm[:3, 3]
-    pts = torch.from_numpy(np.asarray(points, np.float64))
-    pc = pts @ r.T + t
-    z = pc[:, 2]
-    u = test_cam.fx * pc[:, 0] / z.clamp_min(1e-9) + test_cam.cx
-    v = test_cam.fy * pc[:, 1] / z.clamp_min(1e-9) + test_cam.cy
-    inside = (z > test_cam.near) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    if int(inside.sum()) < 10:
-        raise ValueError("fewer than 10 SfM points project into the test view: no depth range to sample")
-    zs = z[inside]
-    lo, hi = float(torch.quantile(zs, 0.05)), float(torch.quantile(zs, 0.95))
-    inv = torch.linspace(1.0 / lo, 1.0 / hi, depths, dtype=torch.float64)
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
-                            indexing="ij")
-    ray = torch.stack([(xs - test_cam.cx) / test_cam.fx, (ys - test_cam.cy) / test_cam.fy, torch.ones_like(xs)], -1)
-    ray_w = ray.reshape(-1, 3) @ r  # camera -> world directions (R^T d, as row vectors)
-    centre = -r.T @ t
-    lowest = torch.full((h * w,), len(train_cams), dtype=torch.int32)  # fewest images holding a sample
-    highest = torch.zeros(h * w, dtype=torch.int32)
-    for k in range(depths + 1):
-        hit = torch.zeros(h * w, dtype=torch.int32)
-        for cam in train_cams:
-            tv = cam.viewmat.double()
-            tr, tt = tv[:3, :3], tv[:3, 3]
-            if k < depths:
-                q = (centre + ray_w / inv[k]) @ tr.T + tt  # z-depth 1/inv[k] along the test camera's axis
-            else:
-                q = ray_w @ tr.T  # the direction: a point at infinity
-            qz = q[:, 2]
-            near = cam.near if k < depths else 0.0
-            qu = cam.fx * q[:, 0] / qz.clamp_min(1e-12) + cam.cx
-            qv = cam.fy * q[:, 1] / qz.clamp_min(1e-12) + cam.cy
-            hit += ((qz > near) & (qu >= 0) & (qu < cam.width) & (qv >= 0) & (qv < cam.height)).int()
-        lowest = torch.minimum(lowest, hit)
-        highest = torch.maximum(highest, hit)
-    cls = torch.full((h * w,), 2, dtype=torch.int8)  # partly
-    cls[lowest > FEW] = 0
-    cls[(lowest >= 1) & (lowest <= FEW)] = 1
-    cls[highest == 0] = 3
-    return cls.reshape(h, w)
 
 
 def psnr_of(se: torch.Tensor) -> float:
