@@ -82,6 +82,10 @@ class TrainConfig:
     lambda_texture: float = _f(1e-8, "texture sparsity weight on sum |texel| of visible primitives")
     texture_reg_transmittance: bool = _f(False, "weight each primitive's texel L1 by 1 - its mean transmittance in "
                                         "the view (the authors' README variant; the paper and their code use plain L1)")
+    virtual_coverage: float = _f(0.0, "> 0: weight of a coverage term on virtual views half a camera step from each "
+                                 "training camera: mean (1 - alpha) over the pixels the training cameras hold at every "
+                                 "depth (ctgs.train.virtual; 0 = off, the paper)")
+    virtual_every: int = _f(4, "steps between virtual-view coverage terms (each one more render and backward)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
@@ -174,7 +178,8 @@ _RANGES = [
     ("lr_texture_final", _ge(0), ">= 0 (0 = constant lr_texture)"),
     ("lr_scale_final", _ge(0), ">= 0 (0 = constant lr_scale)"), ("adam_eps", _gt(0), "> 0"),
     ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
-    ("lambda_texture", _ge(0), ">= 0"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
+    ("lambda_texture", _ge(0), ">= 0"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
+    ("virtual_every", _ge(1), ">= 1"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
     ("routine_every", _gt(0), "> 0"), ("routine_until", _ge(0), ">= 0"), ("routine_margin", _ge(0), ">= 0"),
     ("late_downscale_every", _gt(0), "> 0"), ("realloc_every", _gt(0), "> 0"),
     ("top_fraction", _unit_open_closed, "in (0, 1]"), ("tau_ds", _gt(0), "> 0"),

@@ -10,7 +10,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -29,6 +29,7 @@ from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
 from ctgs.train.init import init_model
 from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell_points
+from ctgs.train.virtual import coverage_loss, virtual_views
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
@@ -96,6 +97,16 @@ class Trainer:
         self.open_px = None if self.sphere is None else {
             v.name: torch.from_numpy(open_mask(scene.points, v.camera)).to(self.device) for v in self.train_views}
         self.pixels = float(np.median([v.camera.width * v.camera.height for v in self.train_views]))
+        # virtual_coverage: virtual views half a camera step from each training camera, with the pixels the
+        # training cameras hold (ctgs.train.virtual), visited in a fixed shuffled cycle (resume-safe: by iteration).
+        self.virtual = []
+        if cfg.virtual_coverage > 0:
+            self.virtual = [replace(vv, camera=vv.camera.to(self.device), mask=vv.mask.to(self.device))
+                            for vv in virtual_views([v.name for v in self.train_views], self.cameras, scene.points)]
+            if not self.virtual:
+                raise UserError(f"{scene.root}: virtual_coverage needs at least two training cameras with SfM points "
+                                "in view; set virtual_coverage = 0")
+        self.virtual_order = torch.randperm(len(self.virtual), generator=torch.Generator().manual_seed(cfg.seed + 1))
         self.cfg = rules.resolve(cfg, self.pixels)
         self.planner = None
         self.wall_before = 0.0  # wall seconds of earlier sessions of this run (resume)
@@ -252,6 +263,15 @@ class Trainer:
         return composite(self.render_fn, inputs, view.camera, far_mask(self.model.means, *self.sphere),
                          self.open_px[view.name], self.background if bg is None else bg)
 
+    def _virtual_step(self, it: int) -> None:
+        """virtual_coverage: every virtual_every-th step, one virtual view's coverage term, rendered and
+        back-propagated on its own (its gradients add to the step's; the 2dgs gradient statistics exclude it)."""
+        if not self.virtual or it % self.cfg.virtual_every:
+            return
+        vv = self.virtual[int(self.virtual_order[(it // self.cfg.virtual_every) % len(self.virtual)])]
+        alpha = self.render_fn(self.model.render_inputs(), vv.camera).alpha
+        (self.cfg.virtual_coverage * coverage_loss(alpha, vv)).backward()
+
     def _calibrate(self) -> tuple[float, float]:
         """Median seconds of a training step's forward+backward (as the loop renders it) and of a forward of the
         current model on a training view."""
@@ -264,6 +284,10 @@ class Trainer:
             training_loss(rgb, view.image_t, self.model, view.camera, self.cfg, rasterized=rasterized,
                           textures=inputs.textures).total.backward()
             fb.append(time.perf_counter() - t0)
+            if self.virtual:  # one virtual-view term per virtual_every steps, on average
+                t0 = time.perf_counter()
+                self._virtual_step(self.cfg.virtual_every)
+                fb[-1] += (time.perf_counter() - t0) / self.cfg.virtual_every
             with torch.no_grad():
                 t0 = time.perf_counter()
                 self.render_fn(self.model.render_inputs(), view.camera)
@@ -313,6 +337,7 @@ class Trainer:
             loss.backward()
             if cfg.method != "content_aware" and it <= schedule.at(cfg, cfg.densify_until):
                 self.acc.add_view(self.model.means, self.model.means.grad, view.camera)
+            self._virtual_step(it)
             lrs = schedule.learning_rates(cfg, it, self.extent, self.model.sh.shape[1], self.device)
             self.opt.step(self.model, lrs)
             self._check_finite(loss.detach())

@@ -1,0 +1,78 @@
+"""Virtual-view coverage (`virtual_coverage` > 0; not in the paper, off in every preset).
+
+Surfels that only one or two training views constrain can tile those views and still part from a viewpoint
+half a camera step away: on herzjesu25 at 384x256 that is where the content-aware model loses to 2dgs
+(benchmarks/results/seen_pixels_herzjesu25_384_vm14.md). This term asks for coverage there without asking for
+any colour: for each training camera, two virtual cameras with its orientation and intrinsics, moved half the way
+to its nearest training camera and as far the other way; in each, the pixels whose ray lies inside some training
+image at every sampled depth (ctgs.scene.coverage: classes seen and few) must be covered. Every
+`virtual_every` steps one virtual view (in a fixed shuffled cycle) adds
+
+    virtual_coverage * mean over its held pixels of (1 - alpha)
+
+to the training loss (its own render and backward). No photometric target: what covers a pixel is left to the
+training views.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from ctgs.render.camera import Camera
+from ctgs.scene.coverage import FEW_CLASS, seen_classes
+
+STEP = 0.5  # fraction of the distance to the nearest training camera
+MASK_CELL = 4  # the held-pixel mask is classified on cells of this many pixels across
+
+
+@dataclass
+class VirtualView:
+    name: str  # "<training view>+" (towards its nearest camera) or "<training view>-" (away from it)
+    camera: Camera
+    mask: torch.Tensor  # [H, W] float32: 1 where the training cameras hold the pixel at every depth
+    held: int  # number of such pixels
+
+
+def _moved(cam: Camera, centre: torch.Tensor) -> Camera:
+    """`cam` with its orientation and intrinsics, centred at `centre`."""
+    vm = cam.viewmat.detach().cpu().double().clone()
+    vm[:3, 3] = -vm[:3, :3] @ centre
+    return replace(cam, viewmat=vm.to(cam.viewmat.dtype))
+
+
+def virtual_views(names: list[str], cameras: list[Camera], points: np.ndarray, step: float = STEP) -> list[VirtualView]:
+    """Two virtual views per training camera (module docstring); a virtual camera into which fewer than 10 SfM
+    points project, or with no held pixel, is left out. Needs at least two training cameras."""
+    if len(cameras) < 2:
+        return []
+    centres = torch.stack([c.center.detach().cpu().double() for c in cameras])  # [C, 3]
+    dist = torch.cdist(centres, centres)
+    dist.fill_diagonal_(float("inf"))
+    nearest = dist.argmin(1)
+    out = []
+    for i, cam in enumerate(cameras):
+        delta = centres[int(nearest[i])] - centres[i]
+        if float(delta.norm()) == 0.0:
+            continue
+        for sign, suffix in ((1.0, "+"), (-1.0, "-")):
+            vcam = _moved(cam, centres[i] + sign * step * delta)
+            # classes on a grid of MASK_CELL x MASK_CELL pixels (16x fewer rays), each cell's class for all its pixels
+            coarse = vcam.scaled(1.0 / MASK_CELL)
+            try:
+                cls = seen_classes(coarse, cameras, points)
+            except ValueError:
+                continue
+            held_coarse = (cls <= FEW_CLASS).float()[None, None]
+            mask = torch.nn.functional.interpolate(held_coarse, size=(vcam.height, vcam.width), mode="nearest")[0, 0]
+            held = int(mask.sum())
+            if held:
+                out.append(VirtualView(names[i] + suffix, vcam, mask, held))
+    return out
+
+
+def coverage_loss(alpha: torch.Tensor, view: VirtualView) -> torch.Tensor:
+    """Mean of (1 - alpha) over the view's held pixels (the weight is applied by the caller)."""
+    return ((1.0 - alpha) * view.mask).sum() / view.held
