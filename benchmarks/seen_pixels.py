@@ -38,7 +38,7 @@ import torch
 from ctgs.io.run_model import load_run
 from ctgs.render.api import render
 from ctgs.scene import load_scene
-from ctgs.scene.coverage import CLASSES, DEPTHS, FEW, seen_classes
+from ctgs.scene.coverage import CLASSES, DEPTHS, FEW, FEW_CLASS, seen_classes
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
@@ -98,7 +98,7 @@ def main() -> None:
                 gt = torch.from_numpy(view.image)
                 se = ((out.rgb.clamp(0, 1) - gt) ** 2).mean(-1)
                 opened = out.alpha < OPEN_ALPHA
-                rec = {"psnr": psnr_of(se), "seen_or_few_psnr": psnr_of(se[cls <= 1]), "share_of_error": {}}
+                rec = {"psnr": psnr_of(se), "seen_or_few_psnr": psnr_of(se[cls <= FEW_CLASS]), "share_of_error": {}}
                 for i, c in enumerate(CLASSES):
                     m = cls == i
                     rec[f"{c}_pixels"] = float(m.float().mean())
@@ -119,8 +119,9 @@ def main() -> None:
              "SfM points in that view (uniform in inverse depth) and at infinity. **seen**: every sample lies inside "
              f"at least {FEW + 1} training images; **few**: every sample inside at least one, some inside only "
              f"1-{FEW}; **partly**: some samples inside none; **unseen**: no sample inside any (cameras and SfM "
-             f"points only, no model; occlusion ignored). open = rendered alpha < {OPEN_ALPHA}. Reference group: **{ref_name}**; differences pair runs by seed. A "
-             "breakdown of finished runs on test views: nothing is chosen from it.",
+             f"points only, no model; occlusion ignored). open = rendered alpha < {OPEN_ALPHA}. Reference group: "
+             f"**{ref_name}**; differences pair runs by seed. A breakdown of finished runs on test views: nothing is "
+             "chosen from it.",
              "", "## Pixel classes per test view", "", "| view | " + " | ".join(CLASSES) + " |",
              "| --- |" + " ---: |" * len(CLASSES)]
     first = records[ref_name][0]["views"]

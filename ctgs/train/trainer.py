@@ -29,10 +29,10 @@ from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
 from ctgs.train.init import init_model
 from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell_points
-from ctgs.train.virtual import coverage_loss, virtual_views
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
+from ctgs.train.virtual import coverage_loss, virtual_views
 
 
 def _all_finite(t: torch.Tensor) -> bool:
