@@ -86,6 +86,9 @@ class TrainConfig:
                                  "training camera: mean (1 - alpha) over the pixels the training cameras hold at every "
                                  "depth (ctgs.train.virtual; 0 = off, the paper)")
     virtual_every: int = _f(4, "steps between virtual-view coverage terms (each one more render and backward)")
+    virtual_pixels: str = _f("held", "pixels of a virtual view the coverage term covers: held (some training image "
+                             "holds them at every sampled depth) | few (of those, the ones some depth of which only "
+                             "one or two training images hold)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
@@ -139,6 +142,8 @@ class TrainConfig:
             raise UserError(f"config device={self.device!r}: use auto, cpu or cuda")
         if self.texture_alloc not in ("pow2", "mult4"):
             raise UserError(f"config texture_alloc={self.texture_alloc!r}: use pow2 or mult4")
+        if self.virtual_pixels not in ("held", "few"):
+            raise UserError(f"config virtual_pixels={self.virtual_pixels!r}: use held or few")
         if len(self.background) != 3:
             raise UserError("config background must be a list of 3 numbers")
         for key, ok, what in _RANGES:

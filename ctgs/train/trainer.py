@@ -102,10 +102,12 @@ class Trainer:
         self.virtual = []
         if cfg.virtual_coverage > 0:
             self.virtual = [replace(vv, camera=vv.camera.to(self.device), mask=vv.mask.to(self.device))
-                            for vv in virtual_views([v.name for v in self.train_views], self.cameras, scene.points)]
+                            for vv in virtual_views([v.name for v in self.train_views], self.cameras, scene.points,
+                                                    pixels=cfg.virtual_pixels)]
             if not self.virtual:
-                raise UserError(f"{scene.root}: virtual_coverage needs at least two training cameras with SfM points "
-                                "in view; set virtual_coverage = 0")
+                raise UserError(f"{scene.root}: virtual_coverage found no virtual view with {cfg.virtual_pixels} "
+                                "pixels (it needs two training cameras with SfM points in view); set "
+                                "virtual_coverage = 0")
         self.virtual_order = torch.randperm(len(self.virtual), generator=torch.Generator().manual_seed(cfg.seed + 1))
         self.cfg = rules.resolve(cfg, self.pixels)
         self.planner = None

@@ -5,10 +5,11 @@ half a camera step away: on herzjesu25 at 384x256 that is where the content-awar
 (benchmarks/results/seen_pixels_herzjesu25_384_vm14.md). This term asks for coverage there without asking for
 any colour: for each training camera, two virtual cameras with its orientation and intrinsics, moved half the way
 to its nearest training camera and as far the other way; in each, the pixels whose ray lies inside some training
-image at every sampled depth (ctgs.scene.coverage: classes seen and few) must be covered. Every
+image at every sampled depth (ctgs.scene.coverage: classes seen and few; with `virtual_pixels = "few"` only those
+some depth of which only one or two training images hold) must be covered. Every
 `virtual_every` steps one virtual view (in a fixed shuffled cycle) adds
 
-    virtual_coverage * mean over its held pixels of (1 - alpha)
+    virtual_coverage * mean over its held pixels of (1 - alpha)   ("few": sum over them / all pixels)
 
 to the training loss (its own render and backward). No photometric target: what covers a pixel is left to the
 training views.
@@ -26,14 +27,17 @@ from ctgs.scene.coverage import FEW_CLASS, seen_classes
 
 STEP = 0.5  # fraction of the distance to the nearest training camera
 MASK_CELL = 4  # the held-pixel mask is classified on cells of this many pixels across
+PIXEL_KINDS = ("held", "few")
 
 
 @dataclass
 class VirtualView:
     name: str  # "<training view>+" (towards its nearest camera) or "<training view>-" (away from it)
     camera: Camera
-    mask: torch.Tensor  # [H, W] float32: 1 where the training cameras hold the pixel at every depth
+    mask: torch.Tensor  # [H, W] float32: 1 on the pixels the term covers (virtual_views' `pixels`)
     held: int  # number of such pixels
+    norm: int  # what the term's sum is divided by: `held` for "held" pixels (their mean), H x W for "few" ones
+    #            (a view where few pixels are few does not weigh each of them more)
 
 
 def _moved(cam: Camera, centre: torch.Tensor) -> Camera:
@@ -43,9 +47,14 @@ def _moved(cam: Camera, centre: torch.Tensor) -> Camera:
     return replace(cam, viewmat=vm.to(cam.viewmat.dtype))
 
 
-def virtual_views(names: list[str], cameras: list[Camera], points: np.ndarray, step: float = STEP) -> list[VirtualView]:
+def virtual_views(names: list[str], cameras: list[Camera], points: np.ndarray, step: float = STEP,
+                  pixels: str = "held") -> list[VirtualView]:
     """Two virtual views per training camera (module docstring); a virtual camera into which fewer than 10 SfM
-    points project, or with no held pixel, is left out. Needs at least two training cameras."""
+    points project, or with no pixel of the kind asked for, is left out. Needs at least two training cameras.
+    pixels: "held" (classes seen and few: some training image holds the pixel at every sampled depth) or "few"
+    (class few alone: held at every depth, but at some depth by only one or two training images)."""
+    if pixels not in PIXEL_KINDS:
+        raise ValueError(f"pixels must be one of {PIXEL_KINDS}, got {pixels!r}")
     if len(cameras) < 2:
         return []
     centres = torch.stack([c.center.detach().cpu().double() for c in cameras])  # [C, 3]
@@ -65,14 +74,15 @@ def virtual_views(names: list[str], cameras: list[Camera], points: np.ndarray, s
                 cls = seen_classes(coarse, cameras, points)
             except ValueError:
                 continue
-            held_coarse = (cls <= FEW_CLASS).float()[None, None]
+            held_coarse = ((cls <= FEW_CLASS) if pixels == "held" else (cls == FEW_CLASS)).float()[None, None]
             mask = torch.nn.functional.interpolate(held_coarse, size=(vcam.height, vcam.width), mode="nearest")[0, 0]
             held = int(mask.sum())
             if held:
-                out.append(VirtualView(names[i] + suffix, vcam, mask, held))
+                norm = held if pixels == "held" else mask.numel()
+                out.append(VirtualView(names[i] + suffix, vcam, mask, held, norm))
     return out
 
 
 def coverage_loss(alpha: torch.Tensor, view: VirtualView) -> torch.Tensor:
-    """Mean of (1 - alpha) over the view's held pixels (the weight is applied by the caller)."""
-    return ((1.0 - alpha) * view.mask).sum() / view.held
+    """Sum of (1 - alpha) over the view's masked pixels / view.norm (the weight is applied by the caller)."""
+    return ((1.0 - alpha) * view.mask).sum() / view.norm

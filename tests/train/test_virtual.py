@@ -41,6 +41,24 @@ def test_two_virtual_views_per_camera_half_a_step_each_way():
     assert a_plus.mask.all()  # between two training cameras: held everywhere
 
 
+def test_few_pixels_are_the_held_ones_only_one_or_two_cameras_see():
+    """Four cameras in a row: the few pixels are a subset of the held ones, and half a step beyond either end of the
+    row they lie on the outer side (the columns fewer cameras see)."""
+    cams = [cam_at(x) for x in (0.0, 0.2, 0.4, 0.6)]
+    held = {v.name: v for v in virtual_views(list("abcd"), cams, wall())}
+    few = {v.name: v for v in virtual_views(list("abcd"), cams, wall(), pixels="few")}
+    assert set(few) < set(held)
+    for name, v in few.items():
+        assert bool((v.mask <= held[name].mask).all()) and 0 < v.held < held[name].held
+        assert v.norm == H * W and held[name].norm == held[name].held  # few: per-pixel weight 1 / (H W)
+    left, right = few["a-"].mask[:, : W // 2].sum(), few["a-"].mask[:, W // 2:].sum()  # a- is left of the row
+    assert left > right
+    left, right = few["d-"].mask[:, : W // 2].sum(), few["d-"].mask[:, W // 2:].sum()  # d- is right of it
+    assert right > left
+    with pytest.raises(ValueError, match="pixels"):
+        virtual_views(list("abcd"), cams, wall(), pixels="all")
+
+
 def test_no_virtual_views_from_one_camera_or_without_points_in_view():
     assert virtual_views(["a"], [cam_at(0.0)], wall()) == []
     behind = wall() * np.array([1, 1, -1])
@@ -51,7 +69,7 @@ def test_coverage_loss_counts_only_held_pixels_and_pulls_alpha_up():
     cams = [cam_at(0.0), cam_at(0.2)]
     v = virtual_views(["a", "b"], cams, wall())[0]
     v.mask[:, : W // 2] = 0  # only the right half held
-    v.held = int(v.mask.sum())
+    v.held = v.norm = int(v.mask.sum())
     alpha = torch.full((H, W), 0.25, requires_grad=True)
     with torch.no_grad():
         alpha[:, : W // 2] = 0.0  # open where not held: costs nothing
@@ -91,10 +109,10 @@ def test_virtual_coverage_trains_and_raises_alpha_between_cameras(tmp_path):
     assert mean_alpha(on) < 0.8 * mean_alpha(off)  # (1 - alpha) on the virtual views: 0.04-0.14 vs 0.13-0.24
 
 
-def test_virtual_coverage_rejects_a_negative_weight_and_a_zero_cadence():
+def test_virtual_coverage_rejects_a_negative_weight_a_zero_cadence_and_an_unknown_pixel_kind():
     from ctgs.errors import UserError
     from ctgs.train.config import load_config
 
-    for key, value in (("virtual_coverage", -1.0), ("virtual_every", 0)):
+    for key, value in (("virtual_coverage", -1.0), ("virtual_every", 0), ("virtual_pixels", "all")):
         with pytest.raises(UserError, match=key):
             load_config(None, {key: value})
