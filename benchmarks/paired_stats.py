@@ -1,5 +1,6 @@
 """Paired comparison over seeds: mean difference, standard deviation, paired t, its two-sided p and the 95%
-interval (Student t; scipy comes with scikit-learn). Used by equal_time_summary.py and paired.py."""
+interval (Student t; scipy comes with scikit-learn). Used by equal_time_summary.py and paired.py; `group_specs`
+parses the `--group NAME=RUN[,RUN...]` arguments of validation_runs.py and seen_pixels.py."""
 
 from __future__ import annotations
 
@@ -33,3 +34,14 @@ def sentence(label: str, s: dict) -> str:
     return (f"{label}: mean {s['mean']:+.2f} dB, standard deviation {s['sd']:.2f} dB, ahead on {s['wins']} of {s['n']} "
             f"seeds, paired t = {s['t']:.2f} with {s['dof']} degrees of freedom (|t| > {s['t_crit']:.2f} for 5% "
             f"two-sided), p = {s['p']:.3f}, 95% interval [{lo:+.2f}, {hi:+.2f}] dB.")
+
+
+def group_specs(specs: list[str], script: str) -> list[tuple[str, list[str]]]:
+    """`--group NAME=RUN[,RUN...]` values -> [(name, [run dirs])] (one run per seed, empty entries dropped)."""
+    groups = []
+    for spec in specs:
+        if "=" not in spec:
+            raise SystemExit(f"{script}: write groups as NAME=RUN_DIR[,RUN_DIR...], got {spec!r}")
+        name, dirs = spec.split("=", 1)
+        groups.append((name, [d for d in dirs.split(",") if d]))
+    return groups

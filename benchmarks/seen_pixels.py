@@ -30,6 +30,7 @@ import json
 import os
 import platform
 import subprocess
+import sys
 import time
 
 import numpy as np
@@ -39,6 +40,9 @@ from ctgs.io.run_model import load_run
 from ctgs.render.api import render
 from ctgs.scene import load_scene
 from ctgs.scene.coverage import CLASSES, DEPTHS, FEW, FEW_CLASS, seen_classes
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paired_stats import group_specs  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
@@ -65,10 +69,7 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    groups = []
-    for spec in args.group:
-        name, runs = spec.split("=", 1)
-        groups.append((name, runs.split(",")))
+    groups = group_specs(args.group, "seen_pixels.py")
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
 

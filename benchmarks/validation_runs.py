@@ -36,6 +36,9 @@ from ctgs.render.api import render
 from ctgs.stages.train import _load_scene
 from ctgs.train.shell import far_mask, scene_sphere
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paired_stats import group_specs  # noqa: E402
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
 
@@ -104,12 +107,7 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    groups = []
-    for spec in args.group:
-        if "=" not in spec:
-            raise SystemExit(f"validation_runs.py: write groups as NAME=RUN_DIR[,RUN_DIR...], got {spec!r}")
-        name, dirs = spec.split("=", 1)
-        groups.append((name, [measure(d) for d in dirs.split(",") if d]))
+    groups = [(name, [measure(d) for d in dirs]) for name, dirs in group_specs(args.group, "validation_runs.py")]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
     ref_name, ref = groups[0]
