@@ -28,7 +28,7 @@ import torch
 from ctgs.io.run_model import load_run
 from ctgs.render.api import render
 from ctgs.scene import load_scene
-from ctgs.train.shell import _project  # the same in-image test as the far shell's
+from ctgs.train.shell import project  # the same in-image test as the far shell's
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -99,7 +99,7 @@ def main() -> None:
         for j, v in enumerate(sc.train):
             c = v.camera
             R, t = c.R.double().numpy(), c.t.double().numpy()
-            inside = _project(xs, R, t, c)[2]
+            inside = project(xs, R, t, c)[2]
             depth[j, inside] = (xs @ R.T + t)[inside, 2]
         for k, (i, p, dl) in enumerate(zip(far, pix, drop)):
             seen = depth[~np.isnan(depth[:, k]), k]

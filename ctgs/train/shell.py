@@ -40,7 +40,7 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
 
 
-def _project(xyz: np.ndarray, R: np.ndarray, t: np.ndarray, c) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def project(xyz: np.ndarray, R: np.ndarray, t: np.ndarray, c) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel coordinates (u, w) of world points in camera c and whether each lands inside its image, in front."""
     p = xyz @ R.T + t
     z = p[:, 2]
@@ -76,7 +76,7 @@ def _occupied_cells(pts: np.ndarray, c) -> np.ndarray:
     gw, gh = -(-c.width // OCCUPANCY_CELL_PX), -(-c.height // OCCUPANCY_CELL_PX)
     occupied = np.zeros((gh + 2, gw + 2), bool)
     if len(pts):
-        u, w, ok = _project(pts, R, t, c)
+        u, w, ok = project(pts, R, t, c)
         occupied[(w[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1, (u[ok] // OCCUPANCY_CELL_PX).astype(np.int64) + 1] = True
         occupied = occupied | np.roll(occupied, 1, 0) | np.roll(occupied, -1, 0)
         occupied = occupied | np.roll(occupied, 1, 1) | np.roll(occupied, -1, 1)
@@ -124,7 +124,7 @@ def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarra
         c = v.camera
         R, t = c.R.detach().double().cpu().numpy(), c.t.detach().double().cpu().numpy()
         occupied = _occupied_cells(pts, c)  # a shell point there would sit behind the SfM points
-        u, w, inside = _project(xyz, R, t, c)
+        u, w, inside = project(xyz, R, t, c)
         if not inside.any():
             continue
         open_ = inside.copy()

@@ -27,6 +27,7 @@ from ctgs.train.budget import BudgetPlanner
 from ctgs.train.config import TrainConfig
 from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
+from ctgs.train.fill import fill_points
 from ctgs.train.init import init_model
 from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell_points
 from ctgs.train.kmin import compute_k_min
@@ -123,12 +124,16 @@ class Trainer:
         np.random.seed(cfg.seed % 2**32)
         if state is None:
             mode = {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}[cfg.method]
-            shell = shell_points(scene.points, scene.train, cfg.init_shell) if cfg.init_shell > 0 else (None, None)
+            # extra initial points, appended after the SfM points' cap: the far shell's, then the fill's
+            extra = shell_points(scene.points, scene.train, cfg.init_shell) if cfg.init_shell > 0 else (None, None)
+            if cfg.init_fill:
+                fill = fill_points(scene.points, scene.train)
+                extra = tuple(f if e is None else np.concatenate([e, f]) for e, f in zip(extra, fill))
             self.model = init_model(scene.points, scene.point_colors, max_points=rules.init_point_cap(cfg, self.pixels),
                                     opacity=cfg.init_opacity, max_sh_degree=cfg.max_sh_degree,
                                     random_rotation=cfg.random_rotation, normals=cfg.init_normals, texture_mode=mode,
-                                    fixed_res=cfg.fixed_texture_res, seed=cfg.seed, extra_points=shell[0],
-                                    extra_colors=shell[1])
+                                    fixed_res=cfg.fixed_texture_res, seed=cfg.seed, extra_points=extra[0],
+                                    extra_colors=extra[1])
             self._to_device()
             self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)
             self.opt = SurfelAdam(self.model, cfg.adam_eps)
