@@ -2,7 +2,7 @@
 
 Usage:
   .venv/bin/python benchmarks/profile_train.py SCENE --tag demo192 [--images images_8]
-      [--config configs/demo.toml] [--state-at 1500] [--window 240] [--threads 1] [--work /tmp/ctgs_prof]
+      [--preset fast] [--config 2dgs] [--set KEY=VALUE ...] [--state-at 1500] [--window 240] [--threads 1] [--work /tmp/ctgs_prof]
 
 The model is first trained to iteration --state-at (once per tag; the snapshot is reused, so profiles
 of different commits start from the very same model), then --window iterations are trained from it
@@ -153,8 +153,8 @@ def make_snapshot(args) -> None:
 
     run = os.path.join(args.work, f"snap_{args.tag}")
     shutil.rmtree(run, ignore_errors=True)
-    cfg = resolve_config(args.scene, run, args.config, None, [f"threads={args.threads}"], args.images, False,
-                         "cpu", args.seed)
+    cfg = resolve_config(args.scene, run, args.config, None, [f"threads={args.threads}", *args.set], args.images,
+                         False, "cpu", args.seed, preset=args.preset)
     tr = Trainer(cfg, _load_scene(cfg), run)
     for _ in tr.run():
         if tr.it >= args.state_at:
@@ -176,8 +176,8 @@ def profile(args) -> dict:
     run = os.path.join(args.work, f"prof_{args.tag}_{args.label}")
     shutil.rmtree(run, ignore_errors=True)
     shutil.copytree(snap, run)
-    cfg = resolve_config(args.scene, run, args.config, None, [f"threads={args.threads}"], args.images, True,
-                         "cpu", args.seed)
+    cfg = resolve_config(args.scene, run, args.config, None, [f"threads={args.threads}", *args.set], args.images,
+                         True, "cpu", args.seed, preset=args.preset)
     ext = load_cpu()
     tr = Trainer(cfg, _load_scene(cfg), run, resume=True)
     # --clock cpu: process CPU time (user + system), robust to other jobs on a shared machine with one
@@ -199,7 +199,7 @@ def profile(args) -> dict:
     routine = per_it.get("routines", 0.0)
     return {
         "tag": args.tag, "label": args.label, "scene": os.path.abspath(args.scene), "images": args.images,
-        "config": args.config, "threads": args.threads, "clock": args.clock, "seed": args.seed, "state_at": start_it,
+        "preset": args.preset, "config": args.config, "sets": args.set, "threads": args.threads, "clock": args.clock, "seed": args.seed, "state_at": start_it,
         "window": iters, "primitives_start": n0, "primitives_end": tr.model.num_primitives,
         "texels_start": t0_texels, "texels_end": tr.model.num_texels,
         "train_seconds": seconds, "it_per_s": iters / seconds, "seconds_per_it": seconds / iters,
@@ -246,7 +246,8 @@ def write(res: dict, out_dir: str) -> None:
              f"torch {res['torch']}; {res['threads']} thread(s); load average at start "
              f"{res['loadavg_start'][0]:.2f}, at end {res['loadavg_end'][0]:.2f} (a shared machine: "
              f"absolute times are inflated by other jobs, ratios side by side are the stable figure).", "",
-             f"Scene {res['scene']} ({res['images']}), config {res['config']}, seed {res['seed']}: iterations "
+             f"Scene {res['scene']} ({res['images']}), preset {res.get('preset')}, config {res['config']}, sets "
+             f"{res.get('sets', [])}, seed {res['seed']}: iterations "
              f"{res['state_at']}..{res['state_at'] + res['window']} from a snapshot, "
              f"{res['primitives_start']} -> {res['primitives_end']} primitives, {res['texels_start']} -> "
              f"{res['texels_end']} texels. Peak RSS {res['peak_rss_mib']:.0f} MiB; "
@@ -275,7 +276,9 @@ def main() -> None:
     ap.add_argument("--tag", required=True, help="names the snapshot and the result files")
     ap.add_argument("--label", default="current", help="names the code state in the result files")
     ap.add_argument("--images", default="images")
-    ap.add_argument("--config", default="configs/demo.toml")
+    ap.add_argument("--preset", default="fast", help="ctgs train --preset")
+    ap.add_argument("--config", default=None, help="ctgs train --config (an overlay on the preset)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="ctgs train --set (repeatable)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--state-at", type=int, default=1500)
     ap.add_argument("--window", type=int, default=240)

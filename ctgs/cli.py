@@ -7,6 +7,7 @@ lazily so `ctgs --help` stays fast and never touches torch or the compiled exten
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 
 import click
@@ -28,6 +29,10 @@ STAGES: dict[str, tuple[str, str]] = {
 }
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 class LazyGroup(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(STAGES)
@@ -43,6 +48,10 @@ class LazyGroup(click.Group):
             formatter.write_dl([(name, help_text) for name, (_, help_text) in STAGES.items()])
 
     def invoke(self, ctx: click.Context):
+        # `kill`, `timeout` and a cluster's time limit stop a stage as Ctrl-C does: Python unwinds, so a stage removes
+        # what it had half-made, and click prints "Aborted!" (exit 1). (ctgs.scene.colmap.import_pycolmap keeps this
+        # handler when pycolmap's glog would take SIGTERM over.)
+        signal.signal(signal.SIGTERM, _interrupt)
         try:
             return super().invoke(ctx)
         except UserError as exc:

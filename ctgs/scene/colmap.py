@@ -7,6 +7,8 @@ has no distortion. Everything else gets a UserError telling the user to run `ctg
 from __future__ import annotations
 
 import os
+import signal
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,9 +72,24 @@ def _model_file(model_dir: str, name: str) -> str:
     return binary if os.path.isfile(binary) else os.path.join(model_dir, f"{name}.txt")
 
 
+def import_pycolmap():
+    """`import pycolmap`, keeping Python's SIGTERM handler.
+
+    Importing pycolmap installs glog's failure-signal handler, which on SIGTERM (`kill`, `timeout`, a cluster's
+    time limit) prints a native stack trace and ends the process before Python can clean up (a half-made run
+    folder stays). SIGTERM gets back the handler Python had before the import (the CLI's: stop like Ctrl-C);
+    the crash signals (SIGSEGV, SIGABRT, ...) keep glog's trace."""
+    before = signal.getsignal(signal.SIGTERM)
+    import pycolmap
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)
+    return pycolmap
+
+
 def read_colmap_model(model_dir: str, *, require_pinhole: bool = True) -> ColmapModel:
     """Read a COLMAP model folder. Raises UserError on unreadable files or non-pinhole cameras."""
-    import pycolmap  # heavy import, only where needed
+    pycolmap = import_pycolmap()  # heavy import, only where needed
 
     try:
         rec = pycolmap.Reconstruction(model_dir)

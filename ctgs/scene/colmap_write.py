@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ctgs.scene.colmap import import_pycolmap
+
 
 @dataclass
 class PinholeCamera:
@@ -22,7 +24,7 @@ def write_colmap_model(model_dir: str, camera: PinholeCamera, names: list[str], 
                        points: np.ndarray, colors: np.ndarray) -> None:
     """One shared PINHOLE camera; images `names` with world->camera `viewmats` [4, 4];
     points [P, 3] world units with colours [P, 3] uint8 (empty tracks: they are not observations)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     rec = pycolmap.Reconstruction()
     cam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,

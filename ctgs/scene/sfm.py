@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -20,6 +22,7 @@ from ctgs.errors import UserError
 from ctgs.io import atomic
 from ctgs.io.images import image_info, list_images, read_image, resize_image, stderr_silenced, write_image
 from ctgs.scene.align import umeyama  # noqa: F401  (moved to ctgs.scene.align; kept importable from here)
+from ctgs.scene.colmap import import_pycolmap
 
 MIN_IMAGES = 3
 # Fewer registered images than this fraction means SfM failed on this input (too little overlap or
@@ -145,7 +148,7 @@ def _prepare_work(work: str, fingerprint: dict, force: bool) -> None:
 
 
 def _extract(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> None:
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     db = os.path.join(work, "database.db")
     if os.path.exists(db):
@@ -160,7 +163,7 @@ def _extract(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> 
 
 
 def _match(work: str, opts: SfmOptions) -> None:
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     db = os.path.join(work, "database.db")
     matching = pycolmap.FeatureMatchingOptions()
@@ -180,7 +183,7 @@ def _match(work: str, opts: SfmOptions) -> None:
 
 
 def _map(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> None:
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     out = os.path.join(work, "distorted")
     shutil.rmtree(out, ignore_errors=True)
@@ -203,7 +206,7 @@ def _map(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> None
 
 
 def _undistort(work: str, images_dir: str, opts: SfmOptions) -> None:
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     out = os.path.join(work, "scene")
     shutil.rmtree(out, ignore_errors=True)
@@ -235,7 +238,7 @@ def build_pyramid(scene_dir: str, factors=PYRAMID_FACTORS) -> None:
 
 
 def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions) -> SfmReport:
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     rec = pycolmap.Reconstruction(os.path.join(work, "scene", "sparse", "0"))
     registered = {rec.images[i].name for i in rec.reg_image_ids()}
@@ -303,7 +306,7 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
 
     status("checking images")
     names = check_input_images(images_dir)
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     # COLMAP's glog lines (one per image and step, and its own failure lines) would bury the spinner, the
     # report and our one-line errors.
@@ -311,10 +314,16 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
     previous = pycolmap.logging.minloglevel, pycolmap.logging.logtostderr
     pycolmap.logging.minloglevel = 3 if quiet else previous[0]  # 3: FATAL only; our errors explain
     pycolmap.logging.logtostderr = True
+    # SIGTERM ends `ctgs sfm` at once, even inside a long pycolmap call (a Python handler would wait for the call to
+    # return): every step is resumable from the work folder and the scene is installed only at the end.
+    main = threading.current_thread() is threading.main_thread()
+    term = signal.signal(signal.SIGTERM, signal.SIG_DFL) if main else None
     try:
         return _run_steps(images_dir, scene_dir, names, opts, status)
     finally:
         pycolmap.logging.minloglevel, pycolmap.logging.logtostderr = previous
+        if main:
+            signal.signal(signal.SIGTERM, term)
 
 
 def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions,

@@ -86,10 +86,18 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
         write_config(run_dir, cfg.to_dict())
         return run_with_progress(trainer, quiet=quiet)
-    except BaseException:
+    except BaseException as exc:
         # Nothing half-written: a run folder this invocation created goes if no checkpoint made it resumable.
-        if created and not os.path.exists(os.path.join(run_dir, "checkpoints", "last.pt")):
+        resumable = os.path.exists(os.path.join(run_dir, "checkpoints", "last.pt"))
+        if created and not resumable:
             shutil.rmtree(run_dir, ignore_errors=True)
+        if isinstance(exc, KeyboardInterrupt):  # Ctrl-C, or SIGTERM through the CLI
+            if resumable:
+                print(f"ctgs train: stopped; {run_dir}/checkpoints/last.pt holds the last checkpoint: continue with "
+                      f"`ctgs train {scene_dir} -o {run_dir} --resume`", file=sys.stderr)
+            else:
+                print("ctgs train: stopped before the first checkpoint" + (f"; {run_dir} removed" if created else ""),
+                      file=sys.stderr)
         raise
 
 

@@ -3,14 +3,9 @@
 from __future__ import annotations
 
 import os
-import signal
 import tempfile
 
 import click
-
-
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
 
 
 def resolve_bundle(model_dir: str, scene_dir: str | None, tmp_root: str) -> tuple[str, list[dict] | None, str]:
@@ -77,10 +72,9 @@ def command(model_dir: str, scene_dir: str | None, port: int, no_browser: bool) 
         click.echo(f"serving {bundle_dir} ({how}) at {server.url}  (Ctrl-C stops)")
         if not no_browser:
             webbrowser.open(server.url)
-        signal.signal(signal.SIGTERM, _interrupt)  # `kill` too removes a temporary bundle
         try:
             server.serve_forever()
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # Ctrl-C, or `kill` (the CLI turns SIGTERM into this): the bundle goes
             pass
         finally:
             server.close()

@@ -107,3 +107,29 @@ def test_sequential_matcher_on_ordered_frames(tmp_path, demo24):
         report = json.load(f)
     assert report["matcher"] == "sequential"
     assert report["registered"] >= 0.9 * VIEWS and report["mean_reprojection_error_px"] < 1.0
+
+
+def test_sigterm_ends_sfm_at_once_during_its_steps_and_is_restored_after(tmp_path, monkeypatch):
+    """Inside the pycolmap steps SIGTERM is the default action (a Python handler would wait for a long pycolmap call
+    to return; the work folder makes a killed run resumable); the caller's handler is back afterwards."""
+    import signal
+
+    demo = make_demo_scene(str(tmp_path / "demo"), num_views=4, width=48, height=36, seed=0)
+    seen = []
+
+    def handler(signum, frame):  # the caller's (the CLI installs one like it)
+        raise KeyboardInterrupt
+
+    def extract(*args, **kwargs):
+        seen.append(signal.getsignal(signal.SIGTERM))
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        monkeypatch.setattr(sfm, "_extract", extract)
+        with pytest.raises(KeyboardInterrupt):
+            sfm.run_sfm(os.path.join(demo, "images"), str(tmp_path / "recon"), sfm.SfmOptions(threads=1))
+        assert seen == [signal.SIG_DFL]
+        assert signal.getsignal(signal.SIGTERM) is handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)

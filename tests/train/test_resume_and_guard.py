@@ -134,3 +134,38 @@ def test_nan_guard_stops_and_keeps_last_checkpoint(scene, tmp_path):
 def test_parameter_inf_is_caught(scene, tmp_path):
     with pytest.raises(TrainingDiverged, match="parameter opacity_logits"):
         train_main(scene, str(tmp_path / "inf"), preset="fast", sets=SETS + ("lr_opacity=1e39",), quiet=True)
+
+
+def _train_then_terminate(scene, run, ready, sets=()):
+    """`ctgs train` in a subprocess, SIGTERM once `ready(run)` holds; returns the finished CompletedProcess-like."""
+    args = [sys.executable, "-m", "ctgs.cli", "train", scene, "-o", run, "--preset", "fast", "-q"]
+    for s in SETS + tuple(sets):
+        args += ["--set", s]
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not ready(run) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    return proc.returncode, err
+
+
+def test_sigterm_stops_training_like_ctrl_c_and_leaves_a_resumable_run(scene, tmp_path):
+    """kill / timeout / a cluster's time limit: no native stack trace (pycolmap's glog handler would print one and
+    end the process before Python cleans up), exit 1, the checkpoint kept and the resume command named."""
+    run = str(tmp_path / "term")
+    ckpt = os.path.join(run, "checkpoints", "last.pt")
+    code, err = _train_then_terminate(scene, run, lambda r: os.path.exists(ckpt),
+                                      sets=("iterations=100000", "checkpoint_every=10"))
+    assert code == 1, err
+    assert "stack trace" not in err and "Traceback" not in err and "Aborted at" not in err, err
+    assert f"-o {run} --resume" in err
+    assert os.path.exists(ckpt) and not os.path.exists(os.path.join(run, "model.pt"))
+
+
+def test_sigterm_before_the_first_checkpoint_removes_the_run_folder(scene, tmp_path):
+    run = str(tmp_path / "term_early")
+    code, err = _train_then_terminate(scene, run, os.path.isdir, sets=("iterations=100000",))
+    assert code == 1 and "stack trace" not in err and "Traceback" not in err, err
+    assert "before the first checkpoint" in err and not os.path.exists(run)
