@@ -1,0 +1,35 @@
+"""Every result file and local link the README and docs name exists (a figure must point to the file a command wrote)."""
+
+from __future__ import annotations
+
+import os
+import re
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAGES = ["README.md", "benchmarks/README.md"] + sorted(
+    os.path.join("docs", f) for f in os.listdir(os.path.join(ROOT, "docs")) if f.endswith(".md"))
+RESULT_PATH = re.compile(r"benchmarks/results/[A-Za-z0-9_.\-/]+")
+MD_LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_named_result_files_and_local_links_exist(page):
+    text = open(os.path.join(ROOT, page), encoding="utf-8").read()
+    missing = []
+    for m in RESULT_PATH.finditer(text):
+        path = m.group(0).rstrip(".,/")
+        if text[m.end():m.end() + 1] in ("*", "{", "<"):  # a pattern (train_speed_*.md, compress_demo.{md,json}): a prefix
+            folder, prefix = os.path.split(os.path.join(ROOT, m.group(0)))
+            if not any(f.startswith(prefix) for f in os.listdir(folder)):
+                missing.append(m.group(0) + "...")
+        elif not os.path.exists(os.path.join(ROOT, path)):
+            missing.append(path)
+    for m in MD_LINK.finditer(text):
+        target = m.group(1)
+        if "://" in target or target.startswith("mailto:"):
+            continue
+        if not os.path.exists(os.path.normpath(os.path.join(ROOT, os.path.dirname(page), target))):
+            missing.append(target)
+    assert not missing, f"{page} names files that do not exist: {missing}"
