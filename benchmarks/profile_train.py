@@ -2,7 +2,8 @@
 
 Usage:
   .venv/bin/python benchmarks/profile_train.py SCENE --tag demo192 [--images images_8]
-      [--preset fast] [--config 2dgs] [--set KEY=VALUE ...] [--state-at 1500] [--window 240] [--threads 1] [--work /tmp/ctgs_prof]
+      [--preset fast] [--config 2dgs] [--set KEY=VALUE ...] [--state-at 1500] [--window 240] [--threads 1]
+      [--work /tmp/ctgs_prof]
 
 The model is first trained to iteration --state-at (once per tag; the snapshot is reused, so profiles
 of different commits start from the very same model), then --window iterations are trained from it
@@ -199,7 +200,8 @@ def profile(args) -> dict:
     routine = per_it.get("routines", 0.0)
     return {
         "tag": args.tag, "label": args.label, "scene": os.path.abspath(args.scene), "images": args.images,
-        "preset": args.preset, "config": args.config, "sets": args.set, "threads": args.threads, "clock": args.clock, "seed": args.seed, "state_at": start_it,
+        "preset": args.preset, "config": args.config, "sets": args.set, "threads": args.threads, "clock": args.clock,
+        "seed": args.seed, "state_at": start_it,
         "window": iters, "primitives_start": n0, "primitives_end": tr.model.num_primitives,
         "texels_start": t0_texels, "texels_end": tr.model.num_texels,
         "train_seconds": seconds, "it_per_s": iters / seconds, "seconds_per_it": seconds / iters,

@@ -1,4 +1,4 @@
-"""Every result file and local link the README and docs name exists (a figure must point to the file a command wrote)."""
+"""Every result file and local link the README and docs name exists (a figure points to the file a command wrote)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def test_named_result_files_and_local_links_exist(page):
     missing = []
     for m in RESULT_PATH.finditer(text):
         path = m.group(0).rstrip(".,/")
-        if text[m.end():m.end() + 1] in ("*", "{", "<"):  # a pattern (train_speed_*.md, compress_demo.{md,json}): a prefix
+        if text[m.end():m.end() + 1] in ("*", "{", "<"):  # a pattern (train_speed_*.md, x.{md,json}): a prefix
             folder, prefix = os.path.split(os.path.join(ROOT, m.group(0)))
             if not any(f.startswith(prefix) for f in os.listdir(folder)):
                 missing.append(m.group(0) + "...")
