@@ -30,7 +30,7 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
-OPEN_ALPHA = 0.9  # a pixel with less accumulated opacity shows the background (black in the protocol's renders)
+from ctgs.metrics.report import OPEN_ALPHA  # noqa: E402  rendered alpha below it: the background shows
 
 
 def _depth(cam, pts):

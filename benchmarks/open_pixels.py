@@ -25,11 +25,11 @@ import numpy as np
 import torch
 
 from ctgs.io.run_model import load_run
+from ctgs.metrics.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
 from ctgs.scene import load_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-OPEN_ALPHA = 0.9  # as benchmarks/blame.py
 
 
 def psnr_of(se: torch.Tensor) -> float:

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from ctgs.io.run_model import load_run
+from ctgs.metrics.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
 from ctgs.scene import load_scene
 from ctgs.scene.coverage import CLASSES, DEPTHS, FEW, FEW_CLASS, seen_classes
@@ -45,7 +46,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paired_stats import group_specs  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
 
 
 def psnr_of(se: torch.Tensor) -> float:

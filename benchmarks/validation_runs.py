@@ -32,6 +32,7 @@ from types import SimpleNamespace
 import torch
 
 from ctgs.io.run_model import load_run
+from ctgs.metrics.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
 from ctgs.stages.train import _load_scene
 from ctgs.train.shell import far_mask, scene_sphere
@@ -40,7 +41,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paired_stats import group_specs  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-OPEN_ALPHA = 0.9  # as benchmarks/open_pixels.py and blame.py
 
 
 def psnr(se: torch.Tensor) -> float:

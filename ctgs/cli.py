@@ -7,13 +7,15 @@ lazily so `ctgs --help` stays fast and never touches torch or the compiled exten
 from __future__ import annotations
 
 import importlib
+import os
 import signal
 import sys
+import threading
 
 import click
 
 from ctgs import __version__
-from ctgs.errors import UserError
+from ctgs.errors import Terminated, UserError
 
 # name -> (module, one-line help). Each module defines `command`, a click.Command.
 STAGES: dict[str, tuple[str, str]] = {
@@ -29,8 +31,19 @@ STAGES: dict[str, tuple[str, str]] = {
 }
 
 
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
+def _terminate(signum, frame) -> None:
+    # An exception raised while a module is being imported can be lost by the extension being initialised (a Cython
+    # module's init turned it into a silent exit 0 here): until no import is in progress, deliver the signal again in
+    # 50 ms instead.
+    f = frame
+    while f is not None:
+        if f.f_code.co_filename.startswith("<frozen importlib"):
+            again = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+            again.daemon = True
+            again.start()
+            return
+        f = f.f_back
+    raise Terminated(signum)
 
 
 class LazyGroup(click.Group):
@@ -49,9 +62,9 @@ class LazyGroup(click.Group):
 
     def invoke(self, ctx: click.Context):
         # `kill`, `timeout` and a cluster's time limit stop a stage as Ctrl-C does: Python unwinds, so a stage removes
-        # what it had half-made, and click prints "Aborted!" (exit 1). (ctgs.scene.colmap.import_pycolmap keeps this
-        # handler when pycolmap's glog would take SIGTERM over.)
-        signal.signal(signal.SIGTERM, _interrupt)
+        # what it had half-made, and the exit code is 143 (ctgs.errors.Terminated). (ctgs.scene.colmap.import_pycolmap
+        # keeps this handler when pycolmap's glog would take SIGTERM over.)
+        signal.signal(signal.SIGTERM, _terminate)
         try:
             return super().invoke(ctx)
         except UserError as exc:

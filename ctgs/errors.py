@@ -5,3 +5,13 @@ class UserError(Exception):
     """Bad input or environment: the message names the file/cause and the fix."""
 
     exit_code = 2
+
+
+class Terminated(SystemExit):
+    """Raised by the CLI's SIGTERM handler (`kill`, `timeout`, a cluster's time limit): the stage unwinds as on Ctrl-C,
+    so what it had half-made is removed, and the process exits with 128 + 15 (143), as if the signal had ended it.
+    A SystemExit rather than a KeyboardInterrupt: CPython remembers a KeyboardInterrupt raised inside code some
+    extension runs during an import (pybind11's exec) and then exits by SIGINT even after click has handled it."""
+
+    def __init__(self, signum: int = 15) -> None:
+        super().__init__(128 + signum)

@@ -18,9 +18,9 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.io import atomic
-from ctgs.metrics.psnr import psnr
-from ctgs.metrics.report import (METRICS_SCHEMA, METRICS_VERSION, ImageMetrics, strip, write_metrics_json,
-                                     write_per_image_csv)
+from ctgs.metrics.psnr import masked_psnr, psnr
+from ctgs.metrics.report import (METRICS_SCHEMA, METRICS_VERSION, OPEN_ALPHA, ImageMetrics, strip,
+                                 write_metrics_json, write_per_image_csv)
 
 LPIPS_CONVENTION = "LPIPS VGG v0.1, inputs in [0, 1] fed without rescaling to [-1, 1] (3DGS/2DGS convention)"
 NUM_STRIPS = 2  # worst and best views (by PSNR) that get a gt | render | error strip each
@@ -40,7 +40,7 @@ class EvalOptions:
 def _render_fn(backend: str):
     from ctgs.render import render
 
-    return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg).rgb
+    return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg)
 
 
 def _sync(device: torch.device) -> None:
@@ -82,7 +82,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
 
-    renders, times = [], []
+    renders, alphas, times = [], [], []
     with torch.no_grad():
         inputs = model.render_inputs()
         render(inputs, scene.test[0].camera.to(device), model.sh_degree)  # warm-up: JIT build, caches
@@ -90,10 +90,11 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             cam = view.camera.to(device)
             _sync(device)
             t0 = time.perf_counter()
-            rgb = render(inputs, cam, model.sh_degree)
+            out = render(inputs, cam, model.sh_degree)
             _sync(device)
             times.append(time.perf_counter() - t0)
-            renders.append(rgb.clamp(0.0, 1.0).float().cpu())
+            renders.append(out.rgb.clamp(0.0, 1.0).float().cpu())
+            alphas.append(out.alpha.reshape(out.rgb.shape[:2]).float().cpu())
     if device.type == "cuda":
         peak, peak_kind = torch.cuda.max_memory_allocated(device), "cuda_max_memory_allocated"
     else:
@@ -111,7 +112,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
     # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
     with atomic.atomic_dir(opts.out_dir) as out:
-        rows, strips = _write_views(out, scene, renders, times, net, device)
+        rows, strips = _write_views(out, scene, renders, alphas, times, net, device)
         summary = run.summary or {}
         mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
         metrics = {
@@ -120,7 +121,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
             "run_dir": run.run_dir, "model_source": model_source, "scene_dir": run.scene_dir,
             "images": run.images, "holdout": run.holdout, "num_test_views": len(rows),
-            "psnr": mean("psnr"), "ssim": mean("ssim"),
+            "psnr": mean("psnr"), "ssim": mean("ssim"), "open_pixels": mean("open"),
             "lpips": None if net is None else mean("lpips"), "lpips_status": status,
             "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
             "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
@@ -141,7 +142,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     return metrics
 
 
-def _write_views(out: str, scene, renders: list, times: list, net, device) -> tuple[list[ImageMetrics], list[str]]:
+def _write_views(out: str, scene, renders: list, alphas: list, times: list, net,
+                 device) -> tuple[list[ImageMetrics], list[str]]:
     """Per-view metrics, out/renders/*.png, out/strips/*.png and out/per_image.csv; returns (rows, strip names)."""
     from ctgs.io.images import write_image
     from ctgs.metrics.ssim import ssim
@@ -150,7 +152,7 @@ def _write_views(out: str, scene, renders: list, times: list, net, device) -> tu
     os.makedirs(os.path.join(out, "strips"))
     rows: list[ImageMetrics] = []
     gts = []
-    for view, rgb, dt in zip(scene.test, renders, times):
+    for view, rgb, alpha, dt in zip(scene.test, renders, alphas, times):
         gt = torch.as_tensor(view.image, dtype=torch.float32)
         if gt.shape != rgb.shape:
             raise UserError(f"{view.image_path}: image is {list(gt.shape)}, render {list(rgb.shape)}; "
@@ -160,7 +162,9 @@ def _write_views(out: str, scene, renders: list, times: list, net, device) -> tu
             from ctgs.metrics.lpips import lpips_hwc
 
             lp = lpips_hwc(net, rgb.to(device), gt.to(device))
-        rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3))
+        open_px = alpha < OPEN_ALPHA
+        rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3,
+                                 float(open_px.float().mean()), masked_psnr(rgb, gt, ~open_px)))
         write_image(os.path.join(out, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
         gts.append(gt)
 

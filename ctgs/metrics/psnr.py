@@ -16,3 +16,14 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
         raise ValueError(f"psnr expects images of one shape, got {list(a.shape)} and {list(b.shape)}")
     mse = float(((a.double() - b.double()) ** 2).mean())
     return -10.0 * math.log10(max(mse, MIN_MSE))
+
+
+def masked_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float | None:
+    """PSNR over the pixels where `mask` [H, W] is True (every channel); None when it selects none."""
+    if a.shape != b.shape or tuple(mask.shape) != tuple(a.shape[:2]):
+        raise ValueError(f"masked_psnr expects images of one shape and an [H, W] mask, got {list(a.shape)}, "
+                         f"{list(b.shape)} and {list(mask.shape)}")
+    if not bool(mask.any()):
+        return None
+    mse = float(((a.double() - b.double()) ** 2)[mask].mean())
+    return -10.0 * math.log10(max(mse, MIN_MSE))

@@ -13,6 +13,10 @@ from ctgs.io import atomic
 
 METRICS_SCHEMA = "ctgs-metrics"
 METRICS_VERSION = 1
+# A pixel is open where the model's rendered alpha is below this: the background (the protocol's black) shows
+# through, which against a bright sky costs a view much of its PSNR. `ctgs eval` reports the open share of every test
+# view and the PSNR over the other pixels; the benchmarks' open-pixel figures use the same threshold.
+OPEN_ALPHA = 0.9
 # The error panel of a strip shows |gt - render| per channel times this gain (clipped to 1), so small
 # errors stay visible.
 ERROR_GAIN = 4.0
@@ -35,6 +39,8 @@ class ImageMetrics:
     ssim: float
     lpips: float | None  # None when LPIPS is unavailable
     render_ms: float  # render only, synchronised
+    open: float = float("nan")  # share of the pixels whose rendered alpha is below OPEN_ALPHA
+    psnr_covered: float | None = None  # PSNR over the other pixels (None: every pixel open)
 
 
 def _finite(x):
@@ -55,11 +61,11 @@ def write_metrics_json(path: str, metrics: dict) -> None:
 def write_per_image_csv(path: str, rows: list[ImageMetrics]) -> None:
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["name", "psnr", "ssim", "lpips", "render_ms"])
+    w.writerow(["name", "psnr", "ssim", "lpips", "render_ms", "open", "psnr_covered"])
     for r in rows:
         d = asdict(r)
         w.writerow([d["name"], f"{r.psnr:.4f}", f"{r.ssim:.5f}", "" if r.lpips is None else f"{r.lpips:.5f}",
-                    f"{r.render_ms:.3f}"])
+                    f"{r.render_ms:.3f}", f"{r.open:.5f}", "" if r.psnr_covered is None else f"{r.psnr_covered:.4f}"])
     atomic.write_text(path, buf.getvalue())
 
 

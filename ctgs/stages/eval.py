@@ -8,6 +8,10 @@ import os
 import click
 
 from ctgs.errors import UserError
+from ctgs.metrics.report import OPEN_ALPHA
+
+# The worst test view gets a line when at least this share of its pixels is open.
+OPEN_NOTE = 0.01
 
 
 def _metrics_path(path: str) -> str:
@@ -72,5 +76,10 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
     click.echo(f"{out_dir}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['points']} points, "
                f"{m['texels']} texels, {m['params']} params, {m['bytes_on_disk'] / 1e6:.3f} MB, "
                f"{m['fps']:.1f} FPS ({m['backend']}, {m['device']})")
+    worst = max(m["per_image"], key=lambda r: r["open"])
+    if worst["open"] >= OPEN_NOTE:  # say where the background shows: it can carry most of a view's error
+        covered = "" if worst["psnr_covered"] is None else f", {worst['psnr_covered']:.2f} dB over the other pixels"
+        click.echo(f"{worst['name']}: {100 * worst['open']:.1f}% of the pixels open (rendered alpha < {OPEN_ALPHA}: the "
+                   f"background shows), PSNR {worst['psnr']:.2f} dB{covered}")
     if m["lpips"] is None:
         click.echo(f"LPIPS {m['lpips_status']}")

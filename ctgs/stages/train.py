@@ -8,7 +8,7 @@ import sys
 
 import click
 
-from ctgs.errors import UserError
+from ctgs.errors import Terminated, UserError
 
 
 def _load_scene(cfg):
@@ -91,7 +91,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         resumable = os.path.exists(os.path.join(run_dir, "checkpoints", "last.pt"))
         if created and not resumable:
             shutil.rmtree(run_dir, ignore_errors=True)
-        if isinstance(exc, KeyboardInterrupt):  # Ctrl-C, or SIGTERM through the CLI
+        if isinstance(exc, (KeyboardInterrupt, Terminated)):  # Ctrl-C, or SIGTERM through the CLI
             if resumable:
                 print(f"ctgs train: stopped; {run_dir}/checkpoints/last.pt holds the last checkpoint: continue with "
                       f"`ctgs train {scene_dir} -o {run_dir} --resume`", file=sys.stderr)

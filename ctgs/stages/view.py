@@ -74,7 +74,7 @@ def command(model_dir: str, scene_dir: str | None, port: int, no_browser: bool) 
             webbrowser.open(server.url)
         try:
             server.serve_forever()
-        except KeyboardInterrupt:  # Ctrl-C, or `kill` (the CLI turns SIGTERM into this): the bundle goes
+        except KeyboardInterrupt:  # Ctrl-C (`kill`: ctgs.errors.Terminated, exit 143): the bundle goes either way
             pass
         finally:
             server.close()

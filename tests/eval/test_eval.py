@@ -16,7 +16,7 @@ from ctgs.metrics.psnr import psnr
 # Every metrics.json must carry these keys (docs/metrics.md), with these types (None allowed where listed).
 SCHEMA = {
     "schema": str, "schema_version": int, "scene": str, "dataset": str, "run_dir": str, "model_source": str,
-    "scene_dir": str, "images": str, "holdout": int, "num_test_views": int, "psnr": float, "ssim": float,
+    "scene_dir": str, "images": str, "holdout": int, "num_test_views": int, "psnr": float, "ssim": float, "open_pixels": float,
     "lpips": (float, type(None)), "lpips_status": str, "points": int, "texels": int, "params": int,
     "texels_per_primitive": float, "model_memory_bytes": int, "bytes_on_disk": int, "texture_encoding": str,
     "codebook_size": (int, type(None)), "compressed": bool, "compression_target": (str, type(None)), "fps": float, "render_ms_mean": float, "backend": str, "device": str,
@@ -131,3 +131,70 @@ def test_psnr_known_value():
     a = torch.zeros(4, 4, 3)
     assert abs(psnr(a, a + 0.1) - 20.0) < 1e-5  # 0.1 is inexact in float32
     assert psnr(a, a) == 100.0  # capped: JSON has no infinity
+
+
+def test_open_pixels_and_psnr_over_the_covered_ones(run_dir, tmp_path):
+    """Each view's open share (rendered alpha < OPEN_ALPHA) and PSNR over the other pixels, against a direct render."""
+    import torch
+
+    from ctgs.io.run_model import load_run
+    from ctgs.metrics.psnr import masked_psnr
+    from ctgs.metrics.report import OPEN_ALPHA
+    from ctgs.render import render
+    from ctgs.scene import load_scene
+
+    _eval(run_dir, "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e"))
+    m = json.load(open(tmp_path / "e" / "metrics.json"))
+    run = load_run(run_dir)
+    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
+    inputs = run.model.render_inputs()
+    opens = []
+    for view, row in zip(scene.test, m["per_image"]):
+        with torch.no_grad():
+            out = render(inputs, view.camera, backend="reference", sh_degree=run.model.sh_degree)
+        open_px = out.alpha.reshape(out.rgb.shape[:2]) < OPEN_ALPHA
+        gt = torch.as_tensor(view.image, dtype=torch.float32)
+        assert row["open"] == pytest.approx(float(open_px.float().mean()), abs=1e-6)
+        assert row["psnr_covered"] == pytest.approx(masked_psnr(out.rgb.clamp(0, 1), gt, ~open_px), abs=1e-4)
+        opens.append(row["open"])
+    assert 0 < max(opens) < 1  # the fixture's sparse surfels leave some background showing
+    assert m["open_pixels"] == pytest.approx(sum(opens) / len(opens))
+    rows = list(csv.DictReader(open(tmp_path / "e" / "per_image.csv")))
+    assert [float(r["open"]) for r in rows] == pytest.approx(opens, abs=1e-5)
+
+
+def test_a_model_that_covers_nothing_is_all_open_and_says_so(run_dir, tmp_path):
+    """The extreme: every pixel open -> open 1.0, no covered PSNR (null / empty), and the CLI names the view."""
+    import shutil
+
+    import torch
+
+    run = str(tmp_path / "transparent")
+    shutil.copytree(run_dir, run)
+    state = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    state["model"]["opacity_logits"] = torch.full_like(state["model"]["opacity_logits"], -30.0)
+    torch.save(state, os.path.join(run, "model.pt"))
+    res = _eval(run, "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e"))
+    m = json.load(open(tmp_path / "e" / "metrics.json"))
+    assert m["open_pixels"] == 1.0
+    assert all(r["open"] == 1.0 and r["psnr_covered"] is None for r in m["per_image"])
+    assert all(r["psnr_covered"] == "" for r in csv.DictReader(open(tmp_path / "e" / "per_image.csv")))
+    assert "100.0% of the pixels open" in res.output
+
+
+def test_masked_psnr():
+    import torch
+
+    from ctgs.metrics.psnr import masked_psnr
+
+    a, b = torch.zeros(4, 5, 3), torch.zeros(4, 5, 3)
+    b[0, :] = 0.5  # error only in the first row
+    everything = torch.ones(4, 5, dtype=torch.bool)
+    assert masked_psnr(a, b, everything) == pytest.approx(psnr(a, b))
+    first_row = torch.zeros(4, 5, dtype=torch.bool)
+    first_row[0] = True
+    assert masked_psnr(a, b, first_row) == pytest.approx(-10 * __import__("math").log10(0.25))
+    assert masked_psnr(a, b, ~first_row) == 100.0  # an exact match: the MSE floor
+    assert masked_psnr(a, b, torch.zeros(4, 5, dtype=torch.bool)) is None
+    with pytest.raises(ValueError):
+        masked_psnr(a, b, torch.ones(5, 4, dtype=torch.bool))

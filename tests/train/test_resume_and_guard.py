@@ -153,12 +153,13 @@ def _train_then_terminate(scene, run, ready, sets=()):
 
 def test_sigterm_stops_training_like_ctrl_c_and_leaves_a_resumable_run(scene, tmp_path):
     """kill / timeout / a cluster's time limit: no native stack trace (pycolmap's glog handler would print one and
-    end the process before Python cleans up), exit 1, the checkpoint kept and the resume command named."""
+    end the process before Python cleans up), exit 143 (128 + SIGTERM), the checkpoint kept and the resume command
+    named."""
     run = str(tmp_path / "term")
     ckpt = os.path.join(run, "checkpoints", "last.pt")
     code, err = _train_then_terminate(scene, run, lambda r: os.path.exists(ckpt),
                                       sets=("iterations=100000", "checkpoint_every=10"))
-    assert code == 1, err
+    assert code == 143, err
     assert "stack trace" not in err and "Traceback" not in err and "Aborted at" not in err, err
     assert f"-o {run} --resume" in err
     assert os.path.exists(ckpt) and not os.path.exists(os.path.join(run, "model.pt"))
@@ -167,5 +168,5 @@ def test_sigterm_stops_training_like_ctrl_c_and_leaves_a_resumable_run(scene, tm
 def test_sigterm_before_the_first_checkpoint_removes_the_run_folder(scene, tmp_path):
     run = str(tmp_path / "term_early")
     code, err = _train_then_terminate(scene, run, os.path.isdir, sets=("iterations=100000",))
-    assert code == 1 and "stack trace" not in err and "Traceback" not in err, err
+    assert code == 143 and "stack trace" not in err and "Traceback" not in err, err
     assert "before the first checkpoint" in err and not os.path.exists(run)
