@@ -1,0 +1,212 @@
+"""The speed/accuracy trade from every recorded run: each preset and the 2dgs baseline, over seeds where there are some.
+
+Nothing is trained here. The script reads the JSON records other benchmarks wrote (trade.py, paired.py,
+equal_time.py; the registry below names each file and which runs of it make a point), and writes for each scene
+a table (mean, standard deviation and count over seeds; the commit of every source) and a plot: test PSNR against
+wall-clock minutes and against parameters, content-aware in red and 2dgs in blue, one panel column per image
+size, error bars one standard deviation over seeds where a point has several.
+
+The records come from different commits (the trainer changed between sessions; each file names its commit), and
+single runs on herzjesu25 move by up to 1 dB with the seed: read the seeded points first.
+
+Usage: .venv/bin/python benchmarks/trade_summary.py  (writes benchmarks/results/trade_summary_<scene>.{md,png})
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import subprocess
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RESULTS = os.path.join(ROOT, "benchmarks", "results")
+
+# One point: (method, label, [(file, selector), ...]). A selector picks runs of a file:
+#   ("trade", scale, row name)      rows of a trade.py record
+#   ("paired", run label)           runs of a paired.py record
+#   ("equal_time", method)          the test-split run of an equal_time.py record (ca | 2dgs)
+HERZ_EQUAL_TIME_192 = ["equal_time_vm5.json", "equal_time_vm5_seed1.json", "equal_time_vm7_seed2.json",
+                       "equal_time_vm7_seed3.json"] + [f"equal_time_vm10_seed{s}.json" for s in range(4, 8)]
+HERZ_EQUAL_TIME_384 = [f"equal_time_vm11_384_seed{s}.json" for s in range(3)]
+REGISTRY = {
+    "herzjesu25": {
+        "192x128": [
+            ("content-aware", "preview (1000 it.)", [("trade_vm5p.json", ("trade", "images_8", "ca_preview"))]),
+            ("content-aware", "fast (3000 it.)",
+             [("paired_herzjesu25_balanced_fast_vm10.json", ("paired", "fast"))]),
+            ("content-aware", "fast, length chosen on validation",
+             [(f, ("equal_time", "ca")) for f in HERZ_EQUAL_TIME_192]),
+            ("content-aware", "balanced (10k it.)",
+             [("paired_herzjesu25_balanced_fast_vm10.json", ("paired", "balanced"))]),
+            ("content-aware", "paper (30k it.)", [("trade_vm9ph.json", ("trade", "images_8", "ca_paper"))]),
+            ("2dgs", "preview's time", [("trade_vm5p.json", ("trade", "images_8", "2dgs_preview"))]),
+            ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_8", "2dgs_fast"))]),
+            ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_192]),
+            ("2dgs", "balanced's time", [("trade_vm5b.json", ("trade", "images_8", "2dgs_balanced"))]),
+            ("2dgs", "paper's time", [("trade_vm9ph.json", ("trade", "images_8", "2dgs_paper"))]),
+        ],
+        "384x256": [
+            ("content-aware", "fast (3000 it.)",
+             [("paired_herzjesu25_384_balanced_fast_vm13.json", ("paired", "fast"))]),
+            ("content-aware", "fast, length chosen on validation",
+             [(f, ("equal_time", "ca")) for f in HERZ_EQUAL_TIME_384]),
+            ("content-aware", "balanced (10k it.)",
+             [("paired_herzjesu25_384_balanced_fast_vm13.json", ("paired", "balanced"))]),
+            ("content-aware", "balanced, --time-budget 57",
+             [("paired_herzjesu25_384_balanced_hour_fast_vm14_3seeds.json", ("paired", "balanced_time_budget57"))]),
+            ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_4", "2dgs_fast"))]),
+            ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_384]),
+        ],
+    },
+    "demo": {
+        "192x144": [
+            ("content-aware", "preview (1000 it.)", [("trade_vm6d.json", ("trade", "192x144", "ca_preview"))]),
+            ("content-aware", "fast (3000 it.)", [("paired_demo192x144_balanced_fast_vm10.json", ("paired", "fast"))]),
+            ("content-aware", "balanced (10k it.)",
+             [("paired_demo192x144_balanced_fast_vm10.json", ("paired", "balanced"))]),
+            ("content-aware", "paper (30k it.)", [("trade_vm9pd.json", ("trade", "192x144", "ca_paper"))]),
+            ("2dgs", "preview's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_preview"))]),
+            ("2dgs", "fast's time", [("trade_vm5d.json", ("trade", "192x144", "2dgs_fast"))]),
+            ("2dgs", "balanced's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_balanced"))]),
+            ("2dgs", "paper's time", [("trade_vm9pd.json", ("trade", "192x144", "2dgs_paper"))]),
+        ],
+        "384x288": [
+            ("content-aware", "fast (3000 it.)", [("trade_vm5d.json", ("trade", "384x288", "ca_fast"))]),
+            ("2dgs", "fast's time", [("trade_vm5d.json", ("trade", "384x288", "2dgs_fast"))]),
+        ],
+    },
+}
+COLOURS = {"content-aware": "tab:red", "2dgs": "tab:blue"}
+
+
+def runs_of(path: str, selector: tuple) -> tuple[list[dict], str]:
+    """([{psnr, wall_min, params, iterations}], commit or date) of the runs `selector` picks in the record."""
+    with open(path) as fh:
+        rec = json.load(fh)
+    kind = selector[0]
+    if kind == "trade":
+        _, scale, name = selector
+        rows = [r for r in rec["rows"] if r["scale"] == scale and r["name"] == name]
+        picked = [{"psnr": r["metrics"]["psnr"], "wall_min": r["command_wall_s"] / 60, "params": r["metrics"]["params"],
+                   "iterations": r["summary"]["iterations"]} for r in rows]
+        source = rec.get("commit") or rec["date"]
+    elif kind == "paired":
+        picked = [{"psnr": r["psnr"], "wall_min": r["wall_s"] / 60, "params": r["params"],
+                   "iterations": r["iterations"]} for r in rec["runs"] if r["label"] == selector[1]]
+        source = rec["commit"]
+    elif kind == "equal_time":
+        picked = [{"psnr": r["psnr"], "wall_min": r["wall_s"] / 60, "params": r["params"],
+                   "iterations": r["iterations"]} for r in rec["test"] if r["method"] == selector[1]]
+        source = rec["commit"]
+    else:
+        raise ValueError(f"unknown selector {selector!r}")
+    if not picked:
+        raise SystemExit(f"{path}: no run matches {selector!r}")
+    return picked, source
+
+
+def summarise(scene: str) -> list[dict]:
+    points = []
+    for size, entries in REGISTRY[scene].items():
+        for method, label, sources in entries:
+            runs, origins = [], []
+            for name, selector in sources:
+                picked, source = runs_of(os.path.join(RESULTS, name), selector)
+                runs += picked
+                origins.append(f"{name} ({source})")
+            stat = {}
+            for key in ("psnr", "wall_min", "params"):
+                values = [r[key] for r in runs]
+                stat[key] = statistics.fmean(values)
+                stat[key + "_sd"] = statistics.stdev(values) if len(values) > 1 else 0.0
+            its = sorted({r["iterations"] for r in runs})
+            points.append({"size": size, "method": method, "label": label, "n": len(runs), **stat,
+                           "iterations": its, "sources": origins})
+    return points
+
+
+def plot(scene: str, points: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    sizes = list(REGISTRY[scene])
+    fig, axes = plt.subplots(2, len(sizes), figsize=(6.5 * len(sizes), 9), squeeze=False)
+    for col, size in enumerate(sizes):
+        for row, (key, xlabel) in enumerate((("wall_min", "wall-clock minutes (2-core VM, log scale)"),
+                                             ("params", "parameters (log scale)"))):
+            ax = axes[row][col]
+            for p in (p for p in points if p["size"] == size):
+                c = COLOURS[p["method"]]
+                x = p[key] / (1e6 if key == "params" else 1)
+                ax.errorbar(x, p["psnr"], yerr=p["psnr_sd"] or None, fmt="o" if p["n"] > 1 else "s", color=c,
+                            ms=7 if p["n"] > 1 else 5, capsize=3, mfc=c if p["n"] > 1 else "white")
+                text = p["label"] + (f" (n={p['n']})" if p["n"] > 1 else "")
+                ax.annotate(text, (x, p["psnr"]), textcoords="offset points", fontsize=7, color=c,
+                            xytext=(6, 3) if p["method"] == "content-aware" else (6, -10))
+            ax.set_xscale("log")
+            xs = [p[key] / (1e6 if key == "params" else 1) for p in points if p["size"] == size]
+            lo, hi = min(xs) / 1.4, max(xs) * 1.6  # room for the labels, also when every point has one x
+            ax.set_xlim(lo, hi)
+            ticks = [t for t in (0.3, 0.5, 1, 2, 3, 5, 10, 20, 30, 60) if lo <= t <= hi]
+            ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.set_xlabel(xlabel.replace("parameters", "parameters, millions") if key == "params" else xlabel)
+            ax.set_ylabel("test PSNR (dB)")
+            ax.set_title(f"{scene} {size}")
+            ax.grid(alpha=0.3, which="both")
+    handles = [plt.Line2D([], [], color=COLOURS["content-aware"], marker="o", ls="", label="content-aware (ours)"),
+               plt.Line2D([], [], color=COLOURS["2dgs"], marker="o", ls="", label="2dgs"),
+               plt.Line2D([], [], color="k", marker="o", ls="", label="mean over seeds, bar = 1 sd"),
+               plt.Line2D([], [], color="k", marker="s", mfc="white", ls="", label="one run")]
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=9)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    tmp = path + ".tmp.png"
+    fig.savefig(tmp, dpi=110)
+    os.replace(tmp, path)
+    plt.close(fig)
+
+
+def write(scene: str, points: list[dict]) -> None:
+    base = os.path.join(RESULTS, f"trade_summary_{scene}")
+    try:
+        commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    lines = [f"# The speed/accuracy trade on {scene}, from the recorded runs", "",
+             f"Written by `benchmarks/trade_summary.py` on {time.strftime('%Y-%m-%d %H:%M')}, {platform.node()}, commit "
+             f"{commit}, from the records below (nothing trained here; every run on the dev VM: 2 x86-64 cores, 24 GB, "
+             "no GPU, one thread per training, two trainings side by side). Mean over the runs of a point, +- one "
+             "standard deviation where there are several (seeds). Wall = the whole `ctgs train` command. The records "
+             "come from different commits (named per source): the trainer changed between them. Plot: "
+             f"`trade_summary_{scene}.png`.", ""]
+    for size in REGISTRY[scene]:
+        lines += [f"## {size}", "", "| method | point | runs | iterations | test PSNR | wall min | params | sources |",
+                  "| --- | --- | ---: | --- | --- | --- | --- | --- |"]
+        for p in (p for p in points if p["size"] == size):
+            sd = lambda k, f: f"{f.format(p[k])}" + (f" +- {f.format(p[k + '_sd'])}" if p["n"] > 1 else "")  # noqa: E731
+            its = "/".join(str(i) for i in p["iterations"])
+            lines.append(f"| {p['method']} | {p['label']} | {p['n']} | {its} | {sd('psnr', '{:.2f}')} | "
+                         f"{sd('wall_min', '{:.1f}')} | {p['params'] / 1e6:.2f}M | {'; '.join(p['sources'])} |")
+        lines.append("")
+    tmp = base + ".md.tmp"
+    with open(tmp, "w") as fh:
+        fh.write("\n".join(lines))
+    os.replace(tmp, base + ".md")
+    plot(scene, points, base + ".png")
+
+
+def main() -> None:
+    for scene in REGISTRY:
+        write(scene, summarise(scene))
+        print(f"wrote benchmarks/results/trade_summary_{scene}.md and .png")
+
+
+if __name__ == "__main__":
+    main()
