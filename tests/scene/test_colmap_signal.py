@@ -5,6 +5,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 CHILD = """
 import os, signal, time
 from ctgs.scene.colmap import import_pycolmap
@@ -21,7 +23,10 @@ def test_import_pycolmap_keeps_the_default_sigterm():
 
 
 def test_a_plain_import_would_print_a_trace():
-    """The premise of import_pycolmap: if pycolmap stops installing glog's handler, this fails and the helper can go."""
+    """The premise of import_pycolmap (and what makes the test above mean something): a plain import takes SIGTERM
+    over. Skipped, saying so, if a pycolmap release stops installing glog's handler (the helper could then go)."""
     r = subprocess.run([sys.executable, "-c", CHILD.replace("import_pycolmap()", "import pycolmap")],
                        capture_output=True, text=True, timeout=60)
-    assert "SIGTERM" in r.stderr and "stack trace" in r.stderr, r.stderr
+    if "stack trace" not in r.stderr:
+        pytest.skip("this pycolmap does not install glog's SIGTERM handler; ctgs.scene.colmap.import_pycolmap is moot")
+    assert "SIGTERM" in r.stderr
