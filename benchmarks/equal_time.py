@@ -75,7 +75,8 @@ def train(args, method: str, iters: int, split: str) -> dict:
             m = json.load(fh)
         rec.update({"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "fps": m["fps"],
                     "mb": m["bytes_on_disk"] / 1e6,
-                    "per_view_psnr": {r["name"]: r["psnr"] for r in m.get("per_image", [])}})
+                    "per_view_psnr": {r["name"]: r["psnr"] for r in m.get("per_image", [])},
+                    "per_view_open": {r["name"]: r.get("open") for r in m.get("per_image", [])}})
     with open(rec_path, "w") as fh:
         json.dump(rec, fh, indent=1)
     return rec

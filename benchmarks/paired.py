@@ -66,6 +66,7 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
     rec = {"label": label, "seed": seed, "run": run, "command": "-m ctgs " + " ".join(cmd), "wall_s": wall,
            "iterations": s["iterations"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
            "per_view_psnr": {r["name"]: r["psnr"] for r in m["per_image"]},
+           "per_view_open": {r["name"]: r.get("open") for r in m["per_image"]},  # rendered alpha < 0.9 (ctgs eval)
            "primitives": m["points"], "texels": m["texels"], "params": m["params"],
            "params_per_value": s.get("params_per_observed_value"), "mb": m["bytes_on_disk"] / 1e6, "fps": m["fps"]}
     with open(rec_path, "w") as fh:
