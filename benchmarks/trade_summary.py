@@ -59,6 +59,8 @@ REGISTRY = {
              [("paired_herzjesu25_384_balanced_hour_fast_vm14_3seeds.json", ("paired", "balanced_time_budget57"))]),
             ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_4", "2dgs_fast"))]),
             ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_384]),
+            ("2dgs", "balanced's time",
+             [("paired_herzjesu25_384_balanced_2dgs_time_vm15.json", ("paired", "balanced_2dgs_time_budget43.5"))]),
         ],
     },
     "demo": {
