@@ -32,9 +32,9 @@ STAGES: dict[str, tuple[str, str]] = {
 
 
 def _terminate(signum, frame) -> None:
-    # An exception raised while a module is being imported can be lost by the extension being initialised (a Cython
-    # module's init turned it into a silent exit 0 here): until no import is in progress, deliver the signal again in
-    # 50 ms instead.
+    # An exception raised while a module is being imported can be lost by the extension being initialised (raised
+    # during numpy.random's import it ended the process with exit 0): while an import is in progress, deliver the
+    # signal again in 50 ms instead.
     f = frame
     while f is not None:
         if f.f_code.co_filename.startswith("<frozen importlib"):

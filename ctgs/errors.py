@@ -10,8 +10,8 @@ class UserError(Exception):
 class Terminated(SystemExit):
     """Raised by the CLI's SIGTERM handler (`kill`, `timeout`, a cluster's time limit): the stage unwinds as on Ctrl-C,
     so what it had half-made is removed, and the process exits with 128 + 15 (143), as if the signal had ended it.
-    A SystemExit rather than a KeyboardInterrupt: CPython remembers a KeyboardInterrupt raised inside code some
-    extension runs during an import (pybind11's exec) and then exits by SIGINT even after click has handled it."""
+    A SystemExit rather than a KeyboardInterrupt: with a KeyboardInterrupt raised during a module import, CPython 3.11
+    ended the process by SIGINT (exit -2) even after click had handled it (seen in tests/train/test_resume_and_guard)."""
 
     def __init__(self, signum: int = 15) -> None:
         super().__init__(128 + signum)
