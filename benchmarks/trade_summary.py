@@ -60,7 +60,7 @@ REGISTRY = {
             ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_4", "2dgs_fast"))]),
             ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_384]),
             ("2dgs", "balanced's time",
-             [("paired_herzjesu25_384_balanced_2dgs_time_vm15.json", ("paired", "balanced_2dgs_time_budget43.5"))]),
+             [("paired_herzjesu25_384_balanced_2dgs_time_vm15_3seeds.json", ("paired", "balanced_2dgs_time_budget43.5"))]),
         ],
     },
     "demo": {
