@@ -39,6 +39,19 @@ SAFETY = 0.97  # plan for 97% of the budget: the rest absorbs the error of the l
 # plan changes 3.5x (largest single change 49% -> 12%) and still ended within 0.2% of the budget, also with the
 # machine turning 3x slower at 95% of the budget (ends at 1.006x).
 RECENT = 0.99
+# The shortest run any preset makes (`preview`): below it no recorded run says what the model is worth.
+SHORTEST_MEASURED = 1000
+
+
+def short_plan_warning(iterations: int, budget_s: float, step_s: float, pixels: float) -> str | None:
+    """One line for a plan shorter than any measured run (None otherwise): what the budget buys and the fixes."""
+    if iterations >= SHORTEST_MEASURED:
+        return None
+    return (f"ctgs train: warning: {budget_s / 60:.1f} min buys about {iterations} iterations here "
+            f"({step_s:.2f} s per step at {pixels / 1e3:.0f}k pixels per view), fewer than `preview`'s "
+            f"{SHORTEST_MEASURED}, the shortest run measured: expect a model far from trained. Give more minutes, "
+            f"or train a smaller --images folder (a step costs about in proportion to the pixels; `ctgs sfm` "
+            f"writes images_2, images_4 and images_8)")
 
 
 @dataclass

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -15,6 +17,8 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
         for ev in trainer.run():
             if isinstance(ev, Done):
                 summary = ev.summary
+            elif isinstance(ev, Planned) and ev.it == 0 and (line := _short_plan(trainer, ev)):
+                print(line, file=sys.stderr)
         return summary
     console = Console(stderr=True)
     columns = [TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(),
@@ -43,8 +47,17 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                     planned_once = True
                     progress.console.log(f"time budget {ev.budget_s / 60:.1f} min: planned {ev.iterations} iterations "
                                          f"(re-planned as the model grows)")
+                    if ev.it == 0 and (line := _short_plan(trainer, ev)):
+                        progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
             elif isinstance(ev, Checkpoint):
                 pass
             elif isinstance(ev, Done):
                 summary = ev.summary
     return summary
+
+
+def _short_plan(trainer, ev: Planned) -> str | None:
+    """The warning for a fresh run whose first plan is shorter than any measured run (shown quiet or not)."""
+    from ctgs.train.budget import short_plan_warning
+
+    return short_plan_warning(ev.iterations, ev.budget_s, trainer.planner.plan.calib_step_s, trainer.pixels)

@@ -93,3 +93,27 @@ def test_noisy_step_times_do_not_swing_the_plan(monkeypatch):
     changes = [abs(math.log(b / a)) for (ia, a), (_, b) in zip(plans, plans[1:]) if ia > 0.1 * iterations]
     assert changes and max(changes) < math.log(1.25), max(changes)
     assert abs(wall - budget_s) <= 0.10 * budget_s and wall <= budget_s * 1.02
+
+
+def test_short_plan_warning_names_the_budget_and_the_fixes():
+    from ctgs.train.budget import SHORTEST_MEASURED, short_plan_warning
+
+    assert short_plan_warning(SHORTEST_MEASURED, 60.0, 0.05, 98304) is None
+    line = short_plan_warning(85, 120.0, 1.3, 393216)
+    assert "2.0 min buys about 85 iterations" in line and "1.30 s per step at 393k pixels" in line
+    assert "--images" in line and "more minutes" in line and "\n" not in line
+
+
+@pytest.mark.parametrize("quiet", [True, False])
+def test_a_budget_that_buys_a_short_run_warns_once_on_stderr(tmp_path, capsys, quiet):
+    """End to end, with and without the progress display: a budget far too small for the scene still trains (the
+    user asked for it) and says so."""
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import train_main
+
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=48, height=36, points=150)
+    summary = train_main(scene_dir, str(tmp_path / "run"), preset="fast", time_budget=0.01, quiet=quiet,
+                         sets=("threads=1",))
+    err = capsys.readouterr().err
+    assert err.count("ctgs train: warning:") == 1 and "shortest run measured" in err
+    assert summary["iterations"] < 1000 and summary["planned_iterations_initial"] < 1000
