@@ -31,6 +31,7 @@ RESULTS = os.path.join(ROOT, "benchmarks", "results")
 HERZ_EQUAL_TIME_192 = ["equal_time_vm5.json", "equal_time_vm5_seed1.json", "equal_time_vm7_seed2.json",
                        "equal_time_vm7_seed3.json"] + [f"equal_time_vm10_seed{s}.json" for s in range(4, 8)]
 HERZ_EQUAL_TIME_384 = [f"equal_time_vm11_384_seed{s}.json" for s in range(3)]
+MIN_PSNR_SPAN = 2.0  # dB: the least PSNR range a panel shows (the seed spread of one herzjesu25 run is ~1 dB)
 REGISTRY = {
     "herzjesu25": {
         "192x128": [
@@ -61,6 +62,12 @@ REGISTRY = {
             ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_384]),
             ("2dgs", "balanced's time",
              [("paired_herzjesu25_384_balanced_2dgs_time_vm15_3seeds.json", ("paired", "balanced_2dgs_time_budget43.5"))]),
+        ],
+        "768x512": [
+            ("content-aware", "fast, --time-budget 30",
+             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16.json", ("paired", "fast_time_budget30"))]),
+            ("2dgs", "the same 30 min",
+             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16.json", ("paired", "fast_2dgs_time_budget30"))]),
         ],
     },
     "demo": {
@@ -160,6 +167,11 @@ def plot(scene: str, points: list[dict], path: str) -> None:
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             ax.set_xlabel(xlabel.replace("parameters", "parameters, millions") if key == "params" else xlabel)
             ax.set_ylabel("test PSNR (dB)")
+            ys = [(p["psnr"] - (p["psnr_sd"] or 0), p["psnr"] + (p["psnr_sd"] or 0)) for p in points if p["size"] == size]
+            y_lo, y_hi = min(y for y, _ in ys), max(y for _, y in ys)
+            if y_hi - y_lo < MIN_PSNR_SPAN:  # a panel of close points is not zoomed until 0.2 dB looks like 2 dB
+                mid = (y_lo + y_hi) / 2
+                ax.set_ylim(mid - MIN_PSNR_SPAN / 2 - 0.2, mid + MIN_PSNR_SPAN / 2 + 0.2)
             ax.set_title(f"{scene} {size}")
             ax.grid(alpha=0.3, which="both")
     handles = [plt.Line2D([], [], color=COLOURS["content-aware"], marker="o", ls="", label="content-aware (ours)"),
