@@ -47,7 +47,8 @@ def short_plan_warning(iterations: int, budget_s: float, step_s: float, pixels: 
     """One line for a plan shorter than any measured run (None otherwise): what the budget buys and the fixes."""
     if iterations >= SHORTEST_MEASURED:
         return None
-    return (f"ctgs train: warning: {budget_s / 60:.1f} min buys about {iterations} iterations here "
+    budget = f"{budget_s / 60:.1f} min" if budget_s >= 60 else f"{budget_s:.0f} s"
+    return (f"ctgs train: warning: {budget} buys about {iterations} iteration{'s' if iterations != 1 else ''} here "
             f"({step_s:.2f} s per step at {pixels / 1e3:.0f}k pixels per view), fewer than `preview`'s "
             f"{SHORTEST_MEASURED}, the shortest run measured: expect a model far from trained. Give more minutes, "
             f"or train a smaller --images folder (a step costs about in proportion to the pixels; `ctgs sfm` "

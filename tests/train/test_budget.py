@@ -102,6 +102,7 @@ def test_short_plan_warning_names_the_budget_and_the_fixes():
     line = short_plan_warning(85, 120.0, 1.3, 393216)
     assert "2.0 min buys about 85 iterations" in line and "1.30 s per step at 393k pixels" in line
     assert "--images" in line and "more minutes" in line and "\n" not in line
+    assert "3 s buys about 1 iteration here" in short_plan_warning(1, 3.0, 0.03, 49152)
 
 
 @pytest.mark.parametrize("quiet", [True, False])
