@@ -42,6 +42,11 @@ def label_args(preset: str, config: str | None, sets: list[str]) -> tuple[str, l
     return label, args
 
 
+def git_commit() -> str:
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                          cwd=ROOT).stdout.strip() or "unknown"
+
+
 def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> dict:
     run = os.path.join(args.work, f"{label}_s{seed}")
     rec_path = os.path.join(run, "paired_record.json")
@@ -53,6 +58,7 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
     resume = ["--resume"] if os.path.exists(os.path.join(run, "checkpoints", "last.pt")) else []
     cmd = ["train", args.scene, "-o", run, "--images", args.images, "-q", *train_args,
            "--set", f"threads={args.threads}", "--set", f"seed={seed}", *resume]
+    commit = git_commit()  # the code the training runs, which a commit made while it trains does not change
     t0 = time.time()
     ctgs(*cmd, log=log)
     wall = time.time() - t0
@@ -63,7 +69,8 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
         s = json.load(fh)
     with open(os.path.join(run, "eval", "metrics.json")) as fh:
         m = json.load(fh)
-    rec = {"label": label, "seed": seed, "run": run, "command": "-m ctgs " + " ".join(cmd), "wall_s": wall,
+    rec = {"label": label, "seed": seed, "run": run, "commit": commit, "command": "-m ctgs " + " ".join(cmd),
+           "wall_s": wall,
            "iterations": s["iterations"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
            "per_view_psnr": {r["name"]: r["psnr"] for r in m["per_image"]},
            "per_view_open": {r["name"]: r.get("open") for r in m["per_image"]},  # rendered alpha < 0.9 (ctgs eval)
@@ -90,6 +97,7 @@ def main() -> None:
     ap.add_argument("--parallel", type=int, default=2)
     ap.add_argument("--tag", required=True)
     args = ap.parse_args()
+    commit = git_commit()  # at the start: the runs this invocation trains use this code
     from ctgs.metrics.vgg_weights import find_vgg16
 
     lpips = find_vgg16().state is not None  # said in the table when missing (`make lpips-weights`)
@@ -103,8 +111,7 @@ def main() -> None:
         recs = list(pool.map(lambda j: run_one(args, j[0], j[1], j[2], lpips), jobs))
     by = {(r["label"], r["seed"]): r for r in recs}
     pairs = [(s, by[(la, s)], by[(lb, s)]) for s in args.seeds]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=ROOT).stdout.strip()
+    run_commits = sorted({r["commit"] for r in recs if r.get("commit")} - {commit})
     machine = f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
     stats = {k: paired([a[k] - b[k] for _, a, b in pairs]) for k in ("psnr", "ssim")}
     if all(a["lpips"] is not None and b["lpips"] is not None for _, a, b in pairs):
@@ -113,6 +120,7 @@ def main() -> None:
     per_view = {v: paired([a["per_view_psnr"][v] - b["per_view_psnr"][v] for _, a, b in pairs]) for v in views}
     with open(os.path.join(ROOT, "benchmarks", "results", f"paired_{args.tag}.json"), "w") as fh:
         json.dump({"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
+                   "reused_run_commits": run_commits,
                    "machine": machine, "a": la, "b": lb, "runs": recs, "stats": stats, "per_view": per_view}, fh,
                   indent=1)
 
@@ -122,7 +130,9 @@ def main() -> None:
     lp = lambda x: "-" if x is None else f"{x:.3f}"  # noqa: E731
     lines = [f"# {la} (A) vs {lb} (B), paired by seed ({os.path.basename(os.path.normpath(args.scene))} {args.images})",
              "", f"Written by `benchmarks/paired.py {' '.join(sys.argv[1:])}` on {time.strftime('%Y-%m-%d %H:%M')}, "
-             f"{machine}, commit {commit}, CPU backend, {args.threads} thread per training, {args.parallel} trainings "
+             f"{machine}, commit {commit} at the start"
+             + (f" (reused runs trained at {', '.join(run_commits)})" if run_commits else "")
+             + f", CPU backend, {args.threads} thread per training, {args.parallel} trainings "
              "at a time in seed order (A and B of a seed start together). Test views: the protocol's every 8th; A and B were fixed before "
              "the runs, nothing was chosen from the test views. Metrics: `ctgs eval` of the exported model."
              + ("" if lpips else " LPIPS: not computed (no VGG weights; `make lpips-weights`)."), "",
