@@ -103,9 +103,11 @@ def runs_of(path: str, selector: tuple) -> tuple[list[dict], str]:
                    "iterations": r["summary"]["iterations"]} for r in rows]
         source = rec.get("commit") or rec["date"]
     elif kind == "paired":
+        runs = [r for r in rec["runs"] if r["label"] == selector[1]]
         picked = [{"psnr": r["psnr"], "wall_min": r["wall_s"] / 60, "params": r["params"],
-                   "iterations": r["iterations"]} for r in rec["runs"] if r["label"] == selector[1]]
-        source = rec["commit"]
+                   "iterations": r["iterations"]} for r in runs]
+        # the commits the runs trained at where their records name them (paired.py since session 16)
+        source = "/".join(sorted({r["commit"] for r in runs if r.get("commit")})) or rec["commit"]
     elif kind == "equal_time":
         picked = [{"psnr": r["psnr"], "wall_min": r["wall_s"] / 60, "params": r["params"],
                    "iterations": r["iterations"]} for r in rec["test"] if r["method"] == selector[1]]
