@@ -110,6 +110,8 @@ def main() -> None:
     ap.add_argument("--tag", default=platform.node())
     ap.add_argument("--ca-set", nargs="*", default=[], help="KEY=VALUE overrides for the content-aware runs")
     args = ap.parse_args()
+    args.commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                 cwd=ROOT).stdout.strip()  # at the start: the code the runs train with
     if any("=" not in kv for kv in args.ca_set):
         raise SystemExit(f"equal_time.py: write --ca-set overrides as KEY=VALUE, got {args.ca_set}")
     args.scene = os.path.abspath(args.scene)
@@ -125,8 +127,7 @@ def main() -> None:
 def write(args, val: list[dict], test: list[dict], limit: float) -> None:
     out = os.path.join(ROOT, "benchmarks", "results", f"equal_time_{args.tag}")
     machine = f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=ROOT).stdout.strip()
+    commit = args.commit  # taken when the runs started (finished runs in --work are reused as they are)
     with open(out + ".json", "w") as fh:
         json.dump({"command": "benchmarks/equal_time.py " + " ".join(sys.argv[1:]), "machine": machine,
                    "commit": commit, "date": time.strftime("%Y-%m-%d %H:%M"), "time_limit_s": limit,
