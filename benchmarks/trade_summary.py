@@ -65,9 +65,9 @@ REGISTRY = {
         ],
         "768x512": [
             ("content-aware", "fast, --time-budget 30",
-             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16_2seeds.json", ("paired", "fast_time_budget30"))]),
+             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16_3seeds.json", ("paired", "fast_time_budget30"))]),
             ("2dgs", "the same 30 min",
-             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16_2seeds.json", ("paired", "fast_2dgs_time_budget30"))]),
+             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16_3seeds.json", ("paired", "fast_2dgs_time_budget30"))]),
         ],
     },
     "demo": {
