@@ -27,14 +27,13 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from trade import ctgs  # noqa: E402  (one logged `python -m ctgs` runner for the benchmarks)
+from trade import ctgs, git_commit  # noqa: E402  (one logged `python -m ctgs` runner for the benchmarks)
 
 
 def train(args, method: str, iters: int, split: str) -> dict:
@@ -110,8 +109,7 @@ def main() -> None:
     ap.add_argument("--tag", default=platform.node())
     ap.add_argument("--ca-set", nargs="*", default=[], help="KEY=VALUE overrides for the content-aware runs")
     args = ap.parse_args()
-    args.commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                 cwd=ROOT).stdout.strip()  # at the start: the code the runs train with
+    args.commit = git_commit()  # at the start: the code the runs train with
     if any("=" not in kv for kv in args.ca_set):
         raise SystemExit(f"equal_time.py: write --ca-set overrides as KEY=VALUE, got {args.ca_set}")
     args.scene = os.path.abspath(args.scene)

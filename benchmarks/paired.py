@@ -21,7 +21,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -29,7 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paired_stats import paired, sentence  # noqa: E402
-from trade import ctgs  # noqa: E402
+from trade import ctgs, git_commit  # noqa: E402
 
 
 def label_args(preset: str, config: str | None, sets: list[str]) -> tuple[str, list[str]]:
@@ -40,11 +39,6 @@ def label_args(preset: str, config: str | None, sets: list[str]) -> tuple[str, l
         args += ["--set", kv]
     label = "_".join([preset] + ([config] if config else []) + [kv.replace("=", "") for kv in sets])
     return label, args
-
-
-def git_commit() -> str:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                          cwd=ROOT).stdout.strip() or "unknown"
 
 
 def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> dict:

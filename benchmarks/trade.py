@@ -35,6 +35,12 @@ HERZ_SCALES = [("images_8", "images_8"), ("images_4", "images_4")]
 METRIC_KEYS = ("psnr", "ssim", "lpips", "points", "texels", "params", "fps", "bytes_on_disk", "resolution")
 
 
+def git_commit() -> str:
+    """The checkout's HEAD, short: take it when runs start (a commit made while they train is not their code)."""
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                          cwd=ROOT).stdout.strip() or "unknown"
+
+
 def ctgs(*args: str, log: str) -> None:
     cmd = [sys.executable, "-m", "ctgs", *args]
     with open(log, "a") as fh:

@@ -7,6 +7,7 @@ import sys
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from ctgs.train.budget import short_plan_warning
 from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
 
 
@@ -58,6 +59,4 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
 
 def _short_plan(trainer, ev: Planned) -> str | None:
     """The warning for a fresh run whose first plan is shorter than any measured run (shown quiet or not)."""
-    from ctgs.train.budget import short_plan_warning
-
     return short_plan_warning(ev.iterations, ev.budget_s, trainer.planner.plan.calib_step_s, trainer.pixels)
