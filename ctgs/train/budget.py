@@ -4,14 +4,19 @@ A schedule is a fraction of the run (ctgs/train/schedule.py), so the planner onl
 length N, and may change it while training: every event stays at its fraction of the (new) run.
 
 Cost model (seconds, wall clock):
-    T(N) = sum over the remaining iterations of c * g(it / N)         (training steps)
+    T(N) = sum over the remaining iterations of b * g(it, N)          (training steps)
          + routines left(N) * t_routine + test evaluations left(N) * t_eval + checkpoints left(N) * t_ckpt
          + t_final                                                     (final evaluation and save)
-g is a growth profile: the cost of one iteration grows while the model grows (textures start, splits,
-densification) and is flat afterwards: g(p) = 1 + (G - 1) * ramp(p) over the growth window. c is
-re-fitted to the measured recent cost whenever the planner re-plans, so a wrong prior G only matters
-until the model stops growing. Before the first step a calibration times a forward+backward and a
-forward of the initial model on a training view (this machine, this image size).
+g is a growth profile: the cost of one iteration grows while the model grows and is flat afterwards.
+Baselines: g = 1 + (G - 1) * ramp over the densification window. Content-aware: g = 1 until the texture
+start, then J * (1 + (R - 1) * ramp) over the routine window: starting the textures multiplies the step cost
+by J at once (medians 2.1-2.7 per image size and preset in the herzjesu25 and demo runs' logs), and splits and
+upscales grow it by R afterwards. Before the first step a calibration times, on a copy of the initial
+model, a training step (forward+backward and Adam), a forward on a training view, and for content-aware
+runs a training step with the textures started: J is measured on this machine at this image size, R is a
+prior. b, the cost per unit of g, is an average of the measured steps divided by their g, so the known
+jump at the texture start does not read as a change of machine speed; a wrong prior R only matters until
+the model stops growing.
 """
 
 from __future__ import annotations
@@ -23,12 +28,18 @@ from dataclasses import dataclass, field, replace
 from ctgs.train import schedule
 from ctgs.train.config import TrainConfig
 
-# Measured growth of the per-iteration cost from the start to the end of the growth window, per method
-# (seconds per iteration over the last tenth of a run / over its first 5%, from the runs' log.jsonl on the
-# 2-core VM after the CPU speed work: 2dgs 2.6 demo, 2.1-4.5 herzjesu25 images_8 (median of the four runs 3.2);
-# content-aware 1.1-2.2). A prior only: c is re-fitted at every re-plan, so the prior matters until the model
-# stops growing. 2dgs was 2.0 until those runs showed its plans shrinking mid-run (4733 -> 2948 iterations).
-GROWTH_PRIOR = {"content_aware": 2.5, "2dgs": 3.0, "fixed_texture": 4.0}
+# Growth of the per-iteration cost, per method: for the baselines from the start to the end of the
+# densification window (2dgs: last tenth of a run / first 5% in the 2-core VM's logs, 2.6 demo, 2.1-4.5
+# herzjesu25 images_8, 2.3-3.5 at 384 and 768 px); for content-aware runs from just after the texture start
+# to the end of the routine window (R; the jump at the texture start is calibrated). R in the logs of the
+# herzjesu25 runs: `fast` 1.46 (192 px, median of 27 runs), 1.58 (384 px, 55 runs), 2.16 (768 px, 3 runs);
+# `balanced` 2.0 (192 px) and 2.7 (384 px); demo 1.1. A prior only: the cost is re-fitted at every re-plan.
+# Until session 17 the content-aware prior was a growth of 2.5 from the *untextured* calibration step, which
+# left out the jump: the first plans of `--time-budget` runs were 2.6-3.2x the iterations run (384 px
+# `balanced` and 768 px `fast`); see benchmarks/results/budget_first_plan_vm17.md.
+GROWTH_PRIOR = {"content_aware": 2.0, "2dgs": 3.0, "fixed_texture": 4.0}
+# The texture start's jump, when the calibration did not measure it (a run resumed from an older checkpoint).
+TEXTURE_JUMP_PRIOR = 2.4
 REPLAN_FRACTION = 0.01  # re-plan every 1% of the planned run ...
 REPLAN_MIN_ITERS = 10  # ... but not more often than every 10 iterations
 SAFETY = 0.97  # plan for 97% of the budget: the rest absorbs the error of the last predictions
@@ -39,6 +50,10 @@ SAFETY = 0.97  # plan for 97% of the budget: the rest absorbs the error of the l
 # plan changes 3.5x (largest single change 49% -> 12%) and still ended within 0.2% of the budget, also with the
 # machine turning 3x slower at 95% of the budget (ends at 1.006x).
 RECENT = 0.99
+# The calibration (timed on a copy of the model, possibly while the machine is busy with something else: at
+# 768x512 beside another training compiling its extension it read 2.2x the real step) stands for the step cost
+# only until steps are measured: the average starts as the plain mean of the measured steps and turns into the
+# exponential average once that weighs more (after 100 steps).
 # The shortest run any preset makes (`preview`): below it no recorded run says what the model is worth.
 SHORTEST_MEASURED = 1000
 
@@ -64,6 +79,7 @@ class Plan:
     iterations: int = 0
     calib_step_s: float = 0.0  # forward+backward of the initial model
     calib_render_s: float = 0.0  # forward only (E, evaluation)
+    calib_textured_step_s: float = 0.0  # content-aware: a training step with the textures started (0: not measured)
     replans: int = 0
     history: list = field(default_factory=list)  # (it, planned N, predicted end s) at a few points
 
@@ -75,18 +91,31 @@ class BudgetPlanner:
         self.start = start_time  # time.monotonic() when the command started
         self.n_train, self.n_test = n_train, max(n_test, 0)
         self.growth = GROWTH_PRIOR.get(cfg.method, 2.5)
-        self.c_step = 0.0  # recent seconds per training step (without routines, evals, checkpoints)
+        self.jump = TEXTURE_JUMP_PRIOR if cfg.method == "content_aware" else 1.0
+        self.tex_at: int | None = None  # iteration after which the textures started (None: not yet)
+        self.base = 0.0  # recent seconds per training step per unit of g (without routines, evals, checkpoints)
+        self.n_obs = 0  # steps observed
+        self.n_obs_planned = 0  # steps observed when the plan was last made
+        # Routines' and evaluations' seconds per unit of g: the calibration's forward renders until one is measured
+        # (meanwhile scaled by measured step / calibrated step, the machine's speed against the calibration's).
         self.t_routine = 0.0
         self.t_eval = 0.0
+        self.routine_seen = self.eval_seen = False
+        self.base_calib = 0.0
         self.t_ckpt = 0.0
         self.t_save = 0.0
         self.last_replan = 0
+        self._window_cache: tuple = (None, None)
 
     # ---- measurements ------------------------------------------------------------------------------
-    def calibrate(self, step_s: float, render_s: float) -> int:
-        """Initial plan from one timed forward+backward (step_s) and forward (render_s) of the initial model."""
+    def calibrate(self, step_s: float, render_s: float, textured_step_s: float | None = None) -> int:
+        """Initial plan from the timed training step (step_s) and forward (render_s) of the initial model and, for
+        a content-aware run, its training step with the textures started (textured_step_s)."""
         self.plan.calib_step_s, self.plan.calib_render_s = step_s, render_s
-        self.c_step = step_s
+        if textured_step_s and self.cfg.method == "content_aware":
+            self.plan.calib_textured_step_s = textured_step_s
+            self.jump = max(textured_step_s / max(step_s, 1e-12), 1.0)
+        self.base = self.base_calib = step_s
         self.t_routine = 2 * self.n_train * render_s  # E: a render and an error-statistics render per view
         self.t_eval = max(self.n_test, 1) * render_s
         self.t_ckpt = 0.05
@@ -96,14 +125,38 @@ class BudgetPlanner:
         self.plan.history.append((0, n, round(self.budget_s_left(), 1)))
         return n
 
-    def observe_step(self, seconds: float) -> None:
-        self.c_step = seconds if self.c_step <= 0 else RECENT * self.c_step + (1 - RECENT) * seconds
+    def observe_step(self, seconds: float, it: int) -> None:
+        """A training step `it` took `seconds`."""
+        b = seconds / self._g_now(it)
+        self.n_obs += 1
+        w = max(1 - RECENT, 1 / self.n_obs)
+        self.base = (1 - w) * self.base + w * b
 
-    def observe_routine(self, seconds: float) -> None:
-        self.t_routine = seconds
+    def tex_pending(self) -> bool:
+        return self.cfg.method == "content_aware" and self.tex_at is None
 
-    def observe_eval(self, seconds: float) -> None:
-        self.t_eval = seconds
+    @property
+    def measured_plan(self) -> bool:
+        """The plan was made from REPLAN_MIN_ITERS measured steps at least. A content-aware run starts its
+        textures only then: the texture start cannot be undone, and a calibration on a busy machine can plan a
+        few hundred iterations where the run gets a thousand (its fraction of the run: a handful of steps)."""
+        return self.n_obs_planned >= REPLAN_MIN_ITERS
+
+    def observe_texture_start(self, it: int) -> None:
+        """The textures started after step `it` (steps after it pay the jump J)."""
+        self.tex_at = it
+
+    def observe_routine(self, seconds: float, it: int) -> None:
+        self.t_routine = seconds / self._g_now(it)
+        self.routine_seen = True
+
+    def observe_eval(self, seconds: float, it: int) -> None:
+        self.t_eval = seconds / self._g_now(it)
+        self.eval_seen = True
+
+    def _g_now(self, it: int) -> float:
+        n = max(self.plan.iterations, it, 1)
+        return self._g(it, n, self._window(n))
 
     def observe_checkpoint(self, seconds: float) -> None:
         self.t_ckpt = seconds
@@ -115,9 +168,17 @@ class BudgetPlanner:
     def maybe_replan(self, it: int) -> int | None:
         """New planned iteration count, or None when it is not time to re-plan."""
         n = self.plan.iterations
-        if it - self.last_replan < max(REPLAN_MIN_ITERS, int(REPLAN_FRACTION * n)) or it >= n:
+        if it >= n:
+            return None
+        # Also on the step before the texture start: it cannot be undone, so it happens at its fraction of a
+        # plan made from measured steps, not of the calibration's alone (a short plan starts it in a few steps).
+        before_tex = self.tex_pending() and it + 1 >= schedule.texture_start(self.cfg)
+        # Until the textures start: every REPLAN_MIN_ITERS steps (the first measured steps correct the calibration).
+        every = REPLAN_MIN_ITERS if self.tex_pending() else max(REPLAN_MIN_ITERS, int(REPLAN_FRACTION * n))
+        if it - self.last_replan < every and not before_tex:
             return None
         self.last_replan = it
+        self.n_obs_planned = self.n_obs
         new = self._solve(it)
         self.plan.replans += 1
         if new != n and len(self.plan.history) < 200:
@@ -134,29 +195,42 @@ class BudgetPlanner:
         n = max(c.iterations, 1)
         return start / n, max(end / n, start / n + 1e-6)
 
-    def _g(self, p: float, window: tuple[float, float]) -> float:
+    def _window(self, n: int) -> tuple[float, float]:
+        """The growth window of a run of n iterations (cached: observe_step asks at every step)."""
+        if self._window_cache[0] != n:
+            self._window_cache = (n, self._growth_window(replace(self.cfg, iterations=n)))
+        return self._window_cache[1]
+
+    def _g(self, it: float, n: int, window: tuple[float, float]) -> float:
+        """Cost of step `it` of a run of n iterations, in units of the initial model's step."""
         a, b = window
-        return 1.0 + (self.growth - 1.0) * min(max((p - a) / (b - a), 0.0), 1.0)
+        p = it / n
+        g = 1.0 + (self.growth - 1.0) * min(max((p - a) / (b - a), 0.0), 1.0)
+        if self.cfg.method != "content_aware":
+            return g
+        textured = it > self.tex_at if self.tex_at is not None else p > a
+        return self.jump * g if textured else 1.0
 
     def _predict(self, it: int, n: int) -> float:
         """Seconds from now to the end of a run of n iterations (at iteration `it` now)."""
         c = replace(self.cfg, iterations=n)
         window = self._growth_window(c)
-        g_now = self._g(it / n, window)
-        base = self.c_step / g_now  # cost per unit of g, fitted to the recent cost
         # Training steps: midpoint rule over 64 slices of the remaining run.
         steps, k = n - it, 64
         total = 0.0
         for j in range(k):
-            p = (it + (j + 0.5) * steps / k) / n
-            total += base * self._g(p, window) * steps / k
-        g_late = self._g(1.0, window) / g_now
-        total += self._count_routines(c, it, n) * self.t_routine * g_late
+            total += self.base * self._g(it + (j + 0.5) * steps / k, n, window) * steps / k
+        # routines, evaluations: their last measured (or calibrated) cost per unit of g, at the run's end growth
+        g_late = self._g(n, n, window)
+        speed = self.base / self.base_calib if self.base_calib > 0 else 1.0
+        t_routine = self.t_routine * (1.0 if self.routine_seen else speed)
+        t_eval = self.t_eval * (1.0 if self.eval_seen else speed)
+        total += self._count_routines(c, it, n) * t_routine * g_late
         if c.test_every:
-            total += self._count(c, c.test_every, it, n - 1) * self.t_eval * g_late
+            total += self._count(c, c.test_every, it, n - 1) * t_eval * g_late
         if c.checkpoint_every:
             total += self._count(c, c.checkpoint_every, it, n - 1) * self.t_ckpt
-        total += self.t_eval * g_late + self.t_save  # final evaluation and outputs
+        total += t_eval * g_late + self.t_save  # final evaluation and outputs
         return total
 
     @staticmethod
@@ -198,16 +272,27 @@ class BudgetPlanner:
         p = self.plan
         return {"time_budget_s": p.budget_s, "planned_iterations_initial": p.initial_iterations,
                 "calibration_step_s": round(p.calib_step_s, 5), "calibration_render_s": round(p.calib_render_s, 5),
+                "calibration_textured_step_s": round(p.calib_textured_step_s, 5),
+                "texture_jump": round(self.jump, 3) if self.cfg.method == "content_aware" else None,
                 "replans": p.replans, "plan_history": p.history}
 
     def state_dict(self) -> dict:
-        return {"plan": vars(self.plan).copy(), "growth": self.growth, "c_step": self.c_step,
-                "t_routine": self.t_routine, "t_eval": self.t_eval, "t_ckpt": self.t_ckpt, "t_save": self.t_save,
+        return {"plan": vars(self.plan).copy(), "growth": self.growth, "base": self.base, "jump": self.jump,
+                "tex_at": self.tex_at, "n_obs": self.n_obs, "n_obs_planned": self.n_obs_planned,
+                "t_routine": self.t_routine, "t_eval": self.t_eval, "routine_seen": self.routine_seen,
+                "eval_seen": self.eval_seen, "base_calib": self.base_calib, "t_ckpt": self.t_ckpt, "t_save": self.t_save,
                 "last_replan": self.last_replan}
 
     def load_state_dict(self, state: dict) -> None:
         self.plan = Plan(**state["plan"])
-        self.growth, self.c_step = state["growth"], state["c_step"]
+        self.growth = state["growth"]
+        self.base = state.get("base", state.get("c_step", 0.0))  # c_step: checkpoints before session 17
+        self.jump, self.tex_at = state.get("jump", self.jump), state.get("tex_at")
+        self.n_obs = state.get("n_obs", 10_000)  # older checkpoints: long past the calibration
+        self.n_obs_planned = state.get("n_obs_planned", self.n_obs)
+        # older checkpoints: routine and eval costs as measured, not per unit of g (close enough late in a run)
+        self.routine_seen, self.eval_seen = state.get("routine_seen", True), state.get("eval_seen", True)
+        self.base_calib = state.get("base_calib", self.base)
         self.t_routine, self.t_eval, self.t_ckpt, self.t_save = (state[k] for k in ("t_routine", "t_eval", "t_ckpt",
                                                                                       "t_save"))
         self.last_replan = state["last_replan"]

@@ -6,6 +6,7 @@ atomic checkpoints, and on success model.pt + train_summary.json into the run fo
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -34,6 +35,15 @@ from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
 from ctgs.train.virtual import coverage_loss, virtual_views
+
+
+def _median_seconds(fn, reps: int = 3) -> float:
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
 
 
 def _all_finite(t: torch.Tensor) -> bool:
@@ -151,6 +161,8 @@ class Trainer:
                                          len(self.train_views), len(self.test_views))
             if state is not None and "planner" in state:
                 self.planner.load_state_dict(state["planner"])
+                if self.textures_started and self.planner.tex_at is None:  # a checkpoint from before session 17
+                    self.planner.observe_texture_start(min(self.it, schedule.texture_start(self.cfg)))
 
     # ---- state -----------------------------------------------------------------------------------
     def _to_device(self) -> None:
@@ -279,39 +291,58 @@ class Trainer:
         alpha = self.render_fn(self.model.render_inputs(), vv.camera).alpha
         (self.cfg.virtual_coverage * coverage_loss(alpha, vv)).backward()
 
-    def _calibrate(self) -> tuple[float, float]:
-        """Median seconds of a training step's forward+backward (as the loop renders it) and of a forward of the
-        current model on a training view."""
+    def _calibrate(self) -> tuple[float, float, float | None]:
+        """Median seconds, timed on a copy of the model and optimiser (the run's own are not touched), of a
+        training step as the loop takes it (forward+backward, Adam), of a forward on a training view, and for a
+        content-aware run whose textures have not started, of a training step once they have (None otherwise):
+        the planner's texture-start jump."""
+        model, opt = self.model, self.opt
+        try:
+            self.model, self.opt = copy.deepcopy(model), copy.deepcopy(opt)
+            step_s = self._time_steps(1)
+            with torch.no_grad():
+                render_s = _median_seconds(lambda: self.render_fn(self.model.render_inputs(),
+                                                                   self.train_views[0].camera))
+            textured_s = None
+            if self.cfg.method == "content_aware" and not self.textures_started:
+                cfg = self.cfg
+                self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)
+                texels.start_textures(self.model, self.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
+                                      cfg.texture_alloc, cfg.texture_sigma)
+                textured_s = self._time_steps(schedule.texture_start(cfg) + 1)
+        finally:
+            self.model, self.opt = model, opt
+        return step_s, render_s, textured_s
+
+    def _time_steps(self, it: int) -> float:
+        """Median seconds of a training step of self.model on the first training view at iteration `it`'s learning
+        rates (with a virtual_coverage term's share: one per virtual_every steps)."""
         view = self.train_views[0]
-        fb, fw = [], []
-        for _ in range(3):
-            t0 = time.perf_counter()
+        lrs = schedule.learning_rates(self.cfg, it, self.extent, self.model.sh.shape[1], self.device)
+
+        def step():
+            for name in ALL_PARAMS:
+                getattr(self.model, name).grad = None
             inputs = self.model.render_inputs()
             rgb, rasterized = self._training_render(inputs, view, None)
             training_loss(rgb, view.image_t, self.model, view.camera, self.cfg, rasterized=rasterized,
                           textures=inputs.textures).total.backward()
-            fb.append(time.perf_counter() - t0)
-            if self.virtual:  # one virtual-view term per virtual_every steps, on average
-                t0 = time.perf_counter()
-                self._virtual_step(self.cfg.virtual_every)
-                fb[-1] += (time.perf_counter() - t0) / self.cfg.virtual_every
-            with torch.no_grad():
-                t0 = time.perf_counter()
-                self.render_fn(self.model.render_inputs(), view.camera)
-                fw.append(time.perf_counter() - t0)
-        for name in ALL_PARAMS:
-            getattr(self.model, name).grad = None
-        return float(np.median(fb)), float(np.median(fw))
+            self.opt.step(self.model, lrs)
+
+        seconds = _median_seconds(step)
+        if self.virtual:
+            seconds += _median_seconds(lambda: self._virtual_step(self.cfg.virtual_every)) / self.cfg.virtual_every
+        return seconds
 
     def _plan_start(self) -> None:
         if self.planner is None:
             return
         if self.planner.plan.iterations == 0:  # a fresh run (a resumed one keeps its plan)
-            step_s, render_s = self._calibrate()
-            self.cfg.iterations = self.planner.calibrate(step_s, render_s)
+            self.cfg.iterations = self.planner.calibrate(*self._calibrate())
         plan = self.planner.plan
         self._log({"type": "plan", "it": self.it, "time_budget_s": plan.budget_s, "iterations": self.cfg.iterations,
                    "calibration_step_s": plan.calib_step_s, "calibration_render_s": plan.calib_render_s,
+                   "calibration_textured_step_s": plan.calib_textured_step_s,
                    "budget_left_s": round(self.planner.budget_s_left(), 2)})
 
     def run(self):
@@ -353,9 +384,11 @@ class Trainer:
             t2 = time.perf_counter()
             self.train_seconds += t2 - t0
             if self.planner is not None:
-                self.planner.observe_step(t1 - t0)
+                self.planner.observe_step(t1 - t0, it)
+                if any(ev.kind == "texture_start" for ev in events):
+                    self.planner.observe_texture_start(it)
                 if any(ev.kind in ("full", "late") for ev in events):
-                    self.planner.observe_routine(t2 - t1)
+                    self.planner.observe_routine(t2 - t1, it)
             if it % cfg.log_every == 0 or it == 1:
                 self._log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                            "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
@@ -371,7 +404,7 @@ class Trainer:
                 t0 = time.perf_counter()
                 p, s = self.evaluate()
                 if self.planner is not None:
-                    self.planner.observe_eval(time.perf_counter() - t0)
+                    self.planner.observe_eval(time.perf_counter() - t0, it)
                 self._log({"type": "test", "it": it, "psnr": p, "ssim": s})
                 yield Eval(it, p, s)
             if cfg.checkpoint_every and schedule.every(cfg, cfg.checkpoint_every, it) and it < cfg.iterations:
@@ -411,7 +444,9 @@ class Trainer:
     def _adapt(self, it: int):
         cfg, model, opt = self.cfg, self.model, self.opt
         if cfg.method == "content_aware":
-            if not self.textures_started and it >= schedule.texture_start(cfg):
+            # --time-budget: not before the plan rests on measured steps (BudgetPlanner.measured_plan)
+            if (not self.textures_started and it >= schedule.texture_start(cfg)
+                    and (self.planner is None or self.planner.measured_plan)):
                 self.textures_started = True
                 model.k_min = compute_k_min(model.means.detach(), self.cameras)
                 texels.start_textures(model, opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
