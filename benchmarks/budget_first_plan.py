@@ -6,7 +6,7 @@ happens at its fraction of the plan in force at that time and cannot be moved af
 budget and wall time, the first plan and the iterations run (ratio), the texture start's iteration and what
 fraction of the run it came at, the calibration's step against the median of the first 10 measured steps,
 and the calibrated texture-start jump against the measured one (median seconds per step over the 60 steps
-after the texture start / over the steps before it, windows with a routine, evaluation or re-plan left out).
+after the texture start / over the steps before it, windows with a routine or an evaluation left out).
 With `--set validation_holdout=K` runs, the final PSNR is on validation views (labelled so); otherwise none is
 shown (test views are not used to choose anything here).
 
@@ -30,9 +30,10 @@ TEXTURE_START_FRACTION = 500 / 30000
 
 
 def _windows(log: list[dict]) -> list[tuple[int, float]]:
-    """(iteration, seconds per step) over consecutive logged steps with no other event in between."""
+    """(iteration, seconds per step) over consecutive logged steps with no routine, evaluation or checkpoint in
+    between (a re-plan costs milliseconds: windows with one count)."""
     steps = [e for e in log if e.get("type") == "step"]
-    events = {e["it"] for e in log if e.get("type") in ("routine", "test", "checkpoint", "plan")}
+    events = {e["it"] for e in log if e.get("type") in ("routine", "test", "checkpoint")}
     out = []
     for a, b in zip(steps, steps[1:]):
         if b["it"] > a["it"] and not any(a["it"] < k <= b["it"] for k in events):
@@ -91,7 +92,8 @@ def main() -> None:
              f"{os.cpu_count()} CPUs). Texture start: the schedule puts it at {100 * TEXTURE_START_FRACTION:.2f}% "
              "of the run. Step seconds: the calibration's (a training step of the initial model) against the median "
              "of the first 10 measured steps; jump: textured step / untextured step, calibrated (on a copy of the "
-             "model, before the run) and measured (60 steps after the texture start / the steps before it).", "",
+             "model, before the run) and measured (60 steps after the texture start / the steps before it). "
+             "`val PSNR`: validation views (`--set validation_holdout=8`), shown for runs trained so.", "",
              "| run | preset | px/view | budget min | wall s | first plan | ran | first / ran | texture start (it, % of run) "
              "| calib step s | first 10 steps s | jump calibrated | jump measured | val PSNR |",
              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
