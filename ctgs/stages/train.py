@@ -149,3 +149,7 @@ def command(scene_dir, run_dir, preset, time_budget, config, iterations, sets, i
         click.echo(f"time budget {summary['time_budget_s'] / 60:.1f} min: planned {summary['planned_iterations_initial']} "
                    f"iterations at start, ran {summary['iterations']} ({summary['replans']} re-plans), wall "
                    f"{summary['wall_seconds'] / 60:.2f} min")
+        tex_at, frac = summary.get("texture_start_it"), summary.get("texture_start_scheduled_fraction")
+        if tex_at is not None and frac and summary["iterations"]:
+            click.echo(f"textures started after iteration {tex_at}: {100 * tex_at / summary['iterations']:.2f}% of the "
+                       f"run (the schedule's {100 * frac:.2f}%, placed from the speed measured in the first steps)")

@@ -274,6 +274,13 @@ class BudgetPlanner:
                 "calibration_step_s": round(p.calib_step_s, 5), "calibration_render_s": round(p.calib_render_s, 5),
                 "calibration_textured_step_s": round(p.calib_textured_step_s, 5),
                 "texture_jump": round(self.jump, 3) if self.cfg.method == "content_aware" else None,
+                # where the textures started, and where the schedule puts them (texture_start / 30000 of the run):
+                # the start is fixed early from the speed measured then, so a load on the machine during the
+                # first minute moves it (docs/training.md)
+                "texture_start_it": self.tex_at,
+                "texture_start_scheduled_fraction": (round(self.cfg.texture_start / schedule.PAPER_ITERATIONS, 5)
+                                                     if self.cfg.method == "content_aware"
+                                                     and self.cfg.schedule_scale <= 0 else None),
                 "replans": p.replans, "plan_history": p.history}
 
     def state_dict(self) -> dict:

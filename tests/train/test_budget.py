@@ -224,3 +224,26 @@ def test_planner_state_survives_a_resume_and_reads_older_checkpoints(monkeypatch
     old = BudgetPlanner(cfg, 600.0, 0.0, n_train=20, n_test=3)
     old.load_state_dict(legacy)
     assert old.base == 0.125 and old.measured_plan and old.tex_at is None
+
+
+def test_a_budgeted_run_reports_where_the_textures_started(tmp_path):
+    """End to end through the CLI: the summary names the texture start's iteration and the schedule's fraction, and
+    the closing lines say both (a load on the machine during the first steps moves the start; the user can see it)."""
+    from click.testing import CliRunner
+
+    from ctgs.cli import main
+    from ctgs.scene.demo import make_demo_scene
+
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=48, height=36, points=150)
+    run = tmp_path / "run"
+    result = CliRunner().invoke(main, ["train", scene_dir, "-o", str(run), "--preset", "fast", "--time-budget", "0.25",
+                                       "-q", "--set", "threads=1"])
+    assert result.exit_code == 0, result.output
+    import json
+
+    summary = json.loads((run / "train_summary.json").read_text())
+    assert summary["texture_start_scheduled_fraction"] == pytest.approx(500 / 30000, abs=1e-5)
+    tex_at = summary["texture_start_it"]
+    assert tex_at is not None and 0 < tex_at < summary["iterations"]
+    assert f"textures started after iteration {tex_at}:" in result.output
+    assert "the schedule's 1.67%" in result.output
