@@ -50,10 +50,6 @@ SAFETY = 0.97  # plan for 97% of the budget: the rest absorbs the error of the l
 # plan changes 3.5x (largest single change 49% -> 12%) and still ended within 0.2% of the budget, also with the
 # machine turning 3x slower at 95% of the budget (ends at 1.006x).
 RECENT = 0.99
-# The calibration (timed on a copy of the model, possibly while the machine is busy with something else: at
-# 768x512 beside another training compiling its extension it read 2.2x the real step) stands for the step cost
-# only until steps are measured: the average starts as the plain mean of the measured steps and turns into the
-# exponential average once that weighs more (after 100 steps).
 # The shortest run any preset makes (`preview`): below it no recorded run says what the model is worth.
 SHORTEST_MEASURED = 1000
 
@@ -126,7 +122,11 @@ class BudgetPlanner:
         return n
 
     def observe_step(self, seconds: float, it: int) -> None:
-        """A training step `it` took `seconds`."""
+        """A training step `it` took `seconds`. The calibration (timed on a copy of the model, possibly while the
+        machine is busy with something else: at 768x512 beside another training compiling its extension it read
+        2.2x the real step) stands for the step cost only until steps are measured: the average starts as the plain
+        mean of the measured steps and turns into the exponential average (RECENT) once that weighs more (after
+        100 steps)."""
         b = seconds / self._g_now(it)
         self.n_obs += 1
         w = max(1 - RECENT, 1 / self.n_obs)

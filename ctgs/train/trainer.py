@@ -305,14 +305,18 @@ class Trainer:
                                                                    self.train_views[0].camera))
             textured_s = None
             if self.cfg.method == "content_aware" and not self.textures_started:
-                cfg = self.cfg
-                self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)
-                texels.start_textures(self.model, self.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
-                                      cfg.texture_alloc, cfg.texture_sigma)
-                textured_s = self._time_steps(schedule.texture_start(cfg) + 1)
+                self._start_textures()
+                textured_s = self._time_steps(schedule.texture_start(self.cfg) + 1)
         finally:
             self.model, self.opt = model, opt
         return step_s, render_s, textured_s
+
+    def _start_textures(self) -> None:
+        """Allocate self.model's textures (the run's texture start; the calibration does it on its copy)."""
+        cfg = self.cfg
+        self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)
+        texels.start_textures(self.model, self.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
+                              cfg.texture_alloc, cfg.texture_sigma)
 
     def _time_steps(self, it: int) -> float:
         """Median seconds of a training step of self.model on the first training view at iteration `it`'s learning
@@ -448,9 +452,7 @@ class Trainer:
             if (not self.textures_started and it >= schedule.texture_start(cfg)
                     and (self.planner is None or self.planner.measured_plan)):
                 self.textures_started = True
-                model.k_min = compute_k_min(model.means.detach(), self.cameras)
-                texels.start_textures(model, opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
-                                      cfg.texture_alloc, cfg.texture_sigma)
+                self._start_textures()
                 yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean())})
             kind = schedule.routine_kind(cfg, it)
             if kind == "full":
