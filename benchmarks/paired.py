@@ -46,7 +46,7 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
     rec_path = os.path.join(run, "paired_record.json")
     if os.path.exists(rec_path):
         with open(rec_path) as fh:
-            return json.load(fh)
+            return {**json.load(fh), "reused": True}
     os.makedirs(args.work, exist_ok=True)
     log = run + ".log"
     resume = ["--resume"] if os.path.exists(os.path.join(run, "checkpoints", "last.pt")) else []
@@ -105,7 +105,11 @@ def main() -> None:
         recs = list(pool.map(lambda j: run_one(args, j[0], j[1], j[2], lpips), jobs))
     by = {(r["label"], r["seed"]): r for r in recs}
     pairs = [(s, by[(la, s)], by[(lb, s)]) for s in args.seeds]
-    run_commits = sorted({r["commit"] for r in recs if r.get("commit")} - {commit})
+    # runs found finished in --work (an earlier invocation) and runs this one trained at another commit (one made
+    # while it ran, or a resumed run) are named apart: the record says which code trained what
+    reused = [r for r in recs if r.get("reused")]
+    run_commits = sorted({r["commit"] for r in reused if r.get("commit")})
+    other_commits = sorted({r["commit"] for r in recs if not r.get("reused") and r.get("commit")} - {commit})
     machine = f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
     stats = {k: paired([a[k] - b[k] for _, a, b in pairs]) for k in ("psnr", "ssim")}
     if all(a["lpips"] is not None and b["lpips"] is not None for _, a, b in pairs):
@@ -114,7 +118,8 @@ def main() -> None:
     per_view = {v: paired([a["per_view_psnr"][v] - b["per_view_psnr"][v] for _, a, b in pairs]) for v in views}
     with open(os.path.join(ROOT, "benchmarks", "results", f"paired_{args.tag}.json"), "w") as fh:
         json.dump({"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
-                   "reused_run_commits": run_commits,
+                   "reused_run_commits": run_commits, "other_run_commits": other_commits,
+                   "reused_runs": [f"{r['label']}_s{r['seed']}" for r in reused],
                    "machine": machine, "a": la, "b": lb, "runs": recs, "stats": stats, "per_view": per_view}, fh,
                   indent=1)
 
@@ -125,7 +130,10 @@ def main() -> None:
     lines = [f"# {la} (A) vs {lb} (B), paired by seed ({os.path.basename(os.path.normpath(args.scene))} {args.images})",
              "", f"Written by `benchmarks/paired.py {' '.join(sys.argv[1:])}` on {time.strftime('%Y-%m-%d %H:%M')}, "
              f"{machine}, commit {commit} at the start"
-             + (f" (reused runs trained at {', '.join(run_commits)})" if run_commits else "")
+             + (f" ({len(reused)} finished run(s) reused from --work, trained at {', '.join(run_commits) or 'an unrecorded commit'})"
+                if reused else "")
+             + (f" (runs of this invocation trained at {', '.join(other_commits)}: commits made while it ran)"
+                if other_commits else "")
              + f", CPU backend, {args.threads} thread per training, {args.parallel} trainings "
              "at a time in seed order (A and B of a seed start together). Test views: the protocol's every 8th; A and B were fixed before "
              "the runs, nothing was chosen from the test views. Metrics: `ctgs eval` of the exported model."
