@@ -145,6 +145,11 @@ def command(scene_dir, run_dir, preset, time_budget, config, iterations, sets, i
     click.echo(f"done: {summary['iterations']} iterations in {summary['train_seconds']:.0f} s, "
                f"test PSNR {summary['final_test_psnr']:.2f} dB, {summary['num_primitives']} primitives, "
                f"{summary['num_texels']} texels, {summary['num_params']} params -> {run_dir}")
+    if summary.get("estimated_wall_s"):
+        est = summary["estimated_wall_s"]
+        at = summary["estimated_at_it"]
+        click.echo(f"wall {summary['wall_seconds'] / 60:.2f} min (estimated {est[0] / 60:.2f} at the start"
+                   + (f", {est[1] / 60:.2f} at iteration {at[1]}" if len(est) > 1 else "") + ")")
     if "time_budget_s" in summary:
         click.echo(f"time budget {summary['time_budget_s'] / 60:.1f} min: planned {summary['planned_iterations_initial']} "
                    f"iterations at start, ran {summary['iterations']} ({summary['replans']} re-plans), wall "

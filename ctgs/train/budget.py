@@ -66,6 +66,27 @@ def short_plan_warning(iterations: int, budget_s: float, step_s: float, pixels: 
             f"writes images_2, images_4 and images_8)")
 
 
+LONG_RUN_S = 3600.0  # a fixed run estimated longer than this is told how to take less
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.1f} min" if seconds < 90 * 60 else f"{seconds / 3600:.1f} h"
+
+
+def estimate_line(it: int, iterations: int, wall_s: float) -> str:
+    """What a fixed-length run is told of its wall time: first from the calibration, then from measured steps."""
+    if it == 0:
+        line = (f"about {_duration(wall_s)} for {iterations} iterations on this machine (timed on the initial model; "
+                "re-estimated from the first measured steps)")
+        if wall_s > LONG_RUN_S:
+            line += ("; to take less: --time-budget MINUTES plans the run to fit, or train a smaller --images folder "
+                     "(a step costs about in proportion to the pixels)")
+        return line
+    return f"about {_duration(wall_s)} for {iterations} iterations (re-estimated at iteration {it} from measured steps)"
+
+
 @dataclass
 class Plan:
     """What the planner chose (logged and written to train_summary.json)."""
@@ -81,9 +102,17 @@ class Plan:
 
 
 class BudgetPlanner:
-    def __init__(self, cfg: TrainConfig, budget_s: float, start_time: float, n_train: int, n_test: int):
+    """Plans a `--time-budget` run's length; with budget_s None (a run of fixed length) it only estimates: the same
+    calibration and cost model say how long the run will take, once at the start and once from measured steps
+    (`estimate_s`), and the run's length and schedule are the config's (nothing re-planned, the texture start at
+    its iteration)."""
+
+    def __init__(self, cfg: TrainConfig, budget_s: float | None, start_time: float, n_train: int, n_test: int):
         self.cfg = cfg
-        self.plan = Plan(budget_s=budget_s)
+        self.fixed = budget_s is None
+        self.plan = Plan(budget_s=0.0 if budget_s is None else budget_s)
+        # fixed runs: (iteration, predicted wall seconds of the whole run) at the start and from measured steps
+        self.estimates: list = []
         self.start = start_time  # time.monotonic() when the command started
         self.n_train, self.n_test = n_train, max(n_test, 0)
         self.growth = GROWTH_PRIOR.get(cfg.method, 2.5)
@@ -116,6 +145,10 @@ class BudgetPlanner:
         self.t_eval = max(self.n_test, 1) * render_s
         self.t_ckpt = 0.05
         self.t_save = 0.2
+        if self.fixed:
+            self.plan.initial_iterations = self.plan.iterations = self.cfg.iterations
+            self.estimates.append((0, round(self.estimate_s(0), 1)))
+            return self.cfg.iterations
         n = self._solve(0)
         self.plan.initial_iterations = self.plan.iterations = n
         self.plan.history.append((0, n, round(self.budget_s_left(), 1)))
@@ -140,7 +173,27 @@ class BudgetPlanner:
         """The plan was made from REPLAN_MIN_ITERS measured steps at least. A content-aware run starts its
         textures only then: the texture start cannot be undone, and a calibration on a busy machine can plan a
         few hundred iterations where the run gets a thousand (its fraction of the run: a handful of steps)."""
-        return self.n_obs_planned >= REPLAN_MIN_ITERS
+        return self.fixed or self.n_obs_planned >= REPLAN_MIN_ITERS
+
+    # ---- fixed runs: the estimate ------------------------------------------------------------------
+    def estimate_s(self, it: int) -> float:
+        """Predicted wall seconds of the whole run (command start to outputs written), at iteration `it`."""
+        return (time.monotonic() - self.start) + self._predict(it, self.plan.iterations)
+
+    def estimate_due(self, it: int) -> bool:
+        """A fixed run's second estimate, once, from REPLAN_MIN_ITERS measured steps (a content-aware run's after
+        its texture start: before it, the jump is the calibration's)."""
+        if not self.fixed or len(self.estimates) != 1 or it >= self.plan.iterations:
+            return False
+        if self.cfg.method == "content_aware":
+            return self.tex_at is not None and it - self.tex_at >= REPLAN_MIN_ITERS
+        return self.n_obs >= REPLAN_MIN_ITERS
+
+    def observe_estimate(self, it: int) -> float:
+        """Record and return the estimate at iteration `it` (estimate_due said it is time)."""
+        s = self.estimate_s(it)
+        self.estimates.append((it, round(s, 1)))
+        return s
 
     def observe_texture_start(self, it: int) -> None:
         """The textures started after step `it` (steps after it pay the jump J)."""
@@ -166,9 +219,9 @@ class BudgetPlanner:
 
     # ---- planning ----------------------------------------------------------------------------------
     def maybe_replan(self, it: int) -> int | None:
-        """New planned iteration count, or None when it is not time to re-plan."""
+        """New planned iteration count, or None when it is not time to re-plan (never for a fixed run)."""
         n = self.plan.iterations
-        if it >= n:
+        if it >= n or self.fixed:
             return None
         # Also on the step before the texture start: it cannot be undone, so it happens at its fraction of a
         # plan made from measured steps, not of the calibration's alone (a short plan starts it in a few steps).
@@ -270,6 +323,8 @@ class BudgetPlanner:
 
     def summary(self) -> dict:
         p = self.plan
+        if self.fixed:
+            return {"estimated_wall_s": [s for _, s in self.estimates], "estimated_at_it": [i for i, _ in self.estimates]}
         return {"time_budget_s": p.budget_s, "planned_iterations_initial": p.initial_iterations,
                 "calibration_step_s": round(p.calib_step_s, 5), "calibration_render_s": round(p.calib_render_s, 5),
                 "calibration_textured_step_s": round(p.calib_textured_step_s, 5),

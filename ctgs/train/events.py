@@ -30,6 +30,13 @@ class Planned:
 
 
 @dataclass
+class Estimated:
+    it: int  # 0: from the calibration; later: from the measured steps
+    iterations: int  # the run's fixed length
+    wall_s: float  # predicted wall seconds of the whole run, command start to outputs written
+
+
+@dataclass
 class Eval:
     it: int
     test_psnr: float

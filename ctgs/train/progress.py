@@ -7,8 +7,8 @@ import sys
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from ctgs.train.budget import short_plan_warning
-from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
+from ctgs.train.budget import estimate_line, short_plan_warning
+from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
 
 
 def run_with_progress(trainer, quiet: bool = False) -> dict:
@@ -50,6 +50,9 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                                          f"(re-planned as the model grows)")
                     if ev.it == 0 and (line := _short_plan(trainer, ev)):
                         progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
+            elif isinstance(ev, Estimated):
+                progress.console.print("ctgs train: " + estimate_line(ev.it, ev.iterations, ev.wall_s), markup=False,
+                                       highlight=False, soft_wrap=True)
             elif isinstance(ev, Checkpoint):
                 pass
             elif isinstance(ev, Done):

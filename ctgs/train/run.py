@@ -47,6 +47,8 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
                "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1)}
     if trainer.planner is not None:
         summary.update(trainer.planner.summary())
+    elif trainer.estimator is not None:
+        summary.update(trainer.estimator.summary())
     atomic.write_json(os.path.join(trainer.run_dir, "train_summary.json"), summary)
     return summary
 

@@ -27,7 +27,7 @@ from ctgs.train.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.budget import BudgetPlanner
 from ctgs.train.config import TrainConfig
 from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
-from ctgs.train.events import Checkpoint, Done, Eval, Planned, Routine, Step
+from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
 from ctgs.train.fill import fill_points
 from ctgs.train.init import init_model
 from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell_points
@@ -121,7 +121,8 @@ class Trainer:
                                 "virtual_coverage = 0")
         self.virtual_order = torch.randperm(len(self.virtual), generator=torch.Generator().manual_seed(cfg.seed + 1))
         self.cfg = rules.resolve(cfg, self.pixels)
-        self.planner = None
+        self.planner = None  # --time-budget: plans the run's length
+        self.estimator = None  # a fresh run of fixed length: the same cost model, estimating its wall time only
         self.wall_before = 0.0  # wall seconds of earlier sessions of this run (resume)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
@@ -163,6 +164,8 @@ class Trainer:
                 self.planner.load_state_dict(state["planner"])
                 if self.textures_started and self.planner.tex_at is None:  # a checkpoint from before session 17
                     self.planner.observe_texture_start(min(self.it, schedule.texture_start(self.cfg)))
+        elif state is None:
+            self.estimator = BudgetPlanner(self.cfg, None, self.start_time, len(self.train_views), len(self.test_views))
 
     # ---- state -----------------------------------------------------------------------------------
     def _to_device(self) -> None:
@@ -338,7 +341,16 @@ class Trainer:
             seconds += _median_seconds(lambda: self._virtual_step(self.cfg.virtual_every)) / self.cfg.virtual_every
         return seconds
 
+    @property
+    def _clock(self) -> BudgetPlanner | None:
+        """The planner that observes the run's step, routine, evaluation and checkpoint times."""
+        return self.planner or self.estimator
+
     def _plan_start(self) -> None:
+        if self.estimator is not None:
+            # (not in log.jsonl, which holds what the run did: the estimates are clock readings, in the summary)
+            self.estimator.calibrate(*self._calibrate())
+            return
         if self.planner is None:
             return
         if self.planner.plan.iterations == 0:  # a fresh run (a resumed one keeps its plan)
@@ -357,6 +369,8 @@ class Trainer:
         self._plan_start()
         if self.planner is not None:
             yield Planned(self.it, cfg.iterations, self.planner.plan.budget_s)
+        if self.estimator is not None:
+            yield Estimated(self.it, cfg.iterations, self.estimator.estimates[0][1])
         while self.it < cfg.iterations:
             t0 = time.perf_counter()
             self.it += 1
@@ -387,12 +401,12 @@ class Trainer:
             events = list(self._adapt(it))
             t2 = time.perf_counter()
             self.train_seconds += t2 - t0
-            if self.planner is not None:
-                self.planner.observe_step(t1 - t0, it)
+            if (clock := self._clock) is not None:
+                clock.observe_step(t1 - t0, it)
                 if any(ev.kind == "texture_start" for ev in events):
-                    self.planner.observe_texture_start(it)
+                    clock.observe_texture_start(it)
                 if any(ev.kind in ("full", "late") for ev in events):
-                    self.planner.observe_routine(t2 - t1, it)
+                    clock.observe_routine(t2 - t1, it)
             if it % cfg.log_every == 0 or it == 1:
                 self._log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                            "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
@@ -407,15 +421,15 @@ class Trainer:
             if cfg.test_every and schedule.every(cfg, cfg.test_every, it) and it < cfg.iterations:
                 t0 = time.perf_counter()
                 p, s = self.evaluate()
-                if self.planner is not None:
-                    self.planner.observe_eval(time.perf_counter() - t0, it)
+                if self._clock is not None:
+                    self._clock.observe_eval(time.perf_counter() - t0, it)
                 self._log({"type": "test", "it": it, "psnr": p, "ssim": s})
                 yield Eval(it, p, s)
             if cfg.checkpoint_every and schedule.every(cfg, cfg.checkpoint_every, it) and it < cfg.iterations:
                 t0 = time.perf_counter()
                 path = self._save_checkpoint()
-                if self.planner is not None:
-                    self.planner.observe_checkpoint(time.perf_counter() - t0)
+                if self._clock is not None:
+                    self._clock.observe_checkpoint(time.perf_counter() - t0)
                 yield Checkpoint(it, path)
             if self.planner is not None:
                 planned = self.planner.maybe_replan(it)
@@ -424,6 +438,8 @@ class Trainer:
                     self._log({"type": "plan", "it": it, "iterations": planned,
                                "budget_left_s": round(self.planner.budget_s_left(), 2)})
                     yield Planned(it, planned, self.planner.plan.budget_s)
+            if self.estimator is not None and self.estimator.estimate_due(it):
+                yield Estimated(it, cfg.iterations, self.estimator.observe_estimate(it))
         if cfg.method == "content_aware" and cfg.texture_trim > 0:
             # Model only what the textures hold: texels below texture_trim in every channel go (texels.trim;
             # idempotent, so a resumed run that trims again changes nothing).
