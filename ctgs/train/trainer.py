@@ -37,11 +37,17 @@ from ctgs.train.routines import full_routine, late_routine
 from ctgs.train.virtual import coverage_loss, virtual_views
 
 
-def _median_seconds(fn, reps: int = 3) -> float:
+def _median_seconds(fn, reps: int = 3, device: torch.device | None = None) -> float:
+    """Median wall seconds of fn(); on a CUDA device the queued kernels are waited for (a launch is not a step)."""
+    cuda = device is not None and device.type == "cuda"
     times = []
     for _ in range(reps):
+        if cuda:
+            torch.cuda.synchronize(device)
         t0 = time.perf_counter()
         fn()
+        if cuda:
+            torch.cuda.synchronize(device)
         times.append(time.perf_counter() - t0)
     return float(np.median(times))
 
@@ -305,7 +311,7 @@ class Trainer:
             step_s = self._time_steps(1)
             with torch.no_grad():
                 render_s = _median_seconds(lambda: self.render_fn(self.model.render_inputs(),
-                                                                   self.train_views[0].camera))
+                                                                   self.train_views[0].camera), device=self.device)
             textured_s = None
             if self.cfg.method == "content_aware" and not self.textures_started:
                 self._start_textures()
@@ -336,9 +342,10 @@ class Trainer:
                           textures=inputs.textures).total.backward()
             self.opt.step(self.model, lrs)
 
-        seconds = _median_seconds(step)
+        seconds = _median_seconds(step, device=self.device)
         if self.virtual:
-            seconds += _median_seconds(lambda: self._virtual_step(self.cfg.virtual_every)) / self.cfg.virtual_every
+            seconds += (_median_seconds(lambda: self._virtual_step(self.cfg.virtual_every), device=self.device)
+                        / self.cfg.virtual_every)
         return seconds
 
     @property

@@ -321,3 +321,19 @@ def test_a_fixed_run_estimate_from_measured_steps_is_close(monkeypatch, growth):
         clock.t += step0 * growth * jump + 0.2
         assert estimate is not None and abs(estimate / clock.t - 1) <= 0.25, (calibrated, estimate, clock.t)
         assert planner.summary()["estimated_at_it"] == [0, tex_at + 10]
+
+
+def test_calibration_timings_wait_for_queued_cuda_kernels(monkeypatch):
+    """On a CUDA device a timed call returns when its kernels are queued, not run: the calibration's timer waits for
+    them before and after each repetition (checked without a GPU: torch.cuda.synchronize replaced by a counter)."""
+    import torch
+
+    from ctgs.train import trainer as trainer_mod
+
+    calls = []
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda device=None: calls.append(device))
+    assert trainer_mod._median_seconds(lambda: None, reps=3, device=torch.device("cuda", 0)) >= 0
+    assert len(calls) == 6
+    calls.clear()
+    trainer_mod._median_seconds(lambda: None, reps=3, device=torch.device("cpu"))
+    assert not calls
