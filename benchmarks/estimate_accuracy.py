@@ -34,6 +34,29 @@ def parse_run(spec: str) -> tuple[str, str, str | None]:
     return parts[0], parts[1] if len(parts) > 1 and parts[1] else "images", parts[2] if len(parts) > 2 else None
 
 
+FRACTIONS = (0.1, 0.25, 0.5, 0.75)
+RICH_WINDOW_S = 30.0  # rich.progress's speed_estimate_period: its ETA is the work left over the last 30 s's speed
+
+
+def eta_checks(run: str, iterations: int, wall_s: float, est_at: list, est_s: list) -> dict:
+    """At each fraction of the run, the predicted total wall time (command start to end) from the cost model's
+    latest estimate, and from the recent speed as rich's ETA column computes it (iterations left / iterations per
+    second over the last 30 s, from the log's step records), each over the wall time."""
+    steps = [r for r in map(json.loads, open(os.path.join(run, "log.jsonl"))) if r.get("type") == "step"]
+    out = {}
+    for f in FRACTIONS:
+        k = next((r for r in steps if r["it"] >= f * iterations), None)
+        if k is None:
+            continue
+        past = [r for r in steps if r["wall"] <= k["wall"] - RICH_WINDOW_S] or steps[:1]
+        ref = past[-1]
+        speed = (k["it"] - ref["it"]) / max(k["wall"] - ref["wall"], 1e-9)
+        naive = k["wall"] + (iterations - k["it"]) / max(speed, 1e-9)
+        model = [s for i, s in zip(est_at, est_s) if i <= k["it"]]
+        out[f] = {"it": k["it"], "model": model[-1] / wall_s if model else None, "recent_speed": naive / wall_s}
+    return out
+
+
 def run_one(args, spec: str) -> dict:
     preset, images, config = parse_run(spec)
     label = "_".join([preset, images] + ([config] if config else []))
@@ -51,7 +74,8 @@ def run_one(args, spec: str) -> dict:
         raise SystemExit(f"{summary_path}: no estimates (a --time-budget run, or trained before they existed)")
     return {"run": label, "preset": preset, "images": images, "config": config, "commit": commit,
             "iterations": s["iterations"], "wall_s": s["wall_seconds"], "estimated_wall_s": s["estimated_wall_s"],
-            "estimated_at_it": s["estimated_at_it"], "pixels": s["image_pixels"]}
+            "estimated_at_it": s["estimated_at_it"], "pixels": s["image_pixels"],
+            "eta": eta_checks(run, s["iterations"], s["wall_seconds"], s["estimated_at_it"], s["estimated_wall_s"])}
 
 
 def main() -> None:
@@ -83,6 +107,19 @@ def main() -> None:
         second = (f"{at[1]} | {est[1] / 60:.2f} | {est[1] / wall:.2f}" if len(est) > 1 else "- | - | -")
         lines.append(f"| {r['run']} | {r['pixels']:.0f} | {r['iterations']} | {wall / 60:.2f} | {est[0] / 60:.2f} | "
                      f"{est[0] / wall:.2f} | {second} |")
+    lines += ["", "Time left as the progress display shows it, read as the predicted total wall time over the actual one, at "
+              "fractions of the run: the cost model's latest estimate (the display's ETA since this commit) against the "
+              "recent speed's (rich's ETA column before it: iterations left / iterations per second over the last "
+              f"{RICH_WINDOW_S:.0f} s, from the log's step records).", "",
+              "| run | " + " | ".join(f"{f:.0%}: model | recent speed" for f in FRACTIONS) + " |",
+              "| --- | " + " | ".join("---: | ---:" for _ in FRACTIONS) + " |"]
+    for r in recs:
+        cells = []
+        for f in FRACTIONS:
+            e = r["eta"].get(f) or r["eta"].get(str(f))
+            cells.append("- | -" if e is None else
+                         f"{'-' if e['model'] is None else format(e['model'], '.2f')} | {e['recent_speed']:.2f}")
+        lines.append(f"| {r['run']} | " + " | ".join(cells) + " |")
     with open(out + ".md", "w") as fh:
         fh.write("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -181,18 +181,22 @@ class BudgetPlanner:
         return (time.monotonic() - self.start) + self._predict(it, self.plan.iterations)
 
     def estimate_due(self, it: int) -> bool:
-        """A fixed run's second estimate, once, from REPLAN_MIN_ITERS measured steps (a content-aware run's after
-        its texture start: before it, the jump is the calibration's)."""
-        if not self.fixed or len(self.estimates) != 1 or it >= self.plan.iterations:
+        """A fixed run's next estimate: the first from REPLAN_MIN_ITERS measured steps (a content-aware run's after
+        its texture start: before it, the jump is the calibration's), then every 1% of the run (as a budget's
+        re-plans), which keeps the progress display's time left on the cost model."""
+        if not self.fixed or not self.estimates or it >= self.plan.iterations:
             return False
-        if self.cfg.method == "content_aware":
-            return self.tex_at is not None and it - self.tex_at >= REPLAN_MIN_ITERS
-        return self.n_obs >= REPLAN_MIN_ITERS
+        if len(self.estimates) == 1:
+            if self.cfg.method == "content_aware":
+                return self.tex_at is not None and it - self.tex_at >= REPLAN_MIN_ITERS
+            return self.n_obs >= REPLAN_MIN_ITERS
+        return it - self.estimates[-1][0] >= max(REPLAN_MIN_ITERS, int(REPLAN_FRACTION * self.plan.iterations))
 
     def observe_estimate(self, it: int) -> float:
         """Record and return the estimate at iteration `it` (estimate_due said it is time)."""
         s = self.estimate_s(it)
-        self.estimates.append((it, round(s, 1)))
+        if len(self.estimates) < 200:
+            self.estimates.append((it, round(s, 1)))
         return s
 
     def observe_texture_start(self, it: int) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -22,13 +23,20 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                 print(line, file=sys.stderr)
         return summary
     console = Console(stderr=True)
+    # Time left: the cost model's (budget.py) where the run has one, which counts the growth of the step cost
+    # still ahead and the routines; a --time-budget run's is its budget's end. Otherwise rich's (recent speed).
+    modelled = trainer.planner is not None or trainer.estimator is not None
     columns = [TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(),
                TextColumn("{task.fields[speed]:>6.1f} it/s"), TimeElapsedColumn(), TextColumn("ETA"),
-               TimeRemainingColumn(), TextColumn("{task.fields[info]}")]
+               TextColumn("{task.fields[left]}") if modelled else TimeRemainingColumn(),
+               TextColumn("{task.fields[info]}")]
     test = "-"
     planned_once = False
+    estimates_shown = 0
+    end_at = None  # time.monotonic() at which the run is expected to end
     with Progress(*columns, console=console, refresh_per_second=4) as progress:
-        task = progress.add_task("train", total=trainer.cfg.iterations, completed=trainer.it, speed=0.0, info="")
+        task = progress.add_task("train", total=trainer.cfg.iterations, completed=trainer.it, speed=0.0, info="",
+                                 left="-:--:--")
         start_it, start_s = trainer.it, trainer.train_seconds
         for ev in trainer.run():
             if isinstance(ev, Step):
@@ -36,7 +44,8 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                 speed = (ev.it - start_it) / dt if dt > 0 else 0.0
                 info = (f"loss {ev.loss:.4f}  PSNR {ev.psnr:5.2f}  test {test}  prims {ev.num_primitives}  "
                         f"texels {ev.num_texels}")
-                progress.update(task, completed=ev.it, speed=speed, info=info)
+                left = "-:--:--" if end_at is None else _clock(end_at - time.monotonic())
+                progress.update(task, completed=ev.it, speed=speed, info=info, left=left)
             elif isinstance(ev, Eval):
                 test = f"{ev.test_psnr:.2f}"
             elif isinstance(ev, Routine) and ev.kind in ("texture_start", "full", "trim"):
@@ -44,6 +53,7 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                     f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in ev.stats.items()))
             elif isinstance(ev, Planned):
                 progress.update(task, total=ev.iterations)
+                end_at = trainer.planner.start + ev.budget_s
                 if ev.it == trainer.it and not planned_once:
                     planned_once = True
                     progress.console.log(f"time budget {ev.budget_s / 60:.1f} min: planned {ev.iterations} iterations "
@@ -51,8 +61,11 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                     if ev.it == 0 and (line := _short_plan(trainer, ev)):
                         progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
             elif isinstance(ev, Estimated):
-                progress.console.print("ctgs train: " + estimate_line(ev.it, ev.iterations, ev.wall_s), markup=False,
-                                       highlight=False, soft_wrap=True)
+                end_at = trainer.estimator.start + ev.wall_s
+                if estimates_shown < 2:  # the calibration's and the first from measured steps; later ones: the ETA
+                    estimates_shown += 1
+                    progress.console.print("ctgs train: " + estimate_line(ev.it, ev.iterations, ev.wall_s),
+                                           markup=False, highlight=False, soft_wrap=True)
             elif isinstance(ev, Checkpoint):
                 pass
             elif isinstance(ev, Done):
@@ -63,3 +76,9 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
 def _short_plan(trainer, ev: Planned) -> str | None:
     """The warning for a fresh run whose first plan is shorter than any measured run (shown quiet or not)."""
     return short_plan_warning(ev.iterations, ev.budget_s, trainer.planner.plan.calib_step_s, trainer.pixels)
+
+
+def _clock(seconds: float) -> str:
+    """h:mm:ss, as rich's own time columns."""
+    seconds = max(int(round(seconds)), 0)
+    return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
