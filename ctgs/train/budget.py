@@ -103,15 +103,15 @@ class Plan:
 
 class BudgetPlanner:
     """Plans a `--time-budget` run's length; with budget_s None (a run of fixed length) it only estimates: the same
-    calibration and cost model say how long the run will take, once at the start and once from measured steps
-    (`estimate_s`), and the run's length and schedule are the config's (nothing re-planned, the texture start at
-    its iteration)."""
+    calibration and cost model say how long the run will take (`estimate_s`): at the start, from REPLAN_MIN_ITERS
+    measured steps, then every 1% of the run; the run's length and schedule are the config's (nothing re-planned,
+    the texture start at its iteration)."""
 
     def __init__(self, cfg: TrainConfig, budget_s: float | None, start_time: float, n_train: int, n_test: int):
         self.cfg = cfg
         self.fixed = budget_s is None
         self.plan = Plan(budget_s=0.0 if budget_s is None else budget_s)
-        # fixed runs: (iteration, predicted wall seconds of the whole run) at the start and from measured steps
+        # fixed runs: (iteration, predicted wall seconds of the whole run), the first at iteration 0
         self.estimates: list = []
         self.start = start_time  # time.monotonic() when the command started
         self.n_train, self.n_test = n_train, max(n_test, 0)
