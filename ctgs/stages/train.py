@@ -123,7 +123,8 @@ def _list_keys(ctx, _param, value):
               help="Recipe: paper = the authors' exactly (default with a GPU); fast (default on a CPU), "
                    "preview and balanced trade time for quality (docs/training.md).")
 @click.option("--time-budget", "time_budget", type=float, default=None, metavar="MINUTES",
-              help="Plan the iteration count so the whole run ends within MINUTES on this machine.")
+              help="Plan the iteration count so the whole run ends within MINUTES on this machine (without it, "
+                   "the run says how long its fixed length will take).")
 @click.option("--config", default=None, help="Config overlay: a TOML file or a shipped name (default, 2dgs, ...).")
 @click.option("--iterations", type=int, default=None, help="Override the number of iterations.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")

@@ -4,7 +4,9 @@ RUN_DIR/config.toml         resolved config (scene_dir, images, holdout, backend
 RUN_DIR/model.pt            {"model": SurfelModel.state_dict(), "scene_dir", "images", "holdout", "iteration",
                             "config"} written atomically when training finishes
 RUN_DIR/train_summary.json  {"iterations", "train_seconds", "backend", "device", "machine", "num_primitives",
-                            "num_texels", "num_params", "final_test_psnr", "final_test_ssim", "method"}
+                            "num_texels", "num_params", "final_test_psnr", "final_test_ssim", "method", ...};
+                            a --time-budget run adds its plan (time_budget_s, planned_iterations_initial, ...), a
+                            fresh run of fixed length its wall-time estimates (estimated_wall_s, estimated_at_it)
 RUN_DIR/checkpoints/        resume state;  RUN_DIR/log.jsonl  per-step / per-routine records
 
 Reading a finished run is ctgs.io.run_model.load_run (weights only: model.pt holds no pickled objects).
