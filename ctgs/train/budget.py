@@ -147,7 +147,7 @@ class BudgetPlanner:
         self.t_save = 0.2
         if self.fixed:
             self.plan.initial_iterations = self.plan.iterations = self.cfg.iterations
-            self.estimates.append((0, round(self.estimate_s(0), 1)))
+            self.observe_estimate(0)
             return self.cfg.iterations
         n = self._solve(0)
         self.plan.initial_iterations = self.plan.iterations = n
@@ -193,7 +193,7 @@ class BudgetPlanner:
         return it - self.estimates[-1][0] >= max(REPLAN_MIN_ITERS, int(REPLAN_FRACTION * self.plan.iterations))
 
     def observe_estimate(self, it: int) -> float:
-        """Record and return the estimate at iteration `it` (estimate_due said it is time)."""
+        """Record and return the estimate at iteration `it` (the calibration's at 0; later, when estimate_due says)."""
         s = self.estimate_s(it)
         if len(self.estimates) < 200:
             self.estimates.append((it, round(s, 1)))
