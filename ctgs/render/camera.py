@@ -20,7 +20,7 @@ class Camera:
     width: int  # W
     height: int  # H
     viewmat: torch.Tensor  # [4, 4] world -> camera, float32 (or float64), CPU or CUDA
-    near: float = 0.01  # world units: intersections closer than this are ignored
+    near: float = 0.01  # world units: intersections closer than this are ignored (load_scene: 1e-3 x extent)
 
     @property
     def R(self) -> torch.Tensor:  # [3, 3] world -> camera rotation

@@ -5,6 +5,8 @@ Conventions (3DGS/2DGS, so numbers are comparable):
 - intrinsics are rescaled to the size of the image actually read, with separate x and y ratios
   (Tanks&Temples ships JPEGs at about half the calibration size, not exactly half on both axes);
 - `Scene.extent` = 1.1 * max distance of the camera centres from their mean (3DGS `getNerfppNorm`);
+- every camera's near plane is NEAR_FRACTION x extent (`near_plane`), so a scene behaves the same in any unit:
+  an absolute near plane (gsplat 0.01, 2DGS 0.2 world units) culls a whole scene whose coordinates are small;
 - RGBA images are composited over black (3DGS's default background), see ctgs.io.images.
 """
 
@@ -25,6 +27,9 @@ from ctgs.scene.types import Scene, View
 # Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
 # rounding in a small image) but a larger difference means the images do not belong to this model (wrong folder, rotated or cropped images).
 MAX_ASPECT_MISMATCH = 0.02
+# The near plane as a fraction of the scene extent: 0.01 world units (Camera's default, gsplat's) at an extent of 10
+# (COLMAP's normalised scale), and the same fraction at any scale.
+NEAR_FRACTION = 1e-3
 
 
 def is_test_index(idx: int, holdout: int | None) -> bool:
@@ -46,6 +51,14 @@ def scene_extent(centers: np.ndarray) -> float:
     return float(1.1 * dist.max())
 
 
+def near_plane(extent: float) -> float:
+    """World-unit near plane of a scene of this extent (NEAR_FRACTION x extent; Camera's default where the extent
+    is 0 or not finite, e.g. a single camera)."""
+    if not (np.isfinite(extent) and extent > 0):
+        return Camera.near
+    return float(NEAR_FRACTION * extent)
+
+
 def _find_image(images_dir: str, name: str) -> str | None:
     path = os.path.join(images_dir, name)
     if os.path.isfile(path):
@@ -58,7 +71,8 @@ def _find_image(images_dir: str, name: str) -> str | None:
     return None
 
 
-def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: int, height: int) -> Camera:
+def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: int, height: int,
+                     near: float = Camera.near) -> Camera:
     intr = model.cameras[image.camera_id]
     sx, sy = width / intr.width, height / intr.height
     expected_height = intr.height * sx  # if the image kept the camera's aspect ratio
@@ -69,7 +83,7 @@ def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: in
         )
     return Camera(
         fx=intr.fx * sx, fy=intr.fy * sy, cx=intr.cx * sx, cy=intr.cy * sy, width=width, height=height,
-        viewmat=torch.from_numpy(image.viewmat.astype(np.float32)),
+        viewmat=torch.from_numpy(image.viewmat.astype(np.float32)), near=near,
     )
 
 
@@ -111,13 +125,14 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
     with stderr_silenced(), ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         loaded = list(pool.map(read, range(len(paths))))
 
+    centers = np.stack([-im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images])  # [C, 3]
+    near = near_plane(scene_extent(centers))
     views = []
     for image, path, (pixels, width, height) in zip(model.images, paths, loaded):
-        camera = _rescaled_camera(model, image, path, width, height)
+        camera = _rescaled_camera(model, image, path, width, height, near)
         views.append(View(name=image.name, camera=camera, image_path=path, image=pixels))
     train, test = split_views(views, holdout)
 
-    centers = np.stack([-im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images])  # [C, 3]
     return Scene(
         root=scene_dir,
         train=train,

@@ -281,6 +281,14 @@ class Trainer:
         self._log({"type": "diverged", "it": self.it, "what": bad})
         raise TrainingDiverged(f"{self.run_dir}: NaN/Inf in {bad} at iteration {self.it}; {where}")
 
+    def _no_primitives_left(self) -> None:
+        """The routines removed every primitive: say so (a NaN loss on an empty model would blame the lrs)."""
+        self._log({"type": "diverged", "it": self.it, "what": "no primitives left"})
+        raise TrainingDiverged(
+            f"{self.run_dir}: the routine at iteration {self.it} pruned the last primitives: none was visible to "
+            f"the training cameras; check that the scene's points lie in front of its cameras (the COLMAP model's "
+            f"poses; `ctgs sfm` writes a report) and that its images belong to them")
+
     # ---- loop ------------------------------------------------------------------------------------
     def _training_render(self, inputs, view, bg):
         """(rgb, rasterized) of a training step: one render over `bg` (None: cfg.background), or with init_shell
@@ -406,6 +414,8 @@ class Trainer:
             self._check_finite(loss.detach())
             t1 = time.perf_counter()
             events = list(self._adapt(it))
+            if self.model.num_primitives == 0:
+                self._no_primitives_left()
             t2 = time.perf_counter()
             self.train_seconds += t2 - t0
             if (clock := self._clock) is not None:
