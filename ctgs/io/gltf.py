@@ -240,8 +240,10 @@ class _Blob:
         return b"".join(self.parts) + b"\0" * ((-self.size) % 4)
 
 
-def build_gltf(model: SurfelModel):
-    """The pygltflib.GLTF2 document (with its binary blob set) of `model`."""
+def build_gltf(model: SurfelModel, origin=None):
+    """The pygltflib.GLTF2 document (with its binary blob set) of `model`. origin: [3] where the model's frame has its
+    origin in the scene's COLMAP frame (a recentred scene): a root node translates the quads there (glTF keeps node
+    translations as JSON numbers, so the full precision survives; the vertices stay float32 near the origin)."""
     import pygltflib as g
 
     pages, place, sizes = atlas_pages(model)
@@ -274,6 +276,9 @@ def build_gltf(model: SurfelModel):
             attributes=g.Attributes(POSITION=pos_acc, TEXCOORD_0=uv_acc), indices=idx_acc, material=p)]))
         gltf.nodes.append(g.Node(mesh=p, name=f"surfels_{p}"))
         nodes.append(p)
+    if origin is not None and any(origin):
+        gltf.nodes.append(g.Node(name="world_origin", translation=[float(x) for x in origin], children=nodes))
+        nodes = [len(gltf.nodes) - 1]
     gltf.scenes = [g.Scene(nodes=nodes)]
     data = blob.bytes()
     gltf.buffers = [g.Buffer(byteLength=len(data))]
@@ -281,13 +286,13 @@ def build_gltf(model: SurfelModel):
     return gltf
 
 
-def write_glb(model: SurfelModel, path: str) -> int:
+def write_glb(model: SurfelModel, path: str, origin=None) -> int:
     """Write `model` as a .glb (atomically: a temporary name, then renamed). Returns its bytes."""
     if model.num_primitives == 0:
         raise UserError(f"{path}: the model has no surfels; nothing to export")
     tmp = path + ".tmp"
     try:
-        build_gltf(model).save_binary(tmp)
+        build_gltf(model, origin).save_binary(tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -115,7 +115,8 @@ def write_model(model: SurfelModel, out_dir: str, *, blob: TextureBlob | None = 
         if plain_ply:
             from ctgs.io.plain_ply import write_plain_ply
 
-            write_plain_ply(model, os.path.join(tmp, PLAIN_PLY))
+            write_plain_ply(model, os.path.join(tmp, PLAIN_PLY),
+                            origin=((extra or {}).get("source") or {}).get("world_origin"))
             files.append(PLAIN_PLY)
         manifest = {
             "format": FORMAT_NAME,

@@ -55,8 +55,10 @@ def texture_means(model: SurfelModel) -> torch.Tensor:
     return out / wsum.clamp_min(1e-30)[:, None]
 
 
-def write_plain_ply(model: SurfelModel, path: str) -> None:
-    """Write the 3DGS-layout approximation of `model` to `path` (float32, atomically)."""
+def write_plain_ply(model: SurfelModel, path: str, origin=None) -> None:
+    """Write the 3DGS-layout approximation of `model` to `path` (float32, atomically). origin: [3] where the model's
+    frame has its origin in the scene's COLMAP frame (a recentred scene), written as a header comment
+    `world_origin X Y Z` (positions stay in the model's frame: float32 far from the origin would lose detail)."""
     n = model.num_primitives
     f32 = lambda t: t.detach().cpu().to(torch.float32).numpy()  # noqa: E731
     sh = model.sh.detach().cpu().double().clone()  # [N, K, 3]
@@ -80,7 +82,10 @@ def write_plain_ply(model: SurfelModel, path: str) -> None:
     cols["scale_0"], cols["scale_1"], cols["scale_2"] = f32(log_s[:, 0]), f32(log_s[:, 1]), f32(flat)
     for i in range(4):
         cols[f"rot_{i}"] = f32(model.quats[:, i])
-    write_ply(path, cols, comments=["ctgs plain 3DGS approximation: texture means folded into f_dc"])
+    comments = ["ctgs plain 3DGS approximation: texture means folded into f_dc"]
+    if origin is not None and any(origin):
+        comments.append("world_origin " + " ".join(repr(float(x)) for x in origin))
+    write_ply(path, cols, comments=comments)
 
 
 def surfels_from_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,

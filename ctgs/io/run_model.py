@@ -1,7 +1,7 @@
 """Read a finished training run folder (written by `ctgs train RUN_DIR`).
 
 RUN_DIR/model.pt = torch.save({"model": SurfelModel.state_dict(), "scene_dir", "images", "holdout",
-"iteration", "config"}); RUN_DIR/train_summary.json (optional here: only the training time comes from it).
+"iteration", "config", "world_origin"}); RUN_DIR/train_summary.json (optional here: only the training time comes from it).
 """
 
 from __future__ import annotations
@@ -30,6 +30,9 @@ class RunModel:
     config: dict
     summary: dict | None  # train_summary.json, None if absent
     model_bytes: int  # size of model.pt on disk
+    # [3] float64: the model's frame origin in the scene's COLMAP frame (ctgs.scene.loader.world_origin); zero for
+    # runs from before recentring existed (their scenes were never recentred)
+    world_origin: tuple = (0.0, 0.0, 0.0)
 
 
 def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
@@ -55,4 +58,5 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
     return RunModel(run_dir=os.path.abspath(run_dir), model=model, scene_dir=ckpt["scene_dir"],
                     images=ckpt.get("images", "images"), holdout=int(ckpt.get("holdout", 8)),
                     iteration=int(ckpt.get("iteration", -1)), config=ckpt.get("config") or {},
-                    summary=summary, model_bytes=os.path.getsize(path))
+                    summary=summary, model_bytes=os.path.getsize(path),
+                    world_origin=tuple(float(x) for x in ckpt.get("world_origin") or (0.0, 0.0, 0.0)))

@@ -76,6 +76,12 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     if backend == "auto":  # the renderer's rule: cuda when the inputs live on a GPU, else cpu
         backend = "cuda" if device.type == "cuda" else "cpu"
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
+    from ctgs.scene.loader import check_same_frame
+
+    if manifest is None:
+        check_same_frame(run.world_origin, scene, run.run_dir)
+    else:
+        check_same_frame(manifest.get("source", {}).get("world_origin"), scene, opts.model_dir)
     if not scene.test:
         raise UserError(f"{run.scene_dir}: no test views (holdout={run.holdout}); train with holdout > 0 to evaluate")
     render = _render_fn(backend)

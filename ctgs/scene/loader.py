@@ -5,6 +5,9 @@ Conventions (3DGS/2DGS, so numbers are comparable):
 - intrinsics are rescaled to the size of the image actually read, with separate x and y ratios
   (Tanks&Temples ships JPEGs at about half the calibration size, not exactly half on both axes);
 - `Scene.extent` = 1.1 * max distance of the camera centres from their mean (3DGS `getNerfppNorm`);
+- a scene whose cameras lie more than RECENTRE_EXTENTS extents from the origin (georeferenced models: UTM, ECEF)
+  is moved so that their mean centre is the origin (`Scene.origin` says where, in the model's frame): float32
+  positions there would be coarser than a pixel's footprint. Trained models live in this working frame;
 - every camera's near plane is NEAR_FRACTION x extent (`near_plane`), so a scene behaves the same in any unit:
   an absolute near plane (gsplat 0.01, 2DGS 0.2 world units) culls a whole scene whose coordinates are small;
 - RGBA images are composited over black (3DGS's default background), see ctgs.io.images.
@@ -27,6 +30,10 @@ from ctgs.scene.types import Scene, View
 # Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
 # rounding in a small image) but a larger difference means the images do not belong to this model (wrong folder, rotated or cropped images).
 MAX_ASPECT_MISMATCH = 0.02
+# Cameras farther than this many extents from the origin: the scene is recentred. There a float32 coordinate's step
+# is 100 x 1.2e-7 = 1.2e-5 extents, about 1% of a pixel's footprint in a 1000-px view of the scene: nothing closer
+# changes (the scenes measured so far: 0.03-0.8 extents), anything farther would lose detail to rounding.
+RECENTRE_EXTENTS = 100.0
 # The near plane as a fraction of the scene extent: 0.01 world units (Camera's default, gsplat's) at an extent of 10
 # (COLMAP's normalised scale), and the same fraction at any scale.
 NEAR_FRACTION = 1e-3
@@ -51,6 +58,25 @@ def scene_extent(centers: np.ndarray) -> float:
     return float(1.1 * dist.max())
 
 
+def world_origin(centers: np.ndarray, extent: float) -> np.ndarray:
+    """[3] float64 origin of the working frame: the mean camera centre when it lies more than RECENTRE_EXTENTS
+    extents from the model's origin, else zero (the model's own frame, bit for bit)."""
+    mean = np.asarray(centers, dtype=np.float64).mean(axis=0)
+    if np.linalg.norm(mean) > RECENTRE_EXTENTS * max(extent, 0.0) and np.all(np.isfinite(mean)):
+        return mean
+    return np.zeros(3)
+
+
+def check_same_frame(model_origin, scene: "Scene", what: str) -> None:
+    """UserError unless a model trained in the working frame `model_origin` ([3], None = zero) matches the
+    scene's (a model from before recentring existed, or from another scene)."""
+    a = np.zeros(3) if model_origin is None else np.asarray(model_origin, dtype=np.float64)
+    if not np.allclose(a, scene.origin, rtol=0.0, atol=1e-9 * max(1.0, float(np.abs(scene.origin).max()))):
+        raise UserError(f"{what}: the model's frame has its origin at {a.tolist()} but the scene {scene.root} is "
+                        f"loaded with its origin at {scene.origin.tolist()}; the model was trained on another scene "
+                        f"or by a ctgs that did not recentre far-away scenes: retrain it with this ctgs")
+
+
 def near_plane(extent: float) -> float:
     """World-unit near plane of a scene of this extent (NEAR_FRACTION x extent; Camera's default where the extent
     is 0 or not finite, e.g. a single camera)."""
@@ -72,7 +98,7 @@ def _find_image(images_dir: str, name: str) -> str | None:
 
 
 def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: int, height: int,
-                     near: float = Camera.near) -> Camera:
+                     near: float = Camera.near, origin: np.ndarray | None = None) -> Camera:
     intr = model.cameras[image.camera_id]
     sx, sy = width / intr.width, height / intr.height
     expected_height = intr.height * sx  # if the image kept the camera's aspect ratio
@@ -81,9 +107,13 @@ def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: in
             f"{path}: image is {width}x{height} but its camera {image.camera_id} is {intr.width}x{intr.height} "
             f"(different aspect ratio); use the image folder that belongs to this COLMAP model"
         )
+    viewmat = np.asarray(image.viewmat, dtype=np.float64)
+    if origin is not None and np.any(origin):
+        viewmat = viewmat.copy()
+        viewmat[:3, 3] += viewmat[:3, :3] @ origin  # x_model = x_work + origin
     return Camera(
         fx=intr.fx * sx, fy=intr.fy * sy, cx=intr.cx * sx, cy=intr.cy * sy, width=width, height=height,
-        viewmat=torch.from_numpy(image.viewmat.astype(np.float32)), near=near,
+        viewmat=torch.from_numpy(viewmat.astype(np.float32)), near=near,
     )
 
 
@@ -126,10 +156,12 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
         loaded = list(pool.map(read, range(len(paths))))
 
     centers = np.stack([-im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images])  # [C, 3]
-    near = near_plane(scene_extent(centers))
+    extent = scene_extent(centers)
+    near = near_plane(extent)
+    origin = world_origin(centers, extent)
     views = []
     for image, path, (pixels, width, height) in zip(model.images, paths, loaded):
-        camera = _rescaled_camera(model, image, path, width, height, near)
+        camera = _rescaled_camera(model, image, path, width, height, near, origin)
         views.append(View(name=image.name, camera=camera, image_path=path, image=pixels))
     train, test = split_views(views, holdout)
 
@@ -137,9 +169,10 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
         root=scene_dir,
         train=train,
         test=test,
-        points=model.points.astype(np.float32),
+        points=(np.asarray(model.points, dtype=np.float64) - origin).astype(np.float32),
         point_colors=(model.colors.astype(np.float32) / 255.0),
-        extent=scene_extent(centers),
+        extent=extent,
+        origin=origin,
         images_dir=images,
         meta={
             "model_dir": model.path,

@@ -27,3 +27,6 @@ class Scene:
     extent: float  # scene extent: 1.1 * max distance of camera centres from their mean (3DGS)
     images_dir: str = "images"
     meta: dict = field(default_factory=dict)
+    # [3] float64: where the scene's working frame (cameras, points, trained models) has its origin, in the COLMAP
+    # model's frame; zero unless the cameras lie far from the origin (ctgs.scene.loader.world_origin).
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))

@@ -38,7 +38,7 @@ def _ctgs(e: Export) -> str:
 def _ply(e: Export) -> str:
     from ctgs.io.plain_ply import write_plain_ply
 
-    write_plain_ply(e.model, e.out)
+    write_plain_ply(e.model, e.out, origin=e.source.get("world_origin"))
     return f"{e.model.num_primitives} Gaussians (textures folded into the DC colour), " \
            f"{os.path.getsize(e.out) / 1e6:.3f} MB"
 
@@ -46,13 +46,18 @@ def _ply(e: Export) -> str:
 def _splat(e: Export) -> str:
     from ctgs.io.splat import write_splat
 
-    return f"{e.model.num_primitives} splats, {write_splat(e.model, e.out) / 1e6:.3f} MB"
+    note = ""
+    if any(e.source.get("world_origin") or ()):
+        note = (f"; positions in the recentred frame (.splat has no field for its origin, "
+                f"{e.source['world_origin']} in the COLMAP frame: add it to place the model there)")
+    return f"{e.model.num_primitives} splats, {write_splat(e.model, e.out) / 1e6:.3f} MB{note}"
 
 
 def _glb(e: Export) -> str:
     from ctgs.io.gltf import write_glb
 
-    return f"{e.model.num_primitives} textured quads, {write_glb(e.model, e.out) / 1e6:.3f} MB"
+    return f"{e.model.num_primitives} textured quads, " \
+           f"{write_glb(e.model, e.out, origin=e.source.get('world_origin')) / 1e6:.3f} MB"
 
 
 def _web(e: Export) -> str:
@@ -94,8 +99,11 @@ def load_source(path: str):
     from ctgs.io.run_model import load_run
 
     run = load_run(path)
-    return run.model, {"run_dir": run.run_dir, "scene_dir": run.scene_dir, "images": run.images,
-                       "holdout": run.holdout, "iteration": run.iteration}
+    info = {"run_dir": run.run_dir, "scene_dir": run.scene_dir, "images": run.images, "holdout": run.holdout,
+            "iteration": run.iteration}
+    if any(run.world_origin):  # a recentred scene: where the model's origin lies in the COLMAP frame
+        info["world_origin"] = list(run.world_origin)
+    return run.model, info
 
 
 def default_out(source: str, fmt: str) -> str:

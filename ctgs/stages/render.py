@@ -34,11 +34,15 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     run = load_run(run_dir, device=device)
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
     chosen = {"test": scene.test, "train": scene.train, "all": scene.train + scene.test}[views]
+    from ctgs.scene.loader import check_same_frame
+
     model = run.model
+    check_same_frame(run.world_origin, scene, run.run_dir)
     if model_dir is not None:
         from ctgs.io.model_format import read_model
 
-        model = read_model(model_dir, device=device)[0]
+        model, files = read_model(model_dir, device=device)
+        check_same_frame(files.manifest.get("source", {}).get("world_origin"), scene, model_dir)
     # Rendered into a temporary sibling that becomes OUT_DIR when every view is written (an earlier render
     # folder is replaced whole): a failure part-way leaves nothing behind.
     with torch.no_grad(), atomic.atomic_dir(out_dir) as tmp:

@@ -2,7 +2,8 @@
 
 RUN_DIR/config.toml         resolved config (scene_dir, images, holdout, backend, seed included)
 RUN_DIR/model.pt            {"model": SurfelModel.state_dict(), "scene_dir", "images", "holdout", "iteration",
-                            "config"} written atomically when training finishes
+                            "config", "world_origin"} written atomically when training finishes; world_origin [3]:
+                            the working frame's origin in the COLMAP model's frame (zero unless recentred)
 RUN_DIR/train_summary.json  {"iterations", "train_seconds", "backend", "device", "machine", "num_primitives",
                             "num_texels", "num_params", "final_test_psnr", "final_test_ssim", "method", ...};
                             a --time-budget run adds its plan (time_budget_s, planned_iterations_initial, ...), a
@@ -35,7 +36,7 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     cfg, model = trainer.cfg, trainer.model
     atomic.torch_save({"model": model.state_dict(), "scene_dir": cfg.scene_dir, "images": cfg.images,
                        "holdout": cfg.holdout, "iteration": trainer.it, "config": trainer.user_cfg.to_dict(),
-                       "resolved_config": cfg.to_dict()},
+                       "resolved_config": cfg.to_dict(), "world_origin": trainer.world_origin},
                       os.path.join(trainer.run_dir, "model.pt"))
     backend = cfg.backend
     if backend == "auto":

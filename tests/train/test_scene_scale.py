@@ -1,17 +1,24 @@
-"""A scene trains the same in any unit: the demo scene with every world coordinate multiplied by 1e-3 or 1e3.
+"""A scene trains the same in any unit and anywhere: the demo scene with every world coordinate multiplied by 1e-3
+or 1e3, or moved 1.2e5 units from the origin (a georeferenced model's coordinates).
 
 Before the near plane became a fraction of the scene extent (ctgs.scene.loader.near_plane), the camera's absolute
 0.01-unit near plane culled every surfel of the 1e-3 scene (depths 0.001-0.005): nothing rendered, the
-primitives went, and training stopped with a NaN loss at iteration 41.
+primitives went, and training stopped with a NaN loss at iteration 41. Before far scenes were recentred
+(ctgs.scene.loader.world_origin), float32 positions 1.2e5 units out (steps of 0.008, half a pixel's footprint on
+the 192 px demo) cost the moved demo 0.8 dB in 600 iterations (benchmarks/results/scene_scale_vm20_before.md).
 """
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pycolmap
 import pytest
+import torch
 
 from ctgs.scene.demo import make_demo_scene
 from ctgs.scene.loader import NEAR_FRACTION, load_scene
@@ -20,10 +27,13 @@ from ctgs.stages.train import train_main
 ITERATIONS = 200
 
 
-def scaled_copy(scene_dir: str, out_dir: str, factor: float) -> str:
-    """The COLMAP scene with every world coordinate (camera centres, points) multiplied by `factor`."""
+MOVE = np.array([1e5, -7e4, 1e4])  # a georeferenced model's offset: 1.2e5 units, 44,000 extents of the demo
+
+
+def scaled_copy(scene_dir: str, out_dir: str, factor: float, move=(0.0, 0.0, 0.0)) -> str:
+    """The COLMAP scene with every world coordinate (camera centres, points) multiplied by `factor`, then moved."""
     rec = pycolmap.Reconstruction(os.path.join(scene_dir, "sparse", "0"))
-    rec.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+    rec.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.asarray(move, dtype=np.float64)))
     os.makedirs(os.path.join(out_dir, "sparse", "0"))
     rec.write(os.path.join(out_dir, "sparse", "0"))
     os.symlink(os.path.join(scene_dir, "images"), os.path.join(out_dir, "images"))
@@ -34,14 +44,15 @@ def scaled_copy(scene_dir: str, out_dir: str, factor: float) -> str:
 def scenes(tmp_path_factory):
     root = tmp_path_factory.mktemp("scale")
     base = make_demo_scene(str(root / "x1"), num_views=16, width=96, height=72, points=1500)
-    return {1.0: base, **{f: scaled_copy(base, str(root / f"x{f:g}"), f) for f in (1e-3, 1e3)}}
+    return {1.0: base, **{f: scaled_copy(base, str(root / f"x{f:g}"), f) for f in (1e-3, 1e3)},
+            "moved": scaled_copy(base, str(root / "moved"), 1.0, MOVE)}
 
 
 def test_near_plane_is_a_fraction_of_the_extent(scenes):
     base = load_scene(scenes[1.0], load_images=False)
     for factor, path in scenes.items():
         s = load_scene(path, load_images=False)
-        assert s.extent == pytest.approx(factor * base.extent, rel=1e-4)
+        assert s.extent == pytest.approx((1.0 if factor == "moved" else factor) * base.extent, rel=1e-4)
         for v in s.train + s.test:
             assert v.camera.near == pytest.approx(NEAR_FRACTION * s.extent)
     # At the demo's own scale nothing a camera sees is that close: the nearest SfM point in any view lies
@@ -61,7 +72,7 @@ def test_near_plane_is_a_fraction_of_the_extent(scenes):
 def test_training_is_the_same_at_any_scale(scenes, tmp_path):
     summaries = {}
     for factor, path in scenes.items():
-        summaries[factor] = train_main(path, str(tmp_path / f"run{factor:g}"), preset="fast", iterations=ITERATIONS,
+        summaries[factor] = train_main(path, str(tmp_path / f"run{factor}"), preset="fast", iterations=ITERATIONS,
                                        sets=("threads=1", "backend='cpu'"), quiet=True)
     ref = summaries[1.0]
     for factor, s in summaries.items():
@@ -84,3 +95,58 @@ def test_a_model_pruned_to_nothing_stops_with_its_reason(scenes, tmp_path, monke
     with pytest.raises(TrainingDiverged, match="pruned the last primitives: none was visible to the training"):
         train_main(scenes[1e-3], str(tmp_path / "run"), preset="fast", iterations=ITERATIONS,
                    sets=("threads=1", "backend='cpu'"), quiet=True)
+
+
+def test_a_far_scene_is_recentred_and_a_near_one_is_not(scenes):
+    base = load_scene(scenes[1.0], load_images=False)
+    moved = load_scene(scenes["moved"], load_images=False)
+    assert not base.origin.any()  # near the origin: the model's own frame, bit for bit
+    assert moved.origin.dtype == np.float64
+    # The working frame's origin is the cameras' mean centre, so the moved scene lands where the base scene's
+    # cameras' mean centre lies relative to it: the same cameras and points up to that shift.
+    centre = np.mean([v.camera.center.double().numpy() for v in base.train + base.test], axis=0)
+    np.testing.assert_allclose(moved.origin, MOVE + centre, rtol=0, atol=1e-6)  # centre: from float32 cameras
+    for a, b in zip(base.train + base.test, moved.train + moved.test):
+        np.testing.assert_allclose(b.camera.center.double().numpy(), a.camera.center.double().numpy() - centre,
+                                   atol=1e-5)
+        np.testing.assert_allclose(b.camera.R.numpy(), a.camera.R.numpy(), atol=1e-6)
+    np.testing.assert_allclose(moved.points, base.points - centre, atol=1e-5)
+
+
+def _ctgs(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ctgs", *args], capture_output=True, text=True,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+@pytest.mark.slow
+def test_a_recentred_model_carries_its_origin_through_every_stage(scenes, tmp_path):
+    """Exports keep positions in the working frame and say where its origin lies (PLY header comment, glTF root
+    node translation in float64 JSON, the ctgs manifest, through compression); eval and render accept the run;
+    a model whose frame does not match the scene's is refused with one line, not rendered misplaced."""
+    import pygltflib
+
+    run = str(tmp_path / "run")
+    train_main(scenes["moved"], run, preset="fast", iterations=30, sets=("threads=1", "backend='cpu'"), quiet=True)
+    origin = load_scene(scenes["moved"], load_images=False).origin
+    for args in (["export", run, "-o", f"{run}/model"], ["export", run, "--format", "ply"],
+                 ["export", run, "--format", "glb"], ["compress", f"{run}/model", "-o", f"{run}/small", "-k", "16"],
+                 ["render", run, "-o", f"{run}/renders", "--model", f"{run}/small"]):
+        r = _ctgs(*args)
+        assert r.returncode == 0, (args, r.stderr)
+    for folder in ("model", "small"):
+        manifest = json.load(open(os.path.join(run, folder, "manifest.json")))
+        np.testing.assert_array_equal(manifest["source"]["world_origin"], origin)
+    header = open(os.path.join(run, "model.ply"), "rb").read(4096).split(b"end_header")[0].decode()
+    line = next(ln for ln in header.splitlines() if ln.startswith("comment world_origin"))
+    np.testing.assert_array_equal([float(x) for x in line.split()[2:]], origin)
+    gltf = pygltflib.GLTF2().load(os.path.join(run, "model.glb"))
+    root = gltf.nodes[gltf.scenes[0].nodes[0]]
+    assert root.name == "world_origin" and root.translation == origin.tolist() and len(root.children) >= 1
+
+    # A run from before recentring (no world_origin in model.pt) on this far scene: refused, naming the fix.
+    ckpt = torch.load(os.path.join(run, "model.pt"), weights_only=True)
+    del ckpt["world_origin"]
+    torch.save(ckpt, os.path.join(run, "model.pt"))
+    r = _ctgs("render", run, "-o", str(tmp_path / "renders_old"))
+    assert r.returncode != 0 and "retrain it with this ctgs" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not os.path.exists(tmp_path / "renders_old")
