@@ -103,6 +103,7 @@ class Trainer:
         if self.device.type == "cpu":
             fused.tune_allocator()  # freed [T, 3] temporaries are reused, not faulted in afresh
         self.extent = float(scene.extent)
+        self.num_sfm_points = len(scene.points)
         self.world_origin = [float(x) for x in getattr(scene, "origin", (0.0, 0.0, 0.0))]  # saved with the model
         # init_shell: the sphere that tells the shell's far primitives from the scene's (ctgs.train.shell.far_mask).
         self.sphere = scene_sphere(scene.points, scene.train) if cfg.init_shell > 0 else None
@@ -282,13 +283,17 @@ class Trainer:
         self._log({"type": "diverged", "it": self.it, "what": bad})
         raise TrainingDiverged(f"{self.run_dir}: NaN/Inf in {bad} at iteration {self.it}; {where}")
 
-    def _no_primitives_left(self) -> None:
+    def _no_primitives_left(self, events) -> None:
         """The routines removed every primitive: say so (a NaN loss on an empty model would blame the lrs)."""
+        kind = events[-1].kind if events else "a"
+        rules = "opacity below its threshold" + (", or larger than 0.1 x the scene extent"
+                                                 if self.cfg.method != "content_aware" else "")
         self._log({"type": "diverged", "it": self.it, "what": "no primitives left"})
         raise TrainingDiverged(
-            f"{self.run_dir}: the routine at iteration {self.it} pruned the last primitives: none was visible to "
-            f"the training cameras; check that the scene's points lie in front of its cameras (the COLMAP model's "
-            f"poses; `ctgs sfm` writes a report) and that its images belong to them")
+            f"{self.run_dir}: the {kind} routine at iteration {self.it} pruned every primitive ({rules}), nothing is "
+            f"left to train; the run started from {self.num_sfm_points} SfM points: too few points, points outside "
+            f"the cameras' views or images that do not belong to the model end this way: check the scene (`ctgs sfm` "
+            f"writes a report) and --images")
 
     # ---- loop ------------------------------------------------------------------------------------
     def _training_render(self, inputs, view, bg):
@@ -416,7 +421,7 @@ class Trainer:
             t1 = time.perf_counter()
             events = list(self._adapt(it))
             if self.model.num_primitives == 0:
-                self._no_primitives_left()
+                self._no_primitives_left(events)
             t2 = time.perf_counter()
             self.train_seconds += t2 - t0
             if (clock := self._clock) is not None:
