@@ -130,6 +130,9 @@ class BudgetPlanner:
         self.t_ckpt = 0.0
         self.t_save = 0.0
         self.last_replan = 0
+        # The periodic calendar's phase shift (ctgs.train.schedule.every): moved at each re-plan that changes the
+        # length, so routines, evaluations and checkpoints keep their spacing; 0 for a run that is never re-planned.
+        self.shift = 0.0
         self._window_cache: tuple = (None, None)
 
     # ---- measurements ------------------------------------------------------------------------------
@@ -240,6 +243,9 @@ class BudgetPlanner:
         self.plan.replans += 1
         if new != n and len(self.plan.history) < 200:
             self.plan.history.append((it, new, round(self.budget_s_left(), 1)))
+        if new != n and self.cfg.schedule_scale <= 0:
+            # Keep the periodic calendar's phase (it + shift) / period continuous: every period scales by new / n.
+            self.shift = schedule.replanned_shift(self.shift, it, n, new)
         self.plan.iterations = new
         return new
 
@@ -347,7 +353,7 @@ class BudgetPlanner:
                 "tex_at": self.tex_at, "n_obs": self.n_obs, "n_obs_planned": self.n_obs_planned,
                 "t_routine": self.t_routine, "t_eval": self.t_eval, "routine_seen": self.routine_seen,
                 "eval_seen": self.eval_seen, "base_calib": self.base_calib, "t_ckpt": self.t_ckpt, "t_save": self.t_save,
-                "last_replan": self.last_replan}
+                "last_replan": self.last_replan, "shift": self.shift}
 
     def load_state_dict(self, state: dict) -> None:
         self.plan = Plan(**state["plan"])
@@ -362,3 +368,4 @@ class BudgetPlanner:
         self.t_routine, self.t_eval, self.t_ckpt, self.t_save = (state[k] for k in ("t_routine", "t_eval", "t_ckpt",
                                                                                       "t_save"))
         self.last_replan = state["last_replan"]
+        self.shift = state.get("shift", 0.0)  # checkpoints before session 20: the calendar had no phase shift

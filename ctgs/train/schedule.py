@@ -2,9 +2,12 @@
 
 Every iteration count in the config is at the paper's scale (30k iterations) and is a fraction of the run:
 `at(cfg, n)` = n x cfg.iterations / 30000 (or x cfg.schedule_scale when that expert override is > 0).
-Periodic events fire when a multiple of their (fractional) period falls in (it - 1, it], so a run whose
-planned length changes while it runs (`--time-budget` re-plans cfg.iterations) keeps every event at the
-same fraction of the run. With a fixed length this is the plain `it % period == 0` calendar.
+Periodic events fire when a multiple of their (fractional) period falls in (it - 1 + shift, it + shift]. With a
+fixed length shift = 0: the plain `it % period == 0` calendar. A `--time-budget` run re-plans cfg.iterations while
+it runs, which rescales every period; its planner then moves `shift` so that the phase (it + shift) / period is
+continuous across the re-plan (ctgs.train.budget.BudgetPlanner.shift). Without it (before session 20) a re-plan
+moved the calendar's grid under the current iteration: on the `make demo` run, 6 of 29 full routines came 10-95
+iterations after the previous one and others were skipped (gaps of up to 2.4 periods).
 """
 
 from __future__ import annotations
@@ -34,13 +37,16 @@ def at_int(cfg: TrainConfig, paper_iterations: float) -> int:
     return max(1, int(round(at(cfg, paper_iterations))))
 
 
-def every(cfg: TrainConfig, paper_period: float, it: int) -> bool:
-    """True if a multiple of the scaled period lies in (it - 1, it] (every iteration if the period <= 1)."""
+def every(cfg: TrainConfig, paper_period: float, it: int, shift: float = 0.0) -> bool:
+    """True if a multiple of the scaled period lies in (it - 1 + shift, it + shift] (every iteration if the period
+    <= 1). shift: the calendar's phase shift of a re-planned run (module docstring); 0 for a fixed length."""
     if paper_period <= 0:
         return False
     period = at(cfg, paper_period)
     if period <= 1:
         return True
+    if shift:
+        return math.floor((it + shift) / period + _EPS) > math.floor((it - 1 + shift) / period + _EPS)
     return math.floor(it / period + _EPS) > math.floor((it - 1) / period + _EPS)
 
 
@@ -75,7 +81,13 @@ def routine_window(cfg: TrainConfig) -> tuple[int, int]:
     return texture_start(cfg), int(math.floor(end + _EPS))
 
 
-def routine_kind(cfg: TrainConfig, it: int) -> str | None:
+def replanned_shift(shift: float, it: int, old_iterations: int, new_iterations: int) -> float:
+    """The calendar's phase shift after a re-plan at `it` from old to new iterations: every scaled period changes by
+    new / old, and (it + shift) / period must not jump."""
+    return (it + shift) * new_iterations / old_iterations - it
+
+
+def routine_kind(cfg: TrainConfig, it: int, shift: float = 0.0) -> str | None:
     """'full' (E, split, up/downscale, prune, k_min), 'late' (downscale + light prune) or None.
 
     Full routines: every routine_every from texture_start to min(routine_until, iterations - margin).
@@ -84,20 +96,20 @@ def routine_kind(cfg: TrainConfig, it: int) -> str | None:
     if cfg.method != "content_aware" or it <= 0 or it >= cfg.iterations:
         return None
     start, end = routine_window(cfg)
-    if start <= it <= end and every(cfg, cfg.routine_every, it):
+    if start <= it <= end and every(cfg, cfg.routine_every, it, shift):
         return "full"
-    if it > max(end, start) and every(cfg, cfg.late_downscale_every, it):
+    if it > max(end, start) and every(cfg, cfg.late_downscale_every, it, shift):
         return "late"
     return None
 
 
-def densify_active(cfg: TrainConfig, it: int) -> bool:
+def densify_active(cfg: TrainConfig, it: int, shift: float = 0.0) -> bool:
     """Baselines: a densification step at this iteration."""
-    return at(cfg, cfg.densify_from) < it <= at(cfg, cfg.densify_until) and every(cfg, cfg.densify_every, it)
+    return at(cfg, cfg.densify_from) < it <= at(cfg, cfg.densify_until) and every(cfg, cfg.densify_every, it, shift)
 
 
-def opacity_reset(cfg: TrainConfig, it: int) -> bool:
-    return it <= at(cfg, cfg.densify_until) and every(cfg, cfg.opacity_reset_every, it)
+def opacity_reset(cfg: TrainConfig, it: int, shift: float = 0.0) -> bool:
+    return it <= at(cfg, cfg.densify_until) and every(cfg, cfg.opacity_reset_every, it, shift)
 
 
 def texture_lr(cfg: TrainConfig, it: int) -> float:

@@ -363,6 +363,11 @@ class Trainer:
         return seconds
 
     @property
+    def _shift(self) -> float:
+        """The periodic calendar's phase shift: the budget planner's (moved by its re-plans), else 0."""
+        return self.planner.shift if self.planner is not None else 0.0
+
+    @property
     def _clock(self) -> BudgetPlanner | None:
         """The planner that observes the run's step, routine, evaluation and checkpoint times."""
         return self.planner or self.estimator
@@ -441,14 +446,15 @@ class Trainer:
                 self._log({"type": "routine", "it": ev.it, "kind": ev.kind, **ev.stats,
                            "n": self.model.num_primitives, "texels": self.model.num_texels})
                 yield ev
-            if cfg.test_every and schedule.every(cfg, cfg.test_every, it) and it < cfg.iterations:
+            if cfg.test_every and schedule.every(cfg, cfg.test_every, it, self._shift) and it < cfg.iterations:
                 t0 = time.perf_counter()
                 p, s = self.evaluate()
                 if self._clock is not None:
                     self._clock.observe_eval(time.perf_counter() - t0, it)
                 self._log({"type": "test", "it": it, "psnr": p, "ssim": s})
                 yield Eval(it, p, s)
-            if cfg.checkpoint_every and schedule.every(cfg, cfg.checkpoint_every, it) and it < cfg.iterations:
+            if (cfg.checkpoint_every and schedule.every(cfg, cfg.checkpoint_every, it, self._shift)
+                    and it < cfg.iterations):
                 t0 = time.perf_counter()
                 path = self._save_checkpoint()
                 if self._clock is not None:
@@ -493,21 +499,21 @@ class Trainer:
                 self.textures_started = True
                 self._start_textures()
                 yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean())})
-            kind = schedule.routine_kind(cfg, it)
+            kind = schedule.routine_kind(cfg, it, self._shift)
             if kind == "full":
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
                                                        self.cameras, self._background_mask()))
             elif kind == "late":
                 yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras))
-            elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it):
+            elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it, self._shift):
                 texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
             return
         # Baselines: 3DGS adaptive density control.
-        if schedule.densify_active(cfg, it):
+        if schedule.densify_active(cfg, it, self._shift):
             prune_big = it > schedule.at(cfg, cfg.opacity_reset_every)
             stats = densify_and_prune(model, opt, self.acc, cfg, self.extent, self.gen, prune_big)
             yield Routine(it, "densify", stats)
-        if schedule.opacity_reset(cfg, it):
+        if schedule.opacity_reset(cfg, it, self._shift):
             reset_opacity(model, opt)
             yield Routine(it, "opacity_reset", {})
 

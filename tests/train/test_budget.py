@@ -346,3 +346,42 @@ def test_calibration_timings_wait_for_queued_cuda_kernels(monkeypatch):
     calls.clear()
     trainer_mod._median_seconds(lambda: None, reps=3, device=torch.device("cpu"))
     assert not calls
+
+
+def _routine_gaps(plans: dict[int, int], shifted: bool) -> list[float]:
+    """Full-routine spacing, in periods of the plan in force, of a run whose length is re-planned at the
+    iterations in `plans` (it -> new length), the way the trainer asks the calendar."""
+    from ctgs.train import schedule
+    from ctgs.train.config import TrainConfig
+
+    cfg = TrainConfig(iterations=plans[0], routine_every=1000, routine_until=29000, method="content_aware")
+    shift, fired, it = 0.0, [], 0
+    while it < cfg.iterations - 1:
+        it += 1
+        if schedule.routine_kind(cfg, it, shift) == "full":
+            fired.append((it, schedule.at(cfg, cfg.routine_every)))
+        if it in plans and plans[it] != cfg.iterations:
+            if shifted:
+                shift = schedule.replanned_shift(shift, it, cfg.iterations, plans[it])
+            cfg.iterations = plans[it]
+    return [(b - a) / period for (a, _), (b, period) in zip(fired, fired[1:])]
+
+
+def test_a_replanned_run_keeps_its_routines_evenly_spaced():
+    """A budget run's plan grows from 6,826 to about 10k in 1% steps (the session-20 `make demo` run): with the
+    phase shift every routine comes about one period after the last; without it (before session 20) the grid moved
+    under the run and some routines came a few iterations after the previous one while others were skipped."""
+    import random
+
+    rng = random.Random(0)
+    plans, n = {0: 6826}, 6826
+    for it in range(70, 9800, 70):
+        n = max(it + 200, int(n * (1 + rng.uniform(-0.01, 0.02))))
+        plans[it] = n
+    even = _routine_gaps(plans, shifted=True)
+    jumpy = _routine_gaps(plans, shifted=False)
+    assert min(even) > 0.9 and max(even) < 1.1, (min(even), max(even))
+    assert min(jumpy) < 0.5 or max(jumpy) > 1.5  # the old calendar, as measured on the demo run
+    # A run that is never re-planned gets exactly the plain calendar, shift or not.
+    fixed = {0: 6826}
+    assert _routine_gaps(fixed, shifted=True) == _routine_gaps(fixed, shifted=False)
