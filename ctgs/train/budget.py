@@ -298,7 +298,8 @@ class BudgetPlanner:
 
     @staticmethod
     def _count(c: TrainConfig, paper_period: float, lo: int, hi: int) -> int:
-        """Multiples of the scaled period in (lo, hi]."""
+        """Multiples of the scaled period in (lo, hi] (the calendar's phase shift left out: at most one event of each
+        kind off, which the next re-plan's measured costs absorb)."""
         if hi <= lo:
             return 0
         period = schedule.at(c, paper_period)
