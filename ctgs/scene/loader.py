@@ -67,7 +67,7 @@ def world_origin(centers: np.ndarray, extent: float) -> np.ndarray:
     return np.zeros(3)
 
 
-def check_same_frame(model_origin, scene: "Scene", what: str) -> None:
+def check_same_frame(model_origin, scene: Scene, what: str) -> None:
     """UserError unless a model trained in the working frame `model_origin` ([3], None = zero) matches the
     scene's (a model from before recentring existed, or from another scene)."""
     a = np.zeros(3) if model_origin is None else np.asarray(model_origin, dtype=np.float64)

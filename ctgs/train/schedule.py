@@ -46,9 +46,8 @@ def every(cfg: TrainConfig, paper_period: float, it: int, shift: float = 0.0) ->
     period = at(cfg, paper_period)
     if period <= 1:
         return True
-    if shift:
-        return math.floor((it + shift) / period + _EPS) > math.floor((it - 1 + shift) / period + _EPS)
-    return math.floor(it / period + _EPS) > math.floor((it - 1) / period + _EPS)
+    # it + 0.0 is it exactly, so a fixed-length run (shift 0) gets the plain calendar bit for bit.
+    return math.floor((it + shift) / period + _EPS) > math.floor((it - 1 + shift) / period + _EPS)
 
 
 def _log_lerp(a: float, b: float, t: float) -> float:
