@@ -1,9 +1,9 @@
 """What each export format keeps: bytes on disk and test-view PSNR of a trained run, rendered from the file.
 
-Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|glb` (and `ctgs compress` of the ctgs folder),
+Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|spz|glb` (and `ctgs compress` of the ctgs folder),
 reads every file back and renders the run's test views from it:
 - ctgs, ctgs K-means: ctgs.io.model_format.read_model, our CPU renderer (exact model);
-- ply (3DGS PLY), splat: read back as untextured surfels (ctgs.io.plain_ply / ctgs.io.splat), our CPU
+- ply (3DGS PLY), splat, spz: read back as untextured surfels (ctgs.io.plain_ply / splat / spz), our CPU
   renderer (so the figure is what the file holds, not what some viewer's EWA splatting makes of it);
 - glb: read with pygltflib (ctgs.io.gltf.read_glb), drawn by a headless OpenGL renderer
   (benchmarks/glb_render.py: moderngl + EGL, Mesa llvmpipe here), quads sorted back to front per view,
@@ -130,11 +130,11 @@ def main() -> None:
     t0 = time.time()
     files = {"ctgs": os.path.join(work, "model"), "ctgs_k": os.path.join(work, f"model-k{CODEBOOK}"),
              "ply": os.path.join(work, "model.ply"), "splat": os.path.join(work, "model.splat"),
-             "glb": os.path.join(work, "model.glb")}
+             "spz": os.path.join(work, "model.spz"), "glb": os.path.join(work, "model.glb")}
     ctgs_cli("export", args.run_dir, "-o", files["ctgs"], "--no-plain-ply")
     ctgs_cli("compress", files["ctgs"], "-o", files["ctgs_k"], "--codebook-size", str(CODEBOOK))
     export_s = {}
-    for fmt in ("ply", "splat", "glb"):
+    for fmt in ("ply", "splat", "spz", "glb"):
         t = time.time()
         ctgs_cli("export", args.run_dir, "--format", fmt, "-o", files[fmt])
         export_s[fmt] = time.time() - t
@@ -144,6 +144,7 @@ def main() -> None:
     views = scene.test
     from ctgs.io.plain_ply import read_plain_ply
     from ctgs.io.splat import read_splat
+    from ctgs.io.spz import read_spz
 
     rows = []
     exact, _ = read_model(files["ctgs"])
@@ -155,7 +156,9 @@ def main() -> None:
             ("ply (3DGS)", read_plain_ply(files["ply"]), os.path.getsize(files["ply"]),
              "read_plain_ply -> untextured surfels, CPU renderer"),
             ("splat", read_splat(files["splat"]), os.path.getsize(files["splat"]),
-             "read_splat -> untextured surfels, CPU renderer")):
+             "read_splat -> untextured surfels, CPU renderer"),
+            ("spz (v3)", read_spz(files["spz"]), os.path.getsize(files["spz"]),
+             "read_spz (matches Niantic's reader: tests/io/test_spz.py) -> untextured surfels, CPU renderer")):
         images = exact_images if model is exact else render_views(model, views)
         rows.append({"format": name, "bytes": nbytes, **scores(images, views, exact_images), "renderer": how})
     dc_only = read_model(files["ctgs"])[0]

@@ -21,7 +21,7 @@ from ctgs.errors import Terminated, UserError
 STAGES: dict[str, tuple[str, str]] = {
     "sfm": ("ctgs.stages.sfm", "Structure from motion (pycolmap): images -> undistorted COLMAP scene."),
     "train": ("ctgs.stages.train", "Train a content-aware textured 2DGS model on a scene."),
-    "export": ("ctgs.stages.export", "Export a trained run: ctgs model folder, 3DGS PLY, .splat or .glb."),
+    "export": ("ctgs.stages.export", "Export a trained run: ctgs model folder, 3DGS PLY, .splat, .spz or .glb."),
     "compress": ("ctgs.stages.compress", "Compress an exported model (texel codebook, quantised attributes, xz)."),
     "eval": ("ctgs.stages.eval", "Quality, size and speed figures of a run or model; aggregate tables."),
     "demo-scene": ("ctgs.stages.demo_scene", "Generate the built-in synthetic demo scene (COLMAP layout)."),

@@ -2,8 +2,8 @@
 
 Formats (docs/model_format.md): `ctgs` (default, lossless: primitives.ply + textures.bin + manifest.json,
 plus plain_3dgs.ply), `ply` (3DGS PLY for Gaussian viewers), `splat` (32 bytes per splat, web viewers),
-`glb` (textured quads for Blender and three.js), `web` (the ctgs folder plus the bundle `ctgs view`
-serves, in its web/ subfolder). Adding a format is one entry in FORMATS.
+`spz` (Niantic's compressed Gaussians), `glb` (textured quads for Blender and three.js), `web` (the ctgs
+folder plus the bundle `ctgs view` serves, in its web/ subfolder). Adding a format is one entry in FORMATS.
 """
 
 from __future__ import annotations
@@ -43,14 +43,32 @@ def _ply(e: Export) -> str:
            f"{os.path.getsize(e.out) / 1e6:.3f} MB"
 
 
+def _origin_note(e: Export, fmt: str) -> str:
+    """A recentred scene's origin, for the formats that have no field for it."""
+    if not any(e.source.get("world_origin") or ()):
+        return ""
+    return (f"; positions in the recentred frame ({fmt} has no field for its origin, "
+            f"{e.source['world_origin']} in the COLMAP frame: add it to place the model there)")
+
+
 def _splat(e: Export) -> str:
     from ctgs.io.splat import write_splat
 
-    note = ""
-    if any(e.source.get("world_origin") or ()):
-        note = (f"; positions in the recentred frame (.splat has no field for its origin, "
-                f"{e.source['world_origin']} in the COLMAP frame: add it to place the model there)")
-    return f"{e.model.num_primitives} splats, {write_splat(e.model, e.out) / 1e6:.3f} MB{note}"
+    return f"{e.model.num_primitives} splats, {write_splat(e.model, e.out) / 1e6:.3f} MB{_origin_note(e, '.splat')}"
+
+
+def _spz(e: Export) -> str:
+    from ctgs.io.spz import write_spz
+
+    info = write_spz(e.model, e.out)
+    notes = _origin_note(e, ".spz")
+    if info["tangent_scales_clipped"]:
+        notes += (f"; {info['tangent_scales_clipped']} tangent scales outside .spz's e^-10..e^5.94 were clipped "
+                  "(the scene's units: rescale it, or export --format ply)")
+    if info["colours_clipped"]:
+        notes += f"; {info['colours_clipped']} colour values past .spz's range were clipped"
+    return (f"{e.model.num_primitives} splats (textures folded into the DC colour), SH degree {info['sh_degree']}, "
+            f"{info['fractional_bits']} fractional position bits, {info['bytes'] / 1e6:.3f} MB{notes}")
 
 
 def _glb(e: Export) -> str:
@@ -84,6 +102,8 @@ FORMATS: dict[str, Format] = {
     "ply": Format(_ply, ".ply", "3DGS PLY for Gaussian viewers (textures folded into one colour per surfel)"),
     "splat": Format(_splat, ".splat", ".splat, 32 bytes per splat, for web viewers (DC colour, 8-bit opacity "
                                       "and rotation)"),
+    "spz": Format(_spz, ".spz", "Niantic .spz v3, gzip of quantised Gaussians (about a tenth of the PLY; what the PLY "
+                                "keeps, quantised)"),
     "glb": Format(_glb, ".glb", "glTF binary, one textured quad per surfel (Blender, three.js)"),
     "web": Format(_web, "", "the ctgs folder plus web/, the bundle `ctgs view` serves (WebGL2, textures kept)"),
 }

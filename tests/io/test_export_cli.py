@@ -1,24 +1,22 @@
 """`ctgs export --format ...` from the command line, and the Khronos glTF validator on its .glb.
 
-The validator is the npm package gltf-validator, installed once into the per-user cache
-(<CTGS_CACHE_DIR or ~/.cache/ctgs>/node/); the test skips only where node or npm is missing.
+The validator is the npm package gltf-validator, installed once into the per-user cache (npm_cache.py); the
+test skips only where node or npm is missing.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
-import tempfile
 
 import pytest
 import torch
 from click.testing import CliRunner
 from factory_io import random_model
+from npm_cache import npm_package
 
 from ctgs.cli import main
-from ctgs.resources import cache_dir
 
 VALIDATOR = "gltf-validator@2.0.0-dev.3.10"  # pinned: its report format is what the test reads
 VALIDATE_JS = """
@@ -43,7 +41,7 @@ def _export(*args: str) -> str:
 
 
 @pytest.mark.parametrize("fmt,name,what", [("ply", "model.ply", "50 Gaussians"), ("splat", "model.splat", "50 splats"),
-                                           ("glb", "model.glb", "50 textured quads")])
+                                           ("spz", "model.spz", "50 splats"), ("glb", "model.glb", "50 textured quads")])
 def test_default_output_names(tmp_path, fmt, name, what):
     run = _run_dir(tmp_path)
     out = _export(run, "--format", fmt)
@@ -68,22 +66,7 @@ def test_file_formats_refuse_a_folder_as_output(tmp_path):
 @pytest.fixture(scope="session")
 def gltf_validator() -> tuple[str, str]:
     """(node, path of the gltf-validator package); installs it into the cache on first use."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if not node or not npm:
-        pytest.skip("node or npm not found: the Khronos glTF validator (npm package gltf-validator) cannot run")
-    prefix = cache_dir() / "node" / VALIDATOR.replace("@", "-")
-    package = prefix / "node_modules" / "gltf-validator"
-    if not (package / "package.json").is_file():
-        prefix.parent.mkdir(parents=True, exist_ok=True)
-        tmp = tempfile.mkdtemp(prefix=".install-", dir=prefix.parent)  # complete installs only, then renamed
-        subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefix", tmp, VALIDATOR], check=True,
-                       capture_output=True, timeout=600)
-        if (package / "package.json").is_file():  # another process finished first
-            shutil.rmtree(tmp)
-        else:
-            shutil.rmtree(prefix, ignore_errors=True)
-            os.replace(tmp, prefix)
-    return node, str(package)
+    return npm_package(VALIDATOR, "gltf-validator", "the Khronos glTF validator")
 
 
 def validate(validator: tuple[str, str], path: str) -> dict:
