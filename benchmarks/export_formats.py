@@ -3,8 +3,9 @@
 Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|spz|glb` (and `ctgs compress` of the ctgs folder),
 reads every file back and renders the run's test views from it:
 - ctgs, ctgs K-means: ctgs.io.model_format.read_model, our CPU renderer (exact model);
-- ply (3DGS PLY), splat, spz: read back as untextured surfels (ctgs.io.plain_ply / splat / spz), our CPU
-  renderer (so the figure is what the file holds, not what some viewer's EWA splatting makes of it);
+- ply (3DGS PLY), splat, spz, and ply / spz with --bake-textures (a splat per texel: ctgs.io.bake): read back as
+  untextured surfels (ctgs.io.plain_ply / splat / spz), our CPU renderer (so the figure is what the file holds,
+  not what some viewer's EWA splatting makes of it);
 - glb: read with pygltflib (ctgs.io.gltf.read_glb), drawn by a headless OpenGL renderer
   (benchmarks/glb_render.py: moderngl + EGL, Mesa llvmpipe here), quads sorted back to front per view,
   in two colour pipelines (blending in image space as our renderer does, and sRGB-correct linear blending
@@ -130,7 +131,8 @@ def main() -> None:
     t0 = time.time()
     files = {"ctgs": os.path.join(work, "model"), "ctgs_k": os.path.join(work, f"model-k{CODEBOOK}"),
              "ply": os.path.join(work, "model.ply"), "splat": os.path.join(work, "model.splat"),
-             "spz": os.path.join(work, "model.spz"), "glb": os.path.join(work, "model.glb")}
+             "spz": os.path.join(work, "model.spz"), "glb": os.path.join(work, "model.glb"),
+             "ply_baked": os.path.join(work, "model-baked.ply"), "spz_baked": os.path.join(work, "model-baked.spz")}
     ctgs_cli("export", args.run_dir, "-o", files["ctgs"], "--no-plain-ply")
     ctgs_cli("compress", files["ctgs"], "-o", files["ctgs_k"], "--codebook-size", str(CODEBOOK))
     export_s = {}
@@ -138,6 +140,10 @@ def main() -> None:
         t = time.time()
         ctgs_cli("export", args.run_dir, "--format", fmt, "-o", files[fmt])
         export_s[fmt] = time.time() - t
+    for fmt in ("ply", "spz"):
+        t = time.time()
+        ctgs_cli("export", args.run_dir, "--format", fmt, "--bake-textures", "-o", files[f"{fmt}_baked"])
+        export_s[f"{fmt}_baked"] = time.time() - t
 
     run = load_run(args.run_dir)
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
@@ -158,9 +164,14 @@ def main() -> None:
             ("splat", read_splat(files["splat"]), os.path.getsize(files["splat"]),
              "read_splat -> untextured surfels, CPU renderer"),
             ("spz (v3)", read_spz(files["spz"]), os.path.getsize(files["spz"]),
-             "read_spz (matches Niantic's reader: tests/io/test_spz.py) -> untextured surfels, CPU renderer")):
+             "read_spz (matches Niantic's reader: tests/io/test_spz.py) -> untextured surfels, CPU renderer"),
+            ("ply (3DGS), --bake-textures", read_plain_ply(files["ply_baked"]), os.path.getsize(files["ply_baked"]),
+             "read_plain_ply -> untextured surfels (a splat per texel), CPU renderer"),
+            ("spz (v3), --bake-textures", read_spz(files["spz_baked"]), os.path.getsize(files["spz_baked"]),
+             "read_spz -> untextured surfels (a splat per texel), CPU renderer")):
         images = exact_images if model is exact else render_views(model, views)
-        rows.append({"format": name, "bytes": nbytes, **scores(images, views, exact_images), "renderer": how})
+        rows.append({"format": name, "bytes": nbytes, "splats": model.num_primitives,
+                     **scores(images, views, exact_images), "renderer": how})
     dc_only = read_model(files["ctgs"])[0]
     dc_only.sh_degree = 0
     rows.append({"format": "(diagnostic) ctgs with SH cut to DC", "bytes": None,
@@ -196,8 +207,8 @@ def markdown(r: dict) -> str:
     lines += ["",
               "PSNR vs exact: the format's render against the exact model's render (what the file keeps of the "
               "model); test PSNR: against the test photos.", "",
-              "| format | bytes | MB | test PSNR (dB) | PSNR vs exact (dB) | validator | rendered by |",
-              "| --- | ---: | ---: | ---: | ---: | --- | --- |"]
+              "| format | splats | bytes | MB | test PSNR (dB) | PSNR vs exact (dB) | validator | rendered by |",
+              "| --- | ---: | ---: | ---: | ---: | ---: | --- | --- |"]
     for row in r["rows"]:
         b = "" if row["bytes"] is None else f"{row['bytes']}"
         mb = "" if row["bytes"] is None else f"{row['bytes'] / 1e6:.3f}"
@@ -206,7 +217,8 @@ def markdown(r: dict) -> str:
         v = row.get("validator")
         val = "" if v is None else (f"{v['errors']} errors, {v['warnings']} warnings" if v.get("status") == "ok"
                                     else v["status"])
-        lines.append(f"| {row['format']} | {b} | {mb} | {p} | {pe} | {val} | {row['renderer']} |")
+        n = row.get("splats", "")
+        lines.append(f"| {row['format']} | {n} | {b} | {mb} | {p} | {pe} | {val} | {row['renderer']} |")
     return "\n".join(lines) + "\n"
 
 

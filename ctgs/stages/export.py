@@ -24,6 +24,7 @@ class Export:
     source: dict
     plain_ply: bool
     texel_bits: int = 8  # web: bits per texel channel in the atlas
+    baked: bool = False  # ply / splat / spz: textures baked into one splat per texel (ctgs.io.bake)
 
 
 def _ctgs(e: Export) -> str:
@@ -35,12 +36,15 @@ def _ctgs(e: Export) -> str:
             f"(+ plain PLY: {e.plain_ply})")
 
 
+def _textures(e: Export) -> str:
+    return "textures baked: a splat per texel" if e.baked else "textures folded into the DC colour"
+
+
 def _ply(e: Export) -> str:
     from ctgs.io.plain_ply import write_plain_ply
 
     write_plain_ply(e.model, e.out, origin=e.source.get("world_origin"))
-    return f"{e.model.num_primitives} Gaussians (textures folded into the DC colour), " \
-           f"{os.path.getsize(e.out) / 1e6:.3f} MB"
+    return f"{e.model.num_primitives} Gaussians ({_textures(e)}), {os.path.getsize(e.out) / 1e6:.3f} MB"
 
 
 def _origin_note(e: Export, fmt: str) -> str:
@@ -54,7 +58,8 @@ def _origin_note(e: Export, fmt: str) -> str:
 def _splat(e: Export) -> str:
     from ctgs.io.splat import write_splat
 
-    return f"{e.model.num_primitives} splats, {write_splat(e.model, e.out) / 1e6:.3f} MB{_origin_note(e, '.splat')}"
+    return (f"{e.model.num_primitives} splats ({_textures(e)}), {write_splat(e.model, e.out) / 1e6:.3f} MB"
+            f"{_origin_note(e, '.splat')}")
 
 
 def _spz(e: Export) -> str:
@@ -67,7 +72,7 @@ def _spz(e: Export) -> str:
                   "(the scene's units: rescale it, or export --format ply)")
     if info["colours_clipped"]:
         notes += f"; {info['colours_clipped']} colour values past .spz's range were clipped"
-    return (f"{e.model.num_primitives} splats (textures folded into the DC colour), SH degree {info['sh_degree']}, "
+    return (f"{e.model.num_primitives} splats ({_textures(e)}), SH degree {info['sh_degree']}, "
             f"{info['fractional_bits']} fractional position bits, {info['bytes'] / 1e6:.3f} MB{notes}")
 
 
@@ -108,6 +113,8 @@ FORMATS: dict[str, Format] = {
     "web": Format(_web, "", "the ctgs folder plus web/, the bundle `ctgs view` serves (WebGL2, textures kept)"),
 }
 
+BAKED_FORMATS = ("ply", "splat", "spz")  # the Gaussian formats, which otherwise fold each texture into one colour
+
 
 def load_source(path: str):
     """(model, source info) from a run folder (model.pt) or a model folder (manifest.json)."""
@@ -145,16 +152,26 @@ def default_out(source: str, fmt: str) -> str:
               help="With --format ctgs: also write plain_3dgs.ply into the folder.")
 @click.option("--texel-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
               help="With --format web: bits per texel channel in the atlas (8: signed bytes, 16: half floats).")
-def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits: str) -> None:
+@click.option("--bake-textures", is_flag=True,
+              help="With --format ply, splat or spz: one small splat per texel instead of one per surfel, so Gaussian "
+                   "viewers show the texture detail (many times the splats and bytes; docs/model_format.md).")
+def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits: str, bake_textures: bool) -> None:
     """Write RUN_DIR's model (or a model folder's, e.g. a compressed one) in the chosen format."""
+    from ctgs.errors import UserError
+
+    if bake_textures and fmt not in BAKED_FORMATS:
+        raise UserError(f"--bake-textures applies to --format {', '.join(BAKED_FORMATS)}; --format {fmt} keeps the "
+                        "textures themselves: drop the option")
     model, info = load_source(source)
     out = out or default_out(source, fmt)
     if FORMATS[fmt].suffix and os.path.isdir(out):  # formats with a suffix write one file
-        from ctgs.errors import UserError
-
         raise UserError(f"{out}: is a folder; --format {fmt} writes one file, pass a file name with -o")
+    if bake_textures:
+        from ctgs.io.bake import bake_texels
+
+        model = bake_texels(model)
     parent = os.path.dirname(os.path.abspath(out))
     os.makedirs(parent, exist_ok=True)
     summary = FORMATS[fmt].write(Export(model=model, out=out, source=info, plain_ply=plain_ply,
-                                        texel_bits=int(texel_bits)))
+                                        texel_bits=int(texel_bits), baked=bake_textures))
     click.echo(f"{out}: {summary}")

@@ -1,0 +1,161 @@
+"""Textured surfels -> untextured ones that carry the texture's detail: one small flat Gaussian per texel.
+
+Gaussian viewers (3DGS PLY, .splat, .spz) know one colour per splat, so the plain exports fold each texture into
+its mean colour (ctgs.io.plain_ply), which loses the detail the content-aware method puts in textures (9.7 dB on
+the `make demo` model: docs/model_format.md). `bake_texels` instead replaces every textured surfel by a lattice of
+coplanar Gaussians, one at each texel centre, which any Gaussian viewer draws:
+
+- position: the texel centre on the surfel's plane, mu + lx u + ly v, with lx = (i - (r_u - 1) / 2) k_u (the
+  renderer's texel layout: centres at integer texel coordinates, the grid centred on the surfel);
+- shape: the surfel's rotation, both tangent scales BAKE_SIGMA x the texel size (neighbours overlap, so the
+  colours blend between centres much as the renderer's bilinear lookup does);
+- colour: the surfel's SH with the texel added to the DC band (dc + texel / C0); texels outside the grid read 0,
+  as in the renderer;
+- opacity: the surfel's alpha at that texel centre, A = o exp(-rho / 2) (0 past 3 sigma), split over the lattice:
+  a is the peak opacity with which a uniform lattice of these splats composites to A on the mean over a texel
+  cell (1 - prod_j (1 - a w_j(x)) averaged over CELL_SAMPLES^2 points x of the cell; w_j the lattice splats'
+  Gaussian weights there), so the lattice reproduces the surfel's coverage where its alpha varies slowly.
+  Lattice points whose a is below the renderer's 1/255 are dropped.
+The lattice covers the texture grid and, where the surfel's active extent (alpha >= 1/255) reaches past the grid,
+up to MAX_RINGS more rings of texels (whose texture is 0). A surfel whose texels are wider than LATTICE_MAX_TEXEL x
+its smaller sigma (a few coarse texels, whose centres may lie outside the surfel: its texture is a gentle gradient
+across it) stays one splat with its texture folded into one colour, as in the plain exports; so do untextured ones.
+
+What is approximate: coplanar splats composite in depth order rather than summing, so between texel centres the
+nearer splat weighs more than a bilinear lookup would; a lattice of half-texel Gaussians covers at most 90% of a
+cell even at the largest alpha (an opaque surfel lets 10% of what lies behind through, which in a trained scene
+is more surface: the `make demo` model's baked render covers 99.94% of a training view, the exact one 99.91%);
+and the splats of overlapping surfels sort among each other by their own depths, where the renderer sorted the
+whole surfels. Measured on training views while choosing BAKE_SIGMA (0.35-0.6: 0.5 best on the `make demo` model,
+0.04-0.18 dB above 0.45 and 0.55) and LATTICE_MAX_TEXEL (0.5 / 1 / 2 / 4: 2 best), and on test views in
+benchmarks/export_formats.py (rows "baked"). Wider splats where the surfel is opaque (to cover the whole cell) and
+sharpening the texels first were tried there too and did not help (-0.06 and -0.8 dB).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import torch
+
+from ctgs.io.plain_ply import SH_C0, surfels_from_gaussians, texture_means
+from ctgs.model.geometry import quat_to_rotmat
+from ctgs.model.surfels import SurfelModel
+from ctgs.render.constants import CUTOFF_RHO, MAX_ALPHA, MIN_ALPHA
+from ctgs.train.texels import active_half_extent
+
+BAKE_SIGMA = 0.5  # sub-splat standard deviation, in texel spacings
+MAX_RINGS = 64  # lattice rings past the texture grid where the surfel's active extent reaches beyond it
+LATTICE_MAX_TEXEL = 2.0  # a texel wider than this x the surfel's smaller sigma: the surfel stays one splat, folded
+FLAT_LOG_RATIO = math.log(1e-3)  # the baked splats' third (normal) scale, as the plain exports'
+
+
+CELL_SAMPLES = 4  # per axis: where in a lattice cell the composite alpha is matched (its mean over them)
+
+
+def lattice_weights(sigma: float = BAKE_SIGMA) -> torch.Tensor:
+    """[S, J] weights of the lattice Gaussians j around a cell at S sample points spread over the cell (float64):
+    a lattice of peak opacity a composites there to 1 - prod_j (1 - a w[s, j])."""
+    reach = math.ceil(math.sqrt(CUTOFF_RHO) * sigma) + 1
+    d = torch.arange(-reach, reach + 1, dtype=torch.float64)
+    du, dv = torch.meshgrid(d, d, indexing="ij")
+    offs = (torch.arange(CELL_SAMPLES, dtype=torch.float64) + 0.5) / CELL_SAMPLES - 0.5  # in (-1/2, 1/2)
+    su, sv = torch.meshgrid(offs, offs, indexing="ij")
+    rho = ((su.reshape(-1, 1) - du.reshape(1, -1)) ** 2 + (sv.reshape(-1, 1) - dv.reshape(1, -1)) ** 2) / sigma**2
+    return torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
+
+
+@functools.lru_cache(maxsize=16)
+def _coverage_table(sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(peak opacities a, the cell-mean alpha a uniform lattice of them composites to), increasing."""
+    table_a = torch.linspace(0.0, MAX_ALPHA, 1001, dtype=torch.float64)
+    w = lattice_weights(sigma)
+    return table_a, 1.0 - torch.prod(1.0 - table_a[:, None, None] * w[None], dim=2).mean(1)
+
+
+def split_opacity(target: torch.Tensor, sigma: float = BAKE_SIGMA) -> torch.Tensor:
+    """Per-splat peak opacity a in [0, MAX_ALPHA] whose uniform lattice of splats of `sigma` texels composites to
+    `target` on the mean over a cell (interpolated in a table of the monotone map a -> mean alpha; float64).
+    Targets above what that lattice can reach are capped there."""
+    table_a, alpha = _coverage_table(sigma)
+    t = target.double().clamp(0.0, float(alpha[-1]))
+    i = torch.searchsorted(alpha, t).clamp(1, len(table_a) - 1)
+    a0, a1, f0, f1 = table_a[i - 1], table_a[i], alpha[i - 1], alpha[i]
+    return a0 + (a1 - a0) * ((t - f0) / (f1 - f0).clamp_min(1e-300))
+
+
+def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA,
+                lattice_max_texel: float = LATTICE_MAX_TEXEL) -> SurfelModel:
+    """`model` with every textured surfel replaced by its lattice of texel splats (module docstring); untextured,
+    float32, texture_mode "none"."""
+    n = model.num_primitives
+    res = model.tex_res.long()
+    textured = (res[:, 0] * res[:, 1] > 0) & (model.texture_mode != "none")
+    if model.num_texels == 0 or not bool(textured.any()):
+        fine = torch.zeros(n, dtype=torch.bool)
+    else:
+        k = model.texel_size.detach().double().max(1).values
+        fine = textured & (k <= lattice_max_texel * model.scales.detach().double().min(1).values)
+    parts = [_lattice(model, torch.nonzero(fine).squeeze(1), sigma)] if bool(fine.any()) else []
+    # The other surfels as one splat each, their texture folded into the DC band (as the plain exports do).
+    keep = torch.nonzero(~fine).squeeze(1)
+    log_s = model.log_scales.detach().double()[keep]
+    sh = model.sh.detach().double()[keep].clone()
+    sh[:, 0, :] += texture_means(model)[keep] / SH_C0
+    parts.append({
+        "means": model.means.detach().double()[keep],
+        "log_scales": torch.cat([log_s, (log_s.min(1).values + FLAT_LOG_RATIO)[:, None]], 1),
+        "quats": model.quats.detach().double()[keep],
+        "opacity_logits": model.opacity_logits.detach().double()[keep],
+        "sh": sh,
+    })
+    cat = {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+    out = surfels_from_gaussians(cat["means"], cat["log_scales"], cat["quats"], cat["opacity_logits"], cat["sh"])
+    out.sh_degree = model.sh_degree
+    return out
+
+
+def _lattice(model: SurfelModel, idx: torch.Tensor, sigma: float) -> dict:
+    """The texel splats of surfels `idx` (all textured), as float64 Gaussian arrays."""
+    res = model.tex_res.long()[idx]  # [M, 2]
+    k = model.texel_size.detach().double()[idx]  # [M, 2] world units per texel
+    scales = model.scales.detach().double()[idx]  # [M, 2]
+    half = active_half_extent(model)[idx].double()  # [M, 2] where alpha can reach 1/255
+    grid_half = (res.double() - 1) / 2  # [M, 2] texel coordinate of the grid's centre
+    rings = torch.ceil(half / k - grid_half).clamp(0, MAX_RINGS).long()  # [M, 2]
+    lat = res + 2 * rings  # [M, 2] lattice size
+    sizes = lat[:, 0] * lat[:, 1]
+    owner = torch.repeat_interleave(torch.arange(len(idx)), sizes)  # [L] which surfel (position in idx)
+    local = torch.arange(int(sizes.sum())) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
+    iu = local % lat[owner, 0] - rings[owner, 0]  # [L] texel coordinates in the texture grid (may be outside)
+    iv = local // lat[owner, 0] - rings[owner, 1]
+    lx = (iu.double() - grid_half[owner, 0]) * k[owner, 0]
+    ly = (iv.double() - grid_half[owner, 1]) * k[owner, 1]
+    rho = (lx / scales[owner, 0]) ** 2 + (ly / scales[owner, 1]) ** 2
+    target = model.opacities.detach().double()[idx][owner] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
+    a = split_opacity(target, sigma)
+    on = a >= MIN_ALPHA
+    owner, iu, iv, lx, ly, a = owner[on], iu[on], iv[on], lx[on], ly[on], a[on]
+    surfel = idx[owner]
+    textures = model.textures.detach().double()
+
+    def read(du: int, dv: int) -> torch.Tensor:  # [L, 3] texel (iu + du, iv + dv) of each splat's grid; 0 outside
+        u, v = iu + du, iv + dv
+        inside = (u >= 0) & (u < res[owner, 0]) & (v >= 0) & (v < res[owner, 1])
+        row = model.tex_offset.long()[surfel] + v.clamp(min=0) * res[owner, 0] + u.clamp(min=0)
+        return torch.where(inside[:, None], textures[torch.where(inside, row, 0)], 0.0)
+
+    texel = read(0, 0)
+    rot = quat_to_rotmat(model.quats.detach().double()[surfel])  # [L, 3, 3] columns u, v, n
+    means = model.means.detach().double()[surfel] + lx[:, None] * rot[:, :, 0] + ly[:, None] * rot[:, :, 1]
+    tangent = torch.log(sigma * k[owner])  # [L, 2]
+    sh = model.sh.detach().double()[surfel].clone()
+    sh[:, 0, :] += texel / SH_C0
+    return {
+        "means": means,
+        "log_scales": torch.cat([tangent, (tangent.min(1).values + FLAT_LOG_RATIO)[:, None]], 1),
+        "quats": model.quats.detach().double()[surfel],
+        "opacity_logits": torch.log(a / (1.0 - a)),
+        "sh": sh,
+    }
