@@ -28,7 +28,7 @@ is more surface: the `make demo` model's baked render covers 99.94% of a trainin
 and the splats of overlapping surfels sort among each other by their own depths, where the renderer sorted the
 whole surfels. Measured on training views while choosing BAKE_SIGMA (0.35-0.6: 0.5 best on the `make demo` model,
 0.04-0.18 dB above 0.45 and 0.55) and LATTICE_MAX_TEXEL (0.5 / 1 / 2 / 4: 2 best), and on test views in
-benchmarks/export_formats.py (rows "baked"). Wider splats where the surfel is opaque (to cover the whole cell) and
+benchmarks/export_formats.py (the `--bake-textures` rows). Wider splats where the surfel is opaque (to cover the whole cell) and
 sharpening the texels first were tried there too and did not help (-0.06 and -0.8 dB).
 """
 
@@ -39,7 +39,7 @@ import math
 
 import torch
 
-from ctgs.io.plain_ply import SH_C0, surfels_from_gaussians, texture_means
+from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
 from ctgs.model.geometry import quat_to_rotmat
 from ctgs.model.surfels import SurfelModel
 from ctgs.render.constants import CUTOFF_RHO, MAX_ALPHA, MIN_ALPHA
@@ -48,9 +48,7 @@ from ctgs.train.texels import active_half_extent
 BAKE_SIGMA = 0.5  # sub-splat standard deviation, in texel spacings
 MAX_RINGS = 64  # lattice rings past the texture grid where the surfel's active extent reaches beyond it
 LATTICE_MAX_TEXEL = 2.0  # a texel wider than this x the surfel's smaller sigma: the surfel stays one splat, folded
-FLAT_LOG_RATIO = math.log(1e-3)  # the baked splats' third (normal) scale, as the plain exports'
-
-
+FLAT_LOG_RATIO = math.log(FLAT_SCALE_RATIO)  # the splats' third (normal) scale, as the plain exports write it
 CELL_SAMPLES = 4  # per axis: where in a lattice cell the composite alpha is matched (its mean over them)
 
 
