@@ -39,6 +39,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests", "io"))
 
 from ctgs.io.model_format import read_model  # noqa: E402
 from ctgs.io.run_model import load_run  # noqa: E402
+from record import write_record  # noqa: E402 (benchmarks/record.py)
 from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
 from ctgs.scene import load_scene  # noqa: E402
@@ -189,11 +190,7 @@ def main() -> None:
         "export_seconds": export_s, "rows": rows, "seconds": time.time() - t0,
     }
     out = os.path.join(HERE, "results", f"export_formats_{args.tag}")
-    with open(out + ".json", "w") as f:
-        json.dump(result, f, indent=2)
-    with open(out + ".md", "w") as f:
-        f.write(markdown(result))
-    print(markdown(result))
+    write_record(os.path.basename(out), result, markdown)
 
 
 def markdown(r: dict) -> str:
