@@ -72,6 +72,8 @@ def _spz(e: Export) -> str:
                   "(the scene's units: rescale it, or export --format ply)")
     if info["colours_clipped"]:
         notes += f"; {info['colours_clipped']} colour values past .spz's range were clipped"
+    if info["sh_clipped"]:
+        notes += f"; {info['sh_clipped']} SH coefficients past .spz's [-1, 1] were clipped"
     return (f"{e.model.num_primitives} splats ({_textures(e)}), SH degree {info['sh_degree']}, "
             f"{info['fractional_bits']} fractional position bits, {info['bytes'] / 1e6:.3f} MB{notes}")
 

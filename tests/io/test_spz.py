@@ -124,7 +124,10 @@ def test_units_spz_cannot_hold_are_reported(tmp_path):
     assert not list(tmp_path.iterdir())
     tiny = _model(n=10, scale=1e-5)  # log scales ~ -13.5: below spz's -10
     info = write_spz(tiny, str(tmp_path / "tiny.spz"))
-    assert info["tangent_scales_clipped"] == 20
+    assert info["tangent_scales_clipped"] == 20 and info["sh_clipped"] == 0
+    loud = _model(n=10, sh_degree=1)
+    loud.sh.data[:, 1:] = 2.0  # past spz's SH range [-1, 1]
+    assert write_spz(loud, str(tmp_path / "loud.spz"))["sh_clipped"] == 10 * 3 * 3
 
 
 def test_reader_refuses_other_files(tmp_path):
