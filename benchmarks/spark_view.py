@@ -43,7 +43,7 @@ from ctgs.scene import load_scene  # noqa: E402
 from ctgs.viewer.headless import Browser, find_chromium  # noqa: E402
 
 PACKAGES = ("three@0.180.0", "@sparkjsdev/spark@2.2.0")
-FRAMES = 12  # renders per view (--frames), WAIT_MS apart: Spark sorts in a worker between frames
+FRAMES = 60  # at most this many renders per view (--frames), WAIT_MS apart, until two in a row change nothing
 WAIT_MS = 200
 
 PAGE = """<!doctype html><html><head><meta charset="utf-8"><style>html,body{margin:0;background:#000;overflow:hidden}</style>
@@ -76,11 +76,22 @@ window.show = async (url, v) => {
   camera.matrixWorldInverse.copy(camera.matrixWorld).invert();
   camera.projectionMatrix.fromArray(v.projection);
   camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
-  for (let i = 0; i < v.frames; i++) {
+  // Render until the image stops changing (Spark's depth sort runs in a worker and lands a frame or more later),
+  // reading the pixels back each time so that a slow software-GL frame is finished before the next one is asked.
+  const gl = renderer.getContext();
+  const size = v.width * v.height * 4;
+  let prev = new Uint8Array(size), cur = new Uint8Array(size), stable = 0, frames = 0;
+  while (frames < v.frames && stable < 2) {
     renderer.render(scene, camera);
+    gl.readPixels(0, 0, v.width, v.height, gl.RGBA, gl.UNSIGNED_BYTE, cur);
+    frames += 1;
+    let same = true;
+    for (let i = 0; i < size; i++) { if (cur[i] !== prev[i]) { same = false; break; } }
+    stable = same ? stable + 1 : 0;
+    [prev, cur] = [cur, prev];
     await new Promise(r => setTimeout(r, v.waitMs));
   }
-  return mesh.numSplats ?? null;
+  return { splats: mesh.numSplats ?? null, frames, stable: stable >= 2 };
 };
 window.ready = true;
 </script></body></html>
@@ -144,7 +155,7 @@ def main() -> None:
     ap.add_argument("files", nargs="+", help=".spz files exported from RUN_DIR (ctgs export --format spz ...)")
     ap.add_argument("--tag", required=True)
     ap.add_argument("--work", default=None, help="Folder served to the browser (default RUN_DIR/spark_view).")
-    ap.add_argument("--frames", type=int, default=FRAMES, help="Renders per view before the screenshot.")
+    ap.add_argument("--frames", type=int, default=FRAMES, help="Most renders per view before the screenshot.")
     ap.add_argument("--wait-ms", type=int, default=WAIT_MS, help="Pause after each render (Spark's sort runs then).")
     args = ap.parse_args()
     t0 = time.time()
@@ -186,7 +197,7 @@ def main() -> None:
                     browser.set_viewport(cam.width, cam.height)
                     t = time.time()
                     spec = {**three_view(cam), "frames": args.frames, "waitMs": args.wait_ms}
-                    n_splats = browser.evaluate(f"window.show({json.dumps(name)}, {json.dumps(spec)})", timeout=1200)
+                    shown = browser.evaluate(f"window.show({json.dumps(name)}, {json.dumps(spec)})", timeout=1200)
                     seconds = time.time() - t
                     shot = png_rgb(browser.screenshot({"x": 0, "y": 0, "width": cam.width, "height": cam.height}))
                     ours = render(inputs, cam, backend="cpu", background=torch.zeros(3)).rgb.clamp(0, 1)
@@ -195,7 +206,8 @@ def main() -> None:
                     per_view.append({"view": view.name, "psnr_spark_vs_photo": float(psnr(shot, gt)),
                                      "psnr_ours_vs_photo": float(psnr(ours, gt)),
                                      "psnr_spark_vs_ours": float(psnr(shot, ours)), "seconds": seconds,
-                                     "spark_splats": n_splats})
+                                     "spark_splats": shown["splats"], "frames": shown["frames"],
+                                     "stable": shown["stable"]})
                     import cv2
 
                     stem = os.path.join(work, f"{os.path.splitext(name)[0]}_{os.path.splitext(view.name)[0]}")
@@ -229,8 +241,9 @@ def main() -> None:
 def markdown(r: dict) -> str:
     lines = [f"# Our .spz exports in Spark (headless Chromium, SwiftShader) ({r['date']})", "",
              f"Run `{r['run_dir']}`, test views {', '.join(r['test_views'])}. Viewer: {', '.join(r['viewer'])} "
-             f"({r['chromium']}), {r.get('frames', FRAMES)} renders {r.get('wait_ms', WAIT_MS)} ms apart before each "
-             f"screenshot. Machine: {r['machine']['platform']}, {r['machine']['cpu_count']} CPUs.",
+             f"({r['chromium']}); each view rendered until two renders in a row change no pixel (at most "
+             f"{r.get('frames', FRAMES)}, {r.get('wait_ms', WAIT_MS)} ms apart). Machine: {r['machine']['platform']}, "
+             f"{r['machine']['cpu_count']} CPUs.",
              f"Command: `{r['command']}` ({r['seconds']:.0f} s). Page errors: {r['page_errors'] or 'none'}.",
              f"Contact sheet `{r['contact_sheet']}`: one row per test view; the photo, then Spark's image of each "
              "file in the order below.", "",
@@ -241,12 +254,13 @@ def markdown(r: dict) -> str:
     for row in r["rows"]:
         lines.append(f"| {row['file']} | {row['splats']} | {row['bytes'] / 1e6:.3f} | {row['psnr_spark_vs_photo']:.2f} "
                      f"| {row['psnr_ours_vs_photo']:.2f} | {row['psnr_spark_vs_ours']:.2f} |")
-    lines += ["", "| file | view | Spark vs photo | ours vs photo | Spark vs ours | seconds |",
-              "| --- | --- | ---: | ---: | ---: | ---: |"]
+    lines += ["", "| file | view | Spark vs photo | ours vs photo | Spark vs ours | renders | stable | seconds |",
+              "| --- | --- | ---: | ---: | ---: | ---: | --- | ---: |"]
     for row in r["rows"]:
         for p in row["per_view"]:
             lines.append(f"| {row['file']} | {p['view']} | {p['psnr_spark_vs_photo']:.2f} | "
-                         f"{p['psnr_ours_vs_photo']:.2f} | {p['psnr_spark_vs_ours']:.2f} | {p['seconds']:.1f} |")
+                         f"{p['psnr_ours_vs_photo']:.2f} | {p['psnr_spark_vs_ours']:.2f} | {p.get('frames', '')} | "
+                         f"{p.get('stable', '')} | {p['seconds']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
