@@ -82,6 +82,10 @@ $(RUNS)/%/model.pt: | $(STAMP)
 %/model-compressed/manifest.json: %/model/manifest.json
 	$(CTGS) compress $*/model -o $*/model-compressed --target $(COMPRESS_TARGET)
 
+# For Gaussian viewers (Spark, SuperSplat, ...): Niantic's .spz with a splat per texel.
+%/model-baked.spz: %/model.pt
+	$(CTGS) export $* --format spz --bake-textures -o $@
+
 $(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
 	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --backend $(BACKEND)
@@ -117,7 +121,7 @@ $(DEMO_DIR)/run/eval-compressed/metrics.json: $(DEMO_DIR)/run/model-compressed/m
 	$(CTGS) eval $(DEMO_DIR)/run --model $(DEMO_DIR)/run/model-compressed -o $(DEMO_DIR)/run/eval-compressed \
 		--dataset demo --backend $(BACKEND)
 
-demo: $(DEMO_DIR)/run/eval/metrics.json $(DEMO_DIR)/run/eval-compressed/metrics.json
+demo: $(DEMO_DIR)/run/eval/metrics.json $(DEMO_DIR)/run/eval-compressed/metrics.json $(DEMO_DIR)/run/model-baked.spz
 	$(CTGS) eval --table $(DEMO_DIR)/run/eval $(DEMO_DIR)/run/eval-compressed -o $(DEMO_DIR)/table
 
 bench: $(STAMP)
