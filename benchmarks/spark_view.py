@@ -9,7 +9,7 @@ Spark's defaults in headless Chromium (SwiftShader WebGL2, no GPU), and scores t
 and against our renderer's image of the same file (read_spz, black background as in the page).
 
 Usage: .venv/bin/python benchmarks/spark_view.py RUN_DIR FILE.spz [FILE.spz ...] [--tag NAME] [--work DIR]
-Writes benchmarks/results/spark_view_<tag>.{json,md,png} (the png: photo and Spark's image of each file, per view). Needs node, npm (the registry) and Chromium.
+Writes benchmarks/results/spark_view_<tag>.{json,md,jpg} (the jpg: photo and Spark's image of each file, per view). Needs node, npm (the registry) and Chromium.
 """
 
 from __future__ import annotations
@@ -233,8 +233,9 @@ def main() -> None:
     import cv2
 
     sheet = torch.cat([torch.cat(row, 1) for row in shots.values()], 0).numpy()  # rows: views; columns: photo, files
-    cv2.imwrite(out + ".png", (sheet[..., ::-1] * 255).round().astype(np.uint8))
-    result["contact_sheet"] = os.path.relpath(out + ".png", os.path.dirname(HERE))
+    # JPEG: a sheet of 384 px photos is 2 MB as PNG; the figures come from the lossless screenshots, not from it.
+    cv2.imwrite(out + ".jpg", (sheet[..., ::-1] * 255).round().astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    result["contact_sheet"] = os.path.relpath(out + ".jpg", os.path.dirname(HERE))
     write_record(os.path.basename(out), result, markdown)
 
 
