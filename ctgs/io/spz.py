@@ -38,6 +38,7 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
+from ctgs.io.splat import ALPHA_EPS  # 8-bit alphas of 0 or 255 read back this far inside (a finite logit)
 from ctgs.model.surfels import SurfelModel
 from ctgs.render.sh import sh_to_color
 
@@ -53,8 +54,6 @@ STEPS_PER_SCALE = 64  # position step at most 1/64 of the median tangent standar
 LOG_SCALE_MIN, LOG_SCALE_MAX = -10.0, 255 / 16 - 10.0
 FLIP = np.array([1.0, -1.0, -1.0])  # RDF <-> RUB: a half turn about x
 SQRT1_2 = math.sqrt(0.5)
-# Alphas of 0 or 255 have no finite logit: read back this far inside.
-ALPHA_EPS = 0.5 / 255
 
 
 def sh_flips(degree: int) -> np.ndarray:
