@@ -39,6 +39,7 @@ import math
 
 import torch
 
+from ctgs.errors import UserError
 from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
 from ctgs.model.geometry import quat_to_rotmat
 from ctgs.model.surfels import SurfelModel
@@ -50,6 +51,7 @@ MAX_RINGS = 64  # lattice rings past the texture grid where the surfel's active 
 LATTICE_MAX_TEXEL = 2.0  # a texel wider than this x the surfel's smaller sigma: the surfel stays one splat, folded
 FLAT_LOG_RATIO = math.log(FLAT_SCALE_RATIO)  # the splats' third (normal) scale, as the plain exports write it
 CELL_SAMPLES = 4  # per axis: where in a lattice cell the composite alpha is matched (its mean over them)
+CHUNK_SPLATS = 1 << 18  # lattice points baked at a time (float64 intermediates: about 1 KB each at SH degree 3)
 
 
 def lattice_weights(sigma: float = BAKE_SIGMA) -> torch.Tensor:
@@ -83,10 +85,15 @@ def split_opacity(target: torch.Tensor, sigma: float = BAKE_SIGMA) -> torch.Tens
     return a0 + (a1 - a0) * ((t - f0) / (f1 - f0).clamp_min(1e-300))
 
 
-def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA,
-                lattice_max_texel: float = LATTICE_MAX_TEXEL) -> SurfelModel:
+def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA, lattice_max_texel: float = LATTICE_MAX_TEXEL,
+                max_splats: int | None = None, chunk_splats: int = CHUNK_SPLATS) -> SurfelModel:
     """`model` with every textured surfel replaced by its lattice of texel splats (module docstring); untextured,
-    float32, texture_mode "none"."""
+    float32, texture_mode "none".
+
+    Surfels are baked a chunk at a time (at most `chunk_splats` lattice points each, one surfel past it when a
+    single lattice is larger) in float64 and kept in float32, so memory grows with the splats written, not with
+    the float64 intermediates. max_splats: raise UserError as soon as the count passes it (a format's limit),
+    before the rest is baked."""
     n = model.num_primitives
     res = model.tex_res.long()
     textured = (res[:, 0] * res[:, 1] > 0) & (model.texture_mode != "none")
@@ -95,34 +102,100 @@ def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA,
     else:
         k = model.texel_size.detach().double().max(1).values
         fine = textured & (k <= lattice_max_texel * model.scales.detach().double().min(1).values)
-    parts = [_lattice(model, torch.nonzero(fine).squeeze(1), sigma)] if bool(fine.any()) else []
+    keep = torch.nonzero(~fine).squeeze(1)  # surfels that stay one splat each
+    total = 0
+
+    def counted(count: int) -> None:
+        nonlocal total
+        total += count
+        if max_splats is not None and total > max_splats:
+            raise UserError(f"baking the textures gives more than {max_splats} splats (the format's limit; the model "
+                            f"has {n} surfels and {model.num_texels} texels): export --format ply, or without "
+                            "--bake-textures")
+
+    counted(len(keep))
+    parts = []
+    idx = torch.nonzero(fine).squeeze(1)
+    if len(idx):
+        shared = _Shared(model)
+        rings, lat = _lattice_sizes(model, idx, shared)
+        sizes = lat[:, 0] * lat[:, 1]
+        for chunk in _chunks(sizes, chunk_splats):
+            parts.append(_to_surfels(_lattice(model, idx[chunk], rings[chunk], lat[chunk], shared, sigma)))
+            counted(parts[-1].num_primitives)
     # The other surfels as one splat each, their texture folded into the DC band (as the plain exports do).
-    keep = torch.nonzero(~fine).squeeze(1)
     log_s = model.log_scales.detach().double()[keep]
     sh = model.sh.detach().double()[keep].clone()
     sh[:, 0, :] += texture_means(model)[keep] / SH_C0
-    parts.append({
+    folded = {
         "means": model.means.detach().double()[keep],
         "log_scales": torch.cat([log_s, (log_s.min(1).values + FLAT_LOG_RATIO)[:, None]], 1),
         "quats": model.quats.detach().double()[keep],
         "opacity_logits": model.opacity_logits.detach().double()[keep],
         "sh": sh,
-    })
-    cat = {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
-    out = surfels_from_gaussians(cat["means"], cat["log_scales"], cat["quats"], cat["opacity_logits"], cat["sh"])
+    }
+    parts.append(_to_surfels(folded))
+    out = _concat(parts)
     out.sh_degree = model.sh_degree
     return out
 
 
-def _lattice(model: SurfelModel, idx: torch.Tensor, sigma: float) -> dict:
-    """The texel splats of surfels `idx` (all textured), as float64 Gaussian arrays."""
+class _Shared:
+    """Per-model arrays every chunk reads (computed once: the texel activation is over all texels)."""
+
+    def __init__(self, model: SurfelModel):
+        self.textures = model.textures.detach().float()  # [T, 3] activated texels
+        self.half = active_half_extent(model).double()  # [N, 2] where alpha can reach 1/255
+        self.opacity = model.opacities.detach().double()  # [N]
+
+
+def _lattice_sizes(model: SurfelModel, idx: torch.Tensor, shared: _Shared) -> tuple[torch.Tensor, torch.Tensor]:
+    """([M, 2] rings past the texture grid, [M, 2] lattice size) of surfels `idx`."""
+    res = model.tex_res.long()[idx]
+    k = model.texel_size.detach().double()[idx]
+    grid_half = (res.double() - 1) / 2  # texel coordinate of the grid's centre
+    rings = torch.ceil(shared.half[idx] / k - grid_half).clamp(0, MAX_RINGS).long()
+    return rings, res + 2 * rings
+
+
+def _chunks(sizes: torch.Tensor, limit: int) -> list[slice]:
+    """Consecutive slices of `sizes` summing to at most `limit` each (a single larger entry is its own slice)."""
+    out, start, acc = [], 0, 0
+    for i, s in enumerate(sizes.tolist()):
+        if acc and acc + s > limit:
+            out.append(slice(start, i))
+            start, acc = i, 0
+        acc += s
+    out.append(slice(start, len(sizes)))
+    return out
+
+
+def _to_surfels(g: dict) -> SurfelModel:
+    """A float64 Gaussian dict -> float32 untextured surfels (the third scale is always the smallest here, so every
+    quaternion is kept as is)."""
+    return surfels_from_gaussians(g["means"], g["log_scales"], g["quats"], g["opacity_logits"], g["sh"])
+
+
+def _concat(parts: list[SurfelModel]) -> SurfelModel:
+    """One untextured model of `parts`, field by field, each part's field freed once copied (peak: the result and
+    one field of the parts)."""
+    fields = ("means", "log_scales", "quats", "opacity_logits", "sh", "k_min", "t2p_exp", "tex_res", "tex_offset")
+    cat = {}
+    for name in fields:
+        cat[name] = torch.cat([getattr(p, name) for p in parts])
+        for p in parts:
+            setattr(p, name, None)
+    return SurfelModel(**cat, textures_raw=torch.zeros(0, 3), sh_degree=0, texture_mode="none")
+
+
+def _lattice(model: SurfelModel, idx: torch.Tensor, rings: torch.Tensor, lat: torch.Tensor, shared: _Shared,
+             sigma: float) -> dict:
+    """The texel splats of surfels `idx` (all textured; rings and lattice sizes from _lattice_sizes), as float64
+    Gaussian arrays."""
     res = model.tex_res.long()[idx]  # [M, 2]
     k = model.texel_size.detach().double()[idx]  # [M, 2] world units per texel
     scales = model.scales.detach().double()[idx]  # [M, 2]
-    half = active_half_extent(model)[idx].double()  # [M, 2] where alpha can reach 1/255
     grid_half = (res.double() - 1) / 2  # [M, 2] texel coordinate of the grid's centre
-    rings = torch.ceil(half / k - grid_half).clamp(0, MAX_RINGS).long()  # [M, 2]
-    lat = res + 2 * rings  # [M, 2] lattice size
     sizes = lat[:, 0] * lat[:, 1]
     owner = torch.repeat_interleave(torch.arange(len(idx)), sizes)  # [L] which surfel (position in idx)
     local = torch.arange(int(sizes.sum())) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
@@ -131,29 +204,24 @@ def _lattice(model: SurfelModel, idx: torch.Tensor, sigma: float) -> dict:
     lx = (iu.double() - grid_half[owner, 0]) * k[owner, 0]
     ly = (iv.double() - grid_half[owner, 1]) * k[owner, 1]
     rho = (lx / scales[owner, 0]) ** 2 + (ly / scales[owner, 1]) ** 2
-    target = model.opacities.detach().double()[idx][owner] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
+    target = shared.opacity[idx][owner] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
     a = split_opacity(target, sigma)
     on = a >= MIN_ALPHA
     owner, iu, iv, lx, ly, a = owner[on], iu[on], iv[on], lx[on], ly[on], a[on]
     surfel = idx[owner]
-    textures = model.textures.detach().double()
-
-    def read(du: int, dv: int) -> torch.Tensor:  # [L, 3] texel (iu + du, iv + dv) of each splat's grid; 0 outside
-        u, v = iu + du, iv + dv
-        inside = (u >= 0) & (u < res[owner, 0]) & (v >= 0) & (v < res[owner, 1])
-        row = model.tex_offset.long()[surfel] + v.clamp(min=0) * res[owner, 0] + u.clamp(min=0)
-        return torch.where(inside[:, None], textures[torch.where(inside, row, 0)], 0.0)
-
-    texel = read(0, 0)
-    rot = quat_to_rotmat(model.quats.detach().double()[surfel])  # [L, 3, 3] columns u, v, n
-    means = model.means.detach().double()[surfel] + lx[:, None] * rot[:, :, 0] + ly[:, None] * rot[:, :, 1]
+    inside = (iu >= 0) & (iu < res[owner, 0]) & (iv >= 0) & (iv < res[owner, 1])
+    row = model.tex_offset.long()[surfel] + iv.clamp(min=0) * res[owner, 0] + iu.clamp(min=0)
+    texel = torch.where(inside[:, None], shared.textures[torch.where(inside, row, 0)].double(), 0.0)  # 0 outside
+    quats = model.quats.detach()[surfel].double()
+    rot = quat_to_rotmat(quats)  # [L, 3, 3] columns u, v, n
+    means = model.means.detach()[surfel].double() + lx[:, None] * rot[:, :, 0] + ly[:, None] * rot[:, :, 1]
     tangent = torch.log(sigma * k[owner])  # [L, 2]
-    sh = model.sh.detach().double()[surfel].clone()
+    sh = model.sh.detach()[surfel].double()
     sh[:, 0, :] += texel / SH_C0
     return {
         "means": means,
         "log_scales": torch.cat([tangent, (tangent.min(1).values + FLAT_LOG_RATIO)[:, None]], 1),
-        "quats": model.quats.detach().double()[surfel],
+        "quats": quats,
         "opacity_logits": torch.log(a / (1.0 - a)),
         "sh": sh,
     }

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ctgs.errors import UserError
-from ctgs.io.ply import read_ply, write_ply
+from ctgs.io.ply import read_ply, write_ply_records
 from ctgs.model.geometry import quat_to_rotmat, rotmat_to_quat
 from ctgs.model.surfels import SurfelModel
 from ctgs.render.constants import CUTOFF_RHO
@@ -29,6 +29,7 @@ PLAIN_SH_COEFFS = 16  # degree 3: 1 DC + 15 rest per channel, what 3DGS viewers 
 # Third (normal-axis) scale relative to the smaller tangent scale: thin enough to look flat, large
 # enough that viewers inverting the 3D covariance stay finite in float32.
 FLAT_SCALE_RATIO = 1e-3
+PLAIN_ROWS = 1 << 16  # rows converted at a time (float64 intermediates; baked models run to millions)
 
 
 def texture_means(model: SurfelModel) -> torch.Tensor:
@@ -58,34 +59,41 @@ def texture_means(model: SurfelModel) -> torch.Tensor:
 def write_plain_ply(model: SurfelModel, path: str, origin=None) -> None:
     """Write the 3DGS-layout approximation of `model` to `path` (float32, atomically). origin: [3] where the model's
     frame has its origin in the scene's COLMAP frame (a recentred scene), written as a header comment
-    `world_origin X Y Z` (positions stay in the model's frame: float32 far from the origin would lose detail)."""
+    `world_origin X Y Z` (positions stay in the model's frame: float32 far from the origin would lose detail).
+    Rows are converted PLAIN_ROWS at a time into the file's own record array (baked models run to millions)."""
     n = model.num_primitives
+    names = ["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{c}" for c in range(3)]
+    names += [f"f_rest_{j}" for j in range(3 * (PLAIN_SH_COEFFS - 1))]
+    names += ["opacity", "scale_0", "scale_1", "scale_2"] + [f"rot_{i}" for i in range(4)]
+    data = np.zeros(n, np.dtype([(name, "<f4") for name in names]))
+    means_tex = texture_means(model) / SH_C0  # [N, 3]
+    k = min(model.sh.shape[1], PLAIN_SH_COEFFS, (model.sh_degree + 1) ** 2)  # bands the model actually renders
     f32 = lambda t: t.detach().cpu().to(torch.float32).numpy()  # noqa: E731
-    sh = model.sh.detach().cpu().double().clone()  # [N, K, 3]
-    sh[:, 0, :] += texture_means(model) / SH_C0
-    full = torch.zeros(n, PLAIN_SH_COEFFS, 3, dtype=torch.float64)
-    k = min(sh.shape[1], PLAIN_SH_COEFFS, (model.sh_degree + 1) ** 2)  # bands the model actually renders
-    full[:, :k] = sh[:, :k]
-    rest = full[:, 1:, :].transpose(1, 2).reshape(n, -1)  # [N, 45] channel-major, 3DGS order
-    log_s = model.log_scales.detach().cpu().double()
-    flat = log_s.min(1).values + np.log(FLAT_SCALE_RATIO)
-    cols: dict[str, np.ndarray] = {}
-    for i, axis in enumerate("xyz"):
-        cols[axis] = f32(model.means[:, i])
-    for axis in ("nx", "ny", "nz"):
-        cols[axis] = np.zeros(n, np.float32)
-    for c in range(3):
-        cols[f"f_dc_{c}"] = f32(full[:, 0, c])
-    for j in range(rest.shape[1]):
-        cols[f"f_rest_{j}"] = f32(rest[:, j])
-    cols["opacity"] = f32(model.opacity_logits)
-    cols["scale_0"], cols["scale_1"], cols["scale_2"] = f32(log_s[:, 0]), f32(log_s[:, 1]), f32(flat)
-    for i in range(4):
-        cols[f"rot_{i}"] = f32(model.quats[:, i])
+    for start in range(0, n, PLAIN_ROWS):
+        rows = slice(start, min(n, start + PLAIN_ROWS))
+        m = rows.stop - rows.start
+        sh = model.sh.detach().cpu()[rows, :k].to(torch.float64, copy=True)  # [M, k, 3], never a view of the model
+        sh[:, 0, :] += means_tex[rows]
+        full = torch.zeros(m, PLAIN_SH_COEFFS, 3, dtype=torch.float64)
+        full[:, :k] = sh
+        rest = full[:, 1:, :].transpose(1, 2).reshape(m, -1)  # [M, 45] channel-major, 3DGS order
+        log_s = model.log_scales.detach().cpu()[rows].double()
+        out = data[rows]  # a view: filling it fills data
+        for i, axis in enumerate("xyz"):
+            out[axis] = f32(model.means[rows, i])
+        for c in range(3):
+            out[f"f_dc_{c}"] = f32(full[:, 0, c])
+        for j in range(rest.shape[1]):
+            out[f"f_rest_{j}"] = f32(rest[:, j])
+        out["opacity"] = f32(model.opacity_logits[rows])
+        out["scale_0"], out["scale_1"] = f32(log_s[:, 0]), f32(log_s[:, 1])
+        out["scale_2"] = f32(log_s.min(1).values + np.log(FLAT_SCALE_RATIO))
+        for i in range(4):
+            out[f"rot_{i}"] = f32(model.quats[rows, i])
     comments = ["ctgs plain 3DGS approximation: texture means folded into f_dc"]
     if origin is not None and any(origin):
         comments.append("world_origin " + " ".join(repr(float(x)) for x in origin))
-    write_ply(path, cols, comments=comments)
+    write_ply_records(path, data, comments=comments)
 
 
 def surfels_from_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,

@@ -45,12 +45,27 @@ def write_ply(path: str, columns: dict[str, np.ndarray], comments: list[str] | N
     data = np.empty(n, dtype=np.dtype(fields))
     for name, col in columns.items():
         data[name] = col
+    write_ply_records(path, data, comments)
+
+
+def write_ply_records(path: str, data: np.ndarray, comments: list[str] | None = None) -> None:
+    """Write a structured [N] array (scalar little-endian fields) as a binary PLY `vertex` element, atomically,
+    straight from the array's memory (no copy of it: large baked models)."""
+    if data.ndim != 1 or data.dtype.names is None:
+        raise ValueError("write_ply_records needs a 1-D structured array")
     header = ["ply", "format binary_little_endian 1.0"]
     header += [f"comment {c}" for c in (comments or [])]
-    header.append(f"element vertex {n}")
-    header += [f"property {NUMPY_TO_PLY[np.dtype(t).str[1:]]} {name}" for name, t in fields]
+    header.append(f"element vertex {len(data)}")
+    for name in data.dtype.names:
+        code = data.dtype.fields[name][0].str[1:]
+        if code not in NUMPY_TO_PLY or data.dtype.fields[name][0].str[0] == ">":
+            raise ValueError(f"PLY field {name}: unsupported dtype {data.dtype.fields[name][0]}")
+        header.append(f"property {NUMPY_TO_PLY[code]} {name}")
     header.append("end_header")
-    atomic.write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + data.tobytes())
+    data = np.ascontiguousarray(data)
+    with atomic.atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(memoryview(data).cast("B"))
 
 
 def read_ply(path: str) -> tuple[dict[str, np.ndarray], list[str]]:

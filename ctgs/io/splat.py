@@ -18,12 +18,11 @@ converters' convention: a viewer that streams the file shows the big splats firs
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
 from ctgs.model.surfels import SurfelModel
 
@@ -31,35 +30,39 @@ RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4
 assert RECORD.itemsize == 32
 # Opacity 0 or 1 has no finite logit: a quantised alpha of 0 or 255 reads back as this far from them.
 ALPHA_EPS = 0.5 / 255
+ROWS = 1 << 16  # records converted at a time
 
 
 def splat_records(model: SurfelModel) -> np.ndarray:
-    """[N] RECORD array of `model`, in file order."""
+    """[N] RECORD array of `model`, in file order (converted ROWS at a time: baked models run to millions)."""
     n = model.num_primitives
     rec = np.zeros(n, RECORD)
-    log_s = model.log_scales.detach().cpu().double()  # [N, 2]
-    scales = torch.cat([log_s, (log_s.min(1).values + np.log(FLAT_SCALE_RATIO))[:, None]], 1).exp()  # [N, 3]
-    dc = model.sh.detach().cpu().double()[:, 0, :] + texture_means(model) / SH_C0  # [N, 3]
-    rgb = (0.5 + SH_C0 * dc).clamp(0.0, 1.0)
-    opacity = model.opacities.detach().cpu().double()
-    q = torch.nn.functional.normalize(model.quats.detach().cpu().double(), dim=1)
-    rec["position"] = model.means.detach().cpu().numpy()
-    rec["scale"] = scales.numpy()
-    rec["rgba"][:, :3] = torch.round(255 * rgb).numpy()
-    rec["rgba"][:, 3] = torch.round(255 * opacity).numpy()
-    rec["rot"] = torch.round(128 * q + 128).clamp(0, 255).numpy()
-    importance = (scales[:, 0] * scales[:, 1] * opacity).numpy()
+    importance = np.zeros(n)
+    dc_tex = texture_means(model) / SH_C0  # [N, 3]
+    for start in range(0, n, ROWS):
+        rows = slice(start, min(n, start + ROWS))
+        log_s = model.log_scales.detach().cpu()[rows].double()  # [M, 2]
+        scales = torch.cat([log_s, (log_s.min(1).values + np.log(FLAT_SCALE_RATIO))[:, None]], 1).exp()  # [M, 3]
+        dc = model.sh.detach().cpu()[rows, 0, :].double() + dc_tex[rows]  # [M, 3]
+        rgb = (0.5 + SH_C0 * dc).clamp(0.0, 1.0)
+        opacity = torch.sigmoid(model.opacity_logits.detach().cpu()[rows]).double()
+        q = torch.nn.functional.normalize(model.quats.detach().cpu()[rows].double(), dim=1)
+        out = rec[rows]  # a view
+        out["position"] = model.means.detach().cpu()[rows].numpy()
+        out["scale"] = scales.numpy()
+        out["rgba"][:, :3] = torch.round(255 * rgb).numpy()
+        out["rgba"][:, 3] = torch.round(255 * opacity).numpy()
+        out["rot"] = torch.round(128 * q + 128).clamp(0, 255).numpy()
+        importance[rows] = (scales[:, 0] * scales[:, 1] * opacity).numpy()
     return rec[np.argsort(-importance, kind="stable")]
 
 
 def write_splat(model: SurfelModel, path: str) -> int:
     """Write `model` as a .splat file (atomically: a temporary name, then renamed). Returns its bytes."""
-    data = splat_records(model).tobytes()
-    tmp = path + ".tmp"
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-    return len(data)
+    data = splat_records(model)
+    with atomic.atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(memoryview(data).cast("B"))
+    return data.nbytes
 
 
 def read_splat(path: str) -> SurfelModel:

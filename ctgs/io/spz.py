@@ -54,6 +54,7 @@ STEPS_PER_SCALE = 64  # position step at most 1/64 of the median tangent standar
 LOG_SCALE_MIN, LOG_SCALE_MAX = -10.0, 255 / 16 - 10.0
 FLIP = np.array([1.0, -1.0, -1.0])  # RDF <-> RUB: a half turn about x
 SQRT1_2 = math.sqrt(0.5)
+ROWS = 1 << 16  # points converted at a time
 
 
 def sh_flips(degree: int) -> np.ndarray:
@@ -126,40 +127,45 @@ def quantise_sh(x: np.ndarray, bucket: np.ndarray) -> np.ndarray:
 
 
 def spz_bytes(model: SurfelModel) -> tuple[bytes, dict]:
-    """The uncompressed spz stream (header + arrays) of `model`, and what the encoding clipped."""
+    """The uncompressed spz stream (header + arrays) of `model`, and what the encoding clipped. Converted ROWS
+    points at a time into the byte arrays (baked models run to millions)."""
     n = model.num_primitives
     if n > MAX_POINTS:
         raise UserError(f"{n} primitives: .spz readers refuse more than {MAX_POINTS}; "
                         "export --format ply instead")
     degree = min(int(model.sh_degree), 3, int(round(model.sh.shape[1] ** 0.5)) - 1)
     k = (degree + 1) ** 2
-    means = model.means.detach().cpu().double().numpy() * FLIP
-    log_s = model.log_scales.detach().cpu().double().numpy()  # [N, 2]
-    fb = fractional_bits(means, np.exp(log_s))
-    fixed = np.round(means * 2.0**fb).astype(np.int64).reshape(-1)
-    positions = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], 1).astype(np.uint8)
-    alphas = _u8(model.opacities.detach().cpu().double().numpy() * 255.0)
-    sh = model.sh.detach().cpu().double()
-    dc = (sh[:, 0, :] + texture_means(model) / SH_C0).numpy()  # [N, 3]
-    colours_f = dc * (COLOR_SCALE * 255.0) + 127.5
-    colours = _u8(colours_f)
-    flat = log_s.min(1) + math.log(FLAT_SCALE_RATIO)
-    scales_f = (np.concatenate([log_s, flat[:, None]], 1) + 10.0) * 16.0
-    scales = _u8(scales_f)
-    q = torch.nn.functional.normalize(model.quats.detach().cpu().double(), dim=1).numpy()  # (w, x, y, z)
-    rotations = pack_smallest_three(np.concatenate([q[:, 1:] * FLIP, q[:, :1]], 1))
-    rest = sh[:, 1:k, :].numpy() * sh_flips(degree)[None, :, None]  # [N, K-1, 3], coefficient-major
+    fb = fractional_bits(model.means.detach().cpu().double().numpy() * FLIP,
+                         np.exp(model.log_scales.detach().cpu().double().numpy()))
+    positions, alphas = np.zeros((n, 9), np.uint8), np.zeros(n, np.uint8)  # 3 x 24-bit per point
+    colours, scales, rotations = np.zeros((n, 3), np.uint8), np.zeros((n, 3), np.uint8), np.zeros((n, 4), np.uint8)
+    sh_q = np.zeros((n, k - 1, 3), np.uint8)
+    dc_tex = (texture_means(model) / SH_C0).numpy()  # [N, 3]
+    flips = sh_flips(degree)[None, :, None]
     buckets = np.array([8] * min(3, k - 1) + [16] * max(0, k - 4), dtype=np.int64)[None, :, None]  # 5 / 4 bits
-    sh_q = quantise_sh(rest, buckets)
+    clipped = {"fractional_bits": fb, "sh_degree": degree, "tangent_scales_clipped": 0, "colours_clipped": 0,
+               "sh_clipped": 0}
+    for start in range(0, n, ROWS):
+        rows = slice(start, min(n, start + ROWS))
+        means = model.means.detach().cpu()[rows].double().numpy() * FLIP
+        fixed = np.round(means * 2.0**fb).astype(np.int64).reshape(-1)
+        positions[rows] = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], 1).reshape(-1, 9)
+        alphas[rows] = _u8(torch.sigmoid(model.opacity_logits.detach().cpu()[rows]).double().numpy() * 255.0)
+        sh = model.sh.detach().cpu()[rows, :k].double().numpy()  # [M, K, 3]
+        colours_f = (sh[:, 0, :] + dc_tex[rows]) * (COLOR_SCALE * 255.0) + 127.5
+        colours[rows] = _u8(colours_f)
+        log_s = model.log_scales.detach().cpu()[rows].double().numpy()  # [M, 2]
+        scales_f = (np.concatenate([log_s, (log_s.min(1) + math.log(FLAT_SCALE_RATIO))[:, None]], 1) + 10.0) * 16.0
+        scales[rows] = _u8(scales_f)
+        q = torch.nn.functional.normalize(model.quats.detach().cpu()[rows].double(), dim=1).numpy()  # (w, x, y, z)
+        rotations[rows] = pack_smallest_three(np.concatenate([q[:, 1:] * FLIP, q[:, :1]], 1))
+        rest = sh[:, 1:k, :] * flips  # [M, K-1, 3], coefficient-major
+        sh_q[rows] = quantise_sh(rest, buckets)
+        clipped["tangent_scales_clipped"] += int(((scales_f[:, :2] < -0.5) | (scales_f[:, :2] > 255.5)).sum())
+        clipped["colours_clipped"] += int(((colours_f < -0.5) | (colours_f > 255.5)).sum())
+        clipped["sh_clipped"] += int((np.abs(rest) > 127.5 / 128).sum())
     header = HEADER.pack(MAGIC, VERSION, n, degree, fb, 0, 0)
     body = b"".join(a.tobytes() for a in (positions, alphas, colours, scales, rotations, sh_q))
-    clipped = {
-        "fractional_bits": fb,
-        "sh_degree": degree,
-        "tangent_scales_clipped": int(((scales_f[:, :2] < -0.5) | (scales_f[:, :2] > 255.5)).sum()),
-        "colours_clipped": int(((colours_f < -0.5) | (colours_f > 255.5)).sum()),
-        "sh_clipped": int((np.abs(rest) > 127.5 / 128).sum()),
-    }
     return header + body, clipped
 
 

@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from factory_io import random_model
 
 from ctgs.cli import main
+from ctgs.errors import UserError
 from ctgs.io.bake import BAKE_SIGMA, bake_texels, split_opacity
 from ctgs.io.plain_ply import SH_C0, texture_means
 from ctgs.metrics.psnr import psnr
@@ -117,3 +118,39 @@ def test_export_bakes_ply_splat_spz_and_refuses_other_formats(tmp_path):
     res = CliRunner().invoke(main, ["export", str(run), "--format", "glb", "--bake-textures"])
     assert res.exit_code != 0 and "--bake-textures applies to --format ply, splat, spz" in res.output
     assert not (run / "model.glb").exists()
+
+
+def _fields_equal(a: SurfelModel, b: SurfelModel) -> None:
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh", "tex_res", "tex_offset"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+@pytest.mark.parametrize("chunk", [1, 37, 500])
+def test_baking_a_chunk_at_a_time_gives_the_same_splats(chunk):
+    m = random_model(n=40, sh_degree=2, seed=5)
+    whole = bake_texels(m, chunk_splats=1 << 30)
+    part = bake_texels(m, chunk_splats=chunk)  # 1: every surfel its own chunk; 37: many lattices split between
+    assert whole.num_primitives > 40
+    _fields_equal(whole, part)
+
+
+def test_max_splats_refuses_before_baking_the_rest():
+    m = random_model(n=40, sh_degree=1, seed=6)
+    n = bake_texels(m).num_primitives
+    assert bake_texels(m, max_splats=n).num_primitives == n
+    with pytest.raises(UserError, match=f"more than {n - 1} splats .* export --format ply"):
+        bake_texels(m, max_splats=n - 1, chunk_splats=64)
+
+
+def test_spz_export_over_the_readers_limit_is_refused_and_writes_nothing(tmp_path, monkeypatch):
+    import ctgs.io.spz
+
+    run = tmp_path / "run"
+    run.mkdir()
+    m = random_model(n=20, sh_degree=1, seed=4)
+    torch.save({"model": m.state_dict(), "scene_dir": str(tmp_path / "scene"), "images": "images", "holdout": 8,
+                "iteration": 7, "config": {}}, run / "model.pt")
+    monkeypatch.setattr(ctgs.io.spz, "MAX_POINTS", 1000)
+    res = CliRunner().invoke(main, ["export", str(run), "--format", "spz", "--bake-textures"])
+    assert res.exit_code != 0 and "more than 1000 splats" in res.output and "--format ply" in res.output
+    assert sorted(p.name for p in run.iterdir()) == ["model.pt"]
