@@ -34,6 +34,7 @@ sharpening the texels first were tried there too and did not help (-0.06 and -0.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -42,7 +43,7 @@ import torch
 from ctgs.errors import UserError
 from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
 from ctgs.model.geometry import quat_to_rotmat
-from ctgs.model.surfels import SurfelModel
+from ctgs.model.surfels import SurfelModel, jagged_offsets
 from ctgs.render.constants import CUTOFF_RHO, MAX_ALPHA, MIN_ALPHA
 from ctgs.train.texels import active_half_extent
 
@@ -86,23 +87,31 @@ def split_opacity(target: torch.Tensor, sigma: float = BAKE_SIGMA) -> torch.Tens
 
 
 def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA, lattice_max_texel: float = LATTICE_MAX_TEXEL,
-                max_splats: int | None = None, chunk_splats: int = CHUNK_SPLATS) -> SurfelModel:
+                max_splats: int | None = None, budget: int | None = None, levels: torch.Tensor | None = None,
+                chunk_splats: int = CHUNK_SPLATS) -> SurfelModel:
     """`model` with every textured surfel replaced by its lattice of texel splats (module docstring); untextured,
     float32, texture_mode "none".
+
+    budget: at most this many splats in all. Where the full bake has more, textures are baked on coarser texels
+    where that costs least (plan_levels: each surfel's texels box-averaged over 2^l x 2^l blocks, or its texture
+    folded into one colour), so flat textures give up their splats first. UserError if even one splat per surfel
+    is more than the budget. levels: an explicit plan instead ([N]: the level per surfel, FOLD for one splat; a level
+    a surfel cannot take is refused with ValueError).
 
     Surfels are baked a chunk at a time (at most `chunk_splats` lattice points each, one surfel past it when a
     single lattice is larger) in float64 and kept in float32, so memory grows with the splats written, not with
     the float64 intermediates. max_splats: raise UserError as soon as the count passes it (a format's limit),
     before the rest is baked."""
     n = model.num_primitives
-    res = model.tex_res.long()
-    textured = (res[:, 0] * res[:, 1] > 0) & (model.texture_mode != "none")
-    if model.num_texels == 0 or not bool(textured.any()):
-        fine = torch.zeros(n, dtype=torch.bool)
-    else:
-        k = model.texel_size.detach().double().max(1).values
-        fine = textured & (k <= lattice_max_texel * model.scales.detach().double().min(1).values)
-    keep = torch.nonzero(~fine).squeeze(1)  # surfels that stay one splat each
+    if budget is not None and levels is not None:
+        raise ValueError("pass budget or levels, not both")
+    if budget is not None:
+        levels = plan_levels(model, budget, sigma, lattice_max_texel, chunk_splats)["level"]
+    elif levels is None:
+        levels = torch.where(_latticeable(model, lattice_max_texel, 0), 0, FOLD)
+    for level in set(levels.tolist()) - {FOLD}:
+        if not bool(_latticeable(model, lattice_max_texel, level)[levels == level].all()):
+            raise ValueError(f"level {level} asked of surfels whose texture grid or texel size does not allow it")
     total = 0
 
     def counted(count: int) -> None:
@@ -110,18 +119,19 @@ def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA, lattice_max_texel
         total += count
         if max_splats is not None and total > max_splats:
             raise UserError(f"baking the textures gives more than {max_splats} splats (the format's limit; the model "
-                            f"has {n} surfels and {model.num_texels} texels): export --format ply, or without "
-                            "--bake-textures")
+                            f"has {n} surfels and {model.num_texels} texels): pass --bake-max-splats {max_splats}, "
+                            "or export --format ply")
 
+    keep = torch.nonzero(levels == FOLD).squeeze(1)  # surfels that stay one splat each
     counted(len(keep))
     parts = []
-    idx = torch.nonzero(fine).squeeze(1)
-    if len(idx):
-        shared = _Shared(model)
-        rings, lat = _lattice_sizes(model, idx, shared)
+    for level in sorted(set(levels.tolist()) - {FOLD}):
+        idx = torch.nonzero(levels == level).squeeze(1)
+        coarse, shared = _level_model(model, level, levels == level)
+        rings, lat = _lattice_sizes(coarse, idx, shared)
         sizes = lat[:, 0] * lat[:, 1]
         for chunk in _chunks(sizes, chunk_splats):
-            parts.append(_to_surfels(_lattice(model, idx[chunk], rings[chunk], lat[chunk], shared, sigma)))
+            parts.append(_to_surfels(_lattice(coarse, idx[chunk], rings[chunk], lat[chunk], shared, sigma)))
             counted(parts[-1].num_primitives)
     # The other surfels as one splat each, their texture folded into the DC band (as the plain exports do).
     log_s = model.log_scales.detach().double()[keep]
@@ -140,11 +150,143 @@ def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA, lattice_max_texel
     return out
 
 
+FOLD = -1  # plan level of a surfel baked as one splat, its texture folded into one colour
+
+
+def _latticeable(model: SurfelModel, lattice_max_texel: float, level: int) -> torch.Tensor:
+    """[N] bool: textured surfels that bake to a lattice at `level` (texels 2^level x as wide, tiling the grid,
+    no wider than lattice_max_texel x the smaller sigma)."""
+    res = model.tex_res.long()
+    if model.num_texels == 0 or model.texture_mode == "none":
+        return torch.zeros(model.num_primitives, dtype=torch.bool)
+    block = 1 << level
+    tiles = (res[:, 0] % block == 0) & (res[:, 1] % block == 0) & (res[:, 0] * res[:, 1] > 0)
+    k = model.texel_size.detach().double().max(1).values * block
+    return tiles & (k <= lattice_max_texel * model.scales.detach().double().min(1).values)
+
+
+def _texel_rows(model: SurfelModel, which: torch.Tensor):
+    """(surfel, iu, iv, texture row) of every texel of the surfels `which` ([N] bool)."""
+    res = model.tex_res.long() * which[:, None]
+    sizes = res[:, 0] * res[:, 1]
+    prim = torch.repeat_interleave(torch.arange(model.num_primitives), sizes)
+    local = torch.arange(int(sizes.sum())) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
+    return prim, local % res[prim, 0], local // res[prim, 0], model.tex_offset.long()[prim] + local
+
+
+def _level_model(model: SurfelModel, level: int, which: torch.Tensor) -> tuple[SurfelModel, "_Shared"]:
+    """`model` with the textures of surfels `which` box-averaged over 2^level x 2^level texel blocks (the grid
+    centre stays where it was: every block tiles it), the others untextured; and its _Shared, whose activated
+    textures are the averages."""
+    if level == 0:
+        return model, _Shared(model)
+    block = 1 << level
+    prim, iu, iv, row = _texel_rows(model, which)
+    res = (model.tex_res.long() * which[:, None]) // block
+    offsets = jagged_offsets(res.to(torch.int32))
+    coarse = torch.zeros(int((res[:, 0] * res[:, 1]).sum()), 3)
+    target = offsets[prim] + (iv // block) * res[prim, 0] + iu // block
+    coarse.index_add_(0, target, model.textures.detach().float()[row])
+    coarse /= block * block
+    t2p = model.t2p_exp + level if model.texture_mode == "content_aware" else model.t2p_exp
+    derived = dataclasses.replace(model, tex_res=res.to(torch.int32), tex_offset=offsets, t2p_exp=t2p,
+                                  textures_raw=torch.zeros(len(coarse), 3))
+    return derived, _Shared(derived, textures=coarse)
+
+
+def plan_levels(model: SurfelModel, budget: int, sigma: float = BAKE_SIGMA,
+                lattice_max_texel: float = LATTICE_MAX_TEXEL, chunk_splats: int = CHUNK_SPLATS,
+                area: str = "pixels") -> dict:
+    """Per surfel, the texel level to bake at so that the splats fit `budget`: {"level": [N] (0 = the texels as
+    trained, l = 2^l x 2^l blocks averaged, FOLD = one splat), "splats": the total, "error": the plan's error}.
+
+    Each surfel's options are scored by the detail they drop, E = sum over its texels of alpha x texel area x
+    |texel - what the option shows there|^2 (the block mean, or the folded colour), and the splats S they bake to
+    (counted as the bake counts them). The plan minimises sum E + lambda sum S, lambda the least (by bisection)
+    for which sum S fits the budget: flat textures (E ~ 0 at every level) go coarse first, detailed ones last."""
+    n = model.num_primitives
+    levels, errors, counts = [FOLD], [torch.zeros(n, dtype=torch.float64)], [torch.ones(n, dtype=torch.float64)]
+    lattice_ok = _latticeable(model, lattice_max_texel, 0)
+    if bool(lattice_ok.any()):
+        prim, iu, iv, row = _texel_rows(model, lattice_ok)
+        tex = model.textures.detach().double()[row]  # [T', 3]
+        res = model.tex_res.long()
+        k = model.texel_size.detach().double()[prim]  # [T', 2]
+        lx = (iu.double() - (res[prim, 0].double() - 1) / 2) * k[:, 0]
+        ly = (iv.double() - (res[prim, 1].double() - 1) / 2) * k[:, 1]
+        scales = model.scales.detach().double()[prim]
+        rho = (lx / scales[:, 0]) ** 2 + (ly / scales[:, 1]) ** 2
+        texel_area = k[:, 0] * k[:, 1]  # world units^2
+        if area == "pixels":  # in pixels of the closest training camera (k_min: its pixel's world size there)
+            texel_area = texel_area / model.k_min.detach().double()[prim] ** 2
+        weight = model.opacities.detach().double()[prim] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO) * texel_area
+
+        def error_against(shown: torch.Tensor) -> torch.Tensor:  # [T', 3] -> [N]
+            return torch.zeros(n, dtype=torch.float64).index_add_(0, prim, weight * ((tex - shown) ** 2).sum(1))
+
+        errors[0] = torch.where(lattice_ok, error_against(texture_means(model)[prim]), 0.0)
+        level = 0
+        while True:
+            ok = _latticeable(model, lattice_max_texel, level)
+            if not bool(ok.any()):
+                break
+            coarse, shared = _level_model(model, level, ok)
+            idx = torch.nonzero(ok).squeeze(1)
+            rings, lat = _lattice_sizes(coarse, idx, shared)
+            count = torch.full((n,), math.inf, dtype=torch.float64)
+            for chunk in _chunks(lat[:, 0] * lat[:, 1], chunk_splats):
+                owner = _lattice_points(coarse, idx[chunk], rings[chunk], lat[chunk], shared, sigma)[0]
+                count[idx[chunk]] = torch.bincount(owner, minlength=len(idx[chunk])).double()
+            if level == 0:
+                err = torch.zeros(n, dtype=torch.float64)
+            else:
+                block = 1 << level
+                cres = coarse.tex_res.long()
+                on = ok[prim]
+                crow = coarse.tex_offset.long()[prim] + (iv // block) * cres[prim, 0] + iu // block
+                shown = torch.where(on[:, None], shared.textures.double()[torch.where(on, crow, 0)], tex)
+                err = error_against(shown)
+            levels.append(level)
+            errors.append(torch.where(ok, err, math.inf))
+            counts.append(count)
+            if level == 0 and float(torch.where(lattice_ok, count, 1.0).sum()) <= budget:
+                break  # the full bake fits: no coarser level needed
+            level += 1
+    E, S = torch.stack(errors, 1), torch.stack(counts, 1)  # [N, options]; option 0 = FOLD
+    S_safe = torch.where(torch.isfinite(E), S, math.inf)
+    choice_of = lambda lam: torch.argmin(torch.where(torch.isfinite(E), E + lam * S_safe, math.inf), 1)  # noqa: E731
+
+    def total(choice: torch.Tensor) -> float:
+        return float(S_safe.gather(1, choice[:, None]).sum())
+
+    if n > budget:
+        raise UserError(f"--bake-max-splats {budget}: the model has {n} surfels and bakes to at least one splat each; "
+                        f"pass at least {n}")
+    finest = torch.where(lattice_ok, levels.index(0) if 0 in levels else 0, 0)  # the unbudgeted bake's plan
+    choice = finest
+    if total(finest) > budget:  # bisect lambda (geometrically): sum S falls as lambda grows
+        lo, hi = 0.0, 1.0
+        while total(choice_of(hi)) > budget:
+            lo, hi = hi, hi * 4.0
+        for _ in range(200):
+            mid = hi / 2 if lo == 0.0 else math.sqrt(lo * hi)
+            if total(choice_of(mid)) > budget:
+                lo = mid
+            else:
+                hi = mid
+            if lo > 0.0 and hi / lo < 1.0 + 1e-9:
+                break
+        choice = choice_of(hi)
+    level_of = torch.tensor(levels)[choice]
+    return {"level": level_of, "splats": int(total(choice)), "full_splats": int(total(finest)),
+            "error": float(E.gather(1, choice[:, None]).sum())}
+
+
 class _Shared:
     """Per-model arrays every chunk reads (computed once: the texel activation is over all texels)."""
 
-    def __init__(self, model: SurfelModel):
-        self.textures = model.textures.detach().float()  # [T, 3] activated texels
+    def __init__(self, model: SurfelModel, textures: torch.Tensor | None = None):
+        self.textures = model.textures.detach().float() if textures is None else textures  # [T, 3] activated
         self.half = active_half_extent(model).double()  # [N, 2] where alpha can reach 1/255
         self.opacity = model.opacities.detach().double()  # [N]
 
@@ -194,20 +336,7 @@ def _lattice(model: SurfelModel, idx: torch.Tensor, rings: torch.Tensor, lat: to
     Gaussian arrays."""
     res = model.tex_res.long()[idx]  # [M, 2]
     k = model.texel_size.detach().double()[idx]  # [M, 2] world units per texel
-    scales = model.scales.detach().double()[idx]  # [M, 2]
-    grid_half = (res.double() - 1) / 2  # [M, 2] texel coordinate of the grid's centre
-    sizes = lat[:, 0] * lat[:, 1]
-    owner = torch.repeat_interleave(torch.arange(len(idx)), sizes)  # [L] which surfel (position in idx)
-    local = torch.arange(int(sizes.sum())) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
-    iu = local % lat[owner, 0] - rings[owner, 0]  # [L] texel coordinates in the texture grid (may be outside)
-    iv = local // lat[owner, 0] - rings[owner, 1]
-    lx = (iu.double() - grid_half[owner, 0]) * k[owner, 0]
-    ly = (iv.double() - grid_half[owner, 1]) * k[owner, 1]
-    rho = (lx / scales[owner, 0]) ** 2 + (ly / scales[owner, 1]) ** 2
-    target = shared.opacity[idx][owner] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
-    a = split_opacity(target, sigma)
-    on = a >= MIN_ALPHA
-    owner, iu, iv, lx, ly, a = owner[on], iu[on], iv[on], lx[on], ly[on], a[on]
+    owner, iu, iv, lx, ly, a = _lattice_points(model, idx, rings, lat, shared, sigma)
     surfel = idx[owner]
     inside = (iu >= 0) & (iu < res[owner, 0]) & (iv >= 0) & (iv < res[owner, 1])
     row = model.tex_offset.long()[surfel] + iv.clamp(min=0) * res[owner, 0] + iu.clamp(min=0)
@@ -225,3 +354,26 @@ def _lattice(model: SurfelModel, idx: torch.Tensor, rings: torch.Tensor, lat: to
         "opacity_logits": torch.log(a / (1.0 - a)),
         "sh": sh,
     }
+
+
+def _lattice_points(model: SurfelModel, idx: torch.Tensor, rings: torch.Tensor, lat: torch.Tensor, shared: _Shared,
+                    sigma: float):
+    """(owner, iu, iv, lx, ly, a) of the lattice points of surfels `idx` that bake to a splat: owner = position in
+    idx, (iu, iv) texel coordinates in the grid (outside it in the rings), (lx, ly) local position, a the peak
+    opacity (split_opacity of the surfel's alpha there, >= 1/255)."""
+    res = model.tex_res.long()[idx]  # [M, 2]
+    k = model.texel_size.detach().double()[idx]  # [M, 2] world units per texel
+    scales = model.scales.detach().double()[idx]  # [M, 2]
+    grid_half = (res.double() - 1) / 2  # [M, 2] texel coordinate of the grid's centre
+    sizes = lat[:, 0] * lat[:, 1]
+    owner = torch.repeat_interleave(torch.arange(len(idx)), sizes)  # [L] which surfel (position in idx)
+    local = torch.arange(int(sizes.sum())) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
+    iu = local % lat[owner, 0] - rings[owner, 0]  # [L] texel coordinates in the texture grid (may be outside)
+    iv = local // lat[owner, 0] - rings[owner, 1]
+    lx = (iu.double() - grid_half[owner, 0]) * k[owner, 0]
+    ly = (iv.double() - grid_half[owner, 1]) * k[owner, 1]
+    rho = (lx / scales[owner, 0]) ** 2 + (ly / scales[owner, 1]) ** 2
+    target = shared.opacity[idx][owner] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
+    a = split_opacity(target, sigma)
+    on = a >= MIN_ALPHA
+    return owner[on], iu[on], iv[on], lx[on], ly[on], a[on]

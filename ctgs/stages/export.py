@@ -25,6 +25,7 @@ class Export:
     plain_ply: bool
     texel_bits: int = 8  # web: bits per texel channel in the atlas
     baked: bool = False  # ply / splat / spz: textures baked into one splat per texel (ctgs.io.bake)
+    bake_note: str = ""  # what a splat budget changed in the bake
 
 
 def _ctgs(e: Export) -> str:
@@ -37,7 +38,7 @@ def _ctgs(e: Export) -> str:
 
 
 def _textures(e: Export) -> str:
-    return "textures baked: a splat per texel" if e.baked else "textures folded into the DC colour"
+    return ("textures baked: a splat per texel" + e.bake_note) if e.baked else "textures folded into the DC colour"
 
 
 def _ply(e: Export) -> str:
@@ -157,23 +158,43 @@ def default_out(source: str, fmt: str) -> str:
 @click.option("--bake-textures", is_flag=True,
               help="With --format ply, splat or spz: one small splat per texel instead of one per surfel, so Gaussian "
                    "viewers show the texture detail (many times the splats and bytes; docs/model_format.md).")
-def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits: str, bake_textures: bool) -> None:
+@click.option("--bake-max-splats", type=click.IntRange(min=1), default=None,
+              help="With --bake-textures: at most this many splats; past it, textures are baked on coarser texels "
+                   "(2x2, 4x4... blocks averaged) or folded, the flattest first. spz: at most its readers' 10M "
+                   "points in any case.")
+def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits: str, bake_textures: bool,
+            bake_max_splats: int | None) -> None:
     """Write RUN_DIR's model (or a model folder's, e.g. a compressed one) in the chosen format."""
     from ctgs.errors import UserError
 
     if bake_textures and fmt not in BAKED_FORMATS:
         raise UserError(f"--bake-textures applies to --format {', '.join(BAKED_FORMATS)}; --format {fmt} keeps the "
                         "textures themselves: drop the option")
+    if bake_max_splats is not None and not bake_textures:
+        raise UserError("--bake-max-splats applies with --bake-textures: add it, or drop --bake-max-splats")
     model, info = load_source(source)
     out = out or default_out(source, fmt)
     if FORMATS[fmt].suffix and os.path.isdir(out):  # formats with a suffix write one file
         raise UserError(f"{out}: is a folder; --format {fmt} writes one file, pass a file name with -o")
+    note = ""
     if bake_textures:
-        from ctgs.io.bake import bake_texels
+        from ctgs.io.bake import bake_texels, plan_levels
+        from ctgs.io.spz import MAX_POINTS
 
-        model = bake_texels(model)
+        budget = bake_max_splats
+        if fmt == "spz" and (budget is None or budget > MAX_POINTS):
+            budget = MAX_POINTS  # what .spz readers accept
+        levels = None
+        if budget is not None:
+            plan = plan_levels(model, budget)
+            levels = plan["level"]
+            if plan["splats"] < plan["full_splats"]:
+                note = (f", fitted to {budget} splats (the full bake: {plan['full_splats']}; surfels on their own "
+                        f"texels {int((levels == 0).sum())}, on coarser texels {int((levels > 0).sum())}, folded "
+                        f"{int((levels < 0).sum())})")
+        model = bake_texels(model, levels=levels, max_splats=MAX_POINTS if fmt == "spz" else None)
     parent = os.path.dirname(os.path.abspath(out))
     os.makedirs(parent, exist_ok=True)
     summary = FORMATS[fmt].write(Export(model=model, out=out, source=info, plain_ply=plain_ply,
-                                        texel_bits=int(texel_bits), baked=bake_textures))
+                                        texel_bits=int(texel_bits), baked=bake_textures, bake_note=note))
     click.echo(f"{out}: {summary}")

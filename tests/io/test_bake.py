@@ -12,7 +12,7 @@ from factory_io import random_model
 
 from ctgs.cli import main
 from ctgs.errors import UserError
-from ctgs.io.bake import BAKE_SIGMA, bake_texels, split_opacity
+from ctgs.io.bake import BAKE_SIGMA, bake_texels, plan_levels, split_opacity
 from ctgs.io.plain_ply import SH_C0, texture_means
 from ctgs.metrics.psnr import psnr
 from ctgs.model.geometry import rotmat_to_quat
@@ -142,15 +142,79 @@ def test_max_splats_refuses_before_baking_the_rest():
         bake_texels(m, max_splats=n - 1, chunk_splats=64)
 
 
-def test_spz_export_over_the_readers_limit_is_refused_and_writes_nothing(tmp_path, monkeypatch):
-    import ctgs.io.spz
-
+def _run(tmp_path, m: SurfelModel):
     run = tmp_path / "run"
     run.mkdir()
-    m = random_model(n=20, sh_degree=1, seed=4)
     torch.save({"model": m.state_dict(), "scene_dir": str(tmp_path / "scene"), "images": "images", "holdout": 8,
                 "iteration": 7, "config": {}}, run / "model.pt")
+    return run
+
+
+def test_spz_export_fits_the_readers_limit_and_says_so(tmp_path, monkeypatch):
+    import ctgs.io.spz
+
+    m = random_model(n=20, sh_degree=1, seed=4)
+    run = _run(tmp_path, m)
+    assert bake_texels(m).num_primitives > 1000
     monkeypatch.setattr(ctgs.io.spz, "MAX_POINTS", 1000)
     res = CliRunner().invoke(main, ["export", str(run), "--format", "spz", "--bake-textures"])
-    assert res.exit_code != 0 and "more than 1000 splats" in res.output and "--format ply" in res.output
+    assert res.exit_code == 0, res.output
+    assert "fitted to 1000 splats" in res.output
+    assert ctgs.io.spz.read_spz(str(run / "model.spz")).num_primitives <= 1000
+
+
+def test_bake_max_splats_needs_bake_textures_and_at_least_a_splat_per_surfel(tmp_path):
+    run = _run(tmp_path, random_model(n=20, sh_degree=1, seed=4))
+    res = CliRunner().invoke(main, ["export", str(run), "--format", "ply", "--bake-max-splats", "100"])
+    assert res.exit_code != 0 and "--bake-max-splats applies with --bake-textures" in res.output
+    res = CliRunner().invoke(main, ["export", str(run), "--format", "ply", "--bake-textures", "--bake-max-splats", "19"])
+    assert res.exit_code != 0 and "20 surfels" in res.output and "at least 20" in res.output
     assert sorted(p.name for p in run.iterdir()) == ["model.pt"]
+
+
+def _flat_and_detailed(n_each: int = 6) -> SurfelModel:
+    """Two rows of identical surfels in front of CAM: the top row's textures flat (one colour), the bottom's random."""
+    parts = []
+    for row, flat in ((-0.45, True), (0.45, False)):
+        for i in range(n_each):
+            m = _surfel(res=16, texel=0.03, scale=0.12, seed=i)
+            if flat:
+                m.textures_raw = torch.full_like(m.textures_raw, 0.3 * (i % 3 - 1))
+            m.means = torch.tensor([[(i - (n_each - 1) / 2) * 0.45, row, 3.0]])
+            parts.append(m)
+    cat = {name: torch.cat([getattr(p, name) for p in parts]) for name in
+           ("means", "log_scales", "quats", "opacity_logits", "sh", "textures_raw", "k_min", "t2p_exp", "tex_res")}
+    return SurfelModel(**cat, tex_offset=jagged_offsets(cat["tex_res"]), sh_degree=1, texture_mode="content_aware")
+
+
+def test_a_budget_coarsens_the_flat_textures_first_and_beats_uniform_coarsening():
+    m = _flat_and_detailed()
+    flat, detailed = torch.arange(12) < 6, torch.arange(12) >= 6
+    full = bake_texels(m)
+    # A budget the full bake fits: the plan is the full bake.
+    plan = plan_levels(m, full.num_primitives)
+    assert plan["splats"] == plan["full_splats"] == full.num_primitives and bool((plan["level"] == 0).all())
+    _fields_equal(bake_texels(m, budget=full.num_primitives), full)
+    # 60% of it (the detailed half's splats and a few): flat textures give up theirs (no detail lost), the detailed
+    # ones keep their texels.
+    half = plan_levels(m, int(0.6 * full.num_primitives))
+    assert half["splats"] <= int(0.6 * full.num_primitives)
+    assert bool((half["level"][detailed] == 0).all()) and bool((half["level"][flat] != 0).all())
+    assert bake_texels(m, levels=half["level"]).num_primitives == half["splats"]
+    # One splat per surfel: everything folded, the plain exports' fold.
+    _fields_equal(bake_texels(m, budget=12), _folded(m))
+    # At the splat count of every surfel on 2x2 blocks, the plan draws the exact model closer than that uniform bake.
+    exact = _img(m).rgb.clamp(0, 1)
+    uniform = bake_texels(m, levels=torch.ones(12, dtype=torch.long))
+    planned = bake_texels(m, budget=uniform.num_primitives)
+    assert planned.num_primitives <= uniform.num_primitives
+    p_uniform = float(psnr(_img(uniform).rgb.clamp(0, 1), exact))
+    p_planned = float(psnr(_img(planned).rgb.clamp(0, 1), exact))
+    assert p_planned > p_uniform + 1.0, (p_planned, p_uniform)  # observed +1.6 dB
+
+
+def test_a_level_the_texture_grid_cannot_take_is_refused():
+    m = _surfel(res=12)  # 12 = 4 x 3: blocks of 2 and 4 tile it, 8 does not
+    bake_texels(m, levels=torch.tensor([2]))
+    with pytest.raises(ValueError, match="level 3"):
+        bake_texels(m, levels=torch.tensor([3]))
