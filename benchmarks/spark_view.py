@@ -1,14 +1,15 @@
-"""Our .spz exports in a third-party Gaussian viewer: Spark (sparkjs.dev, three.js) in headless Chromium.
+"""Our .spz / PLY / .splat exports in a third-party Gaussian viewer: Spark (sparkjs.dev, three.js) in headless Chromium.
 
 ctgs's own checks read an exported file back with our reader and draw it with our renderer (export_formats.py);
 Niantic's reader agrees with ours on every array (tests/io/test_spz.py). What neither shows is what a user sees in
-the viewers they have. This loads each .spz into Spark 2.2 (npm @sparkjsdev/spark with three.js 0.180, installed
+the viewers they have. This loads each file into Spark 2.2 (npm @sparkjsdev/spark with three.js 0.180, installed
 into the ctgs cache), places three.js's camera at each test view of the run (COLMAP's right-down-front camera turned
-into three.js's right-up-back frame, as spz stores the scene; the projection from the view's intrinsics), draws with
+into three.js's right-up-back frame, as spz stores the scene, PLY and .splat turned into it by the usual half
+turn of the mesh about x; the projection from the view's intrinsics), draws with
 Spark's defaults in headless Chromium (SwiftShader WebGL2, no GPU), and scores the screenshot against the test photo
-and against our renderer's image of the same file (read_spz, black background as in the page).
+and against our renderer's image of the same file (read back by ctgs's reader; black background as in the page).
 
-Usage: .venv/bin/python benchmarks/spark_view.py RUN_DIR FILE.spz [FILE.spz ...] [--tag NAME] [--work DIR]
+Usage: .venv/bin/python benchmarks/spark_view.py RUN_DIR FILE.spz|.ply|.splat [FILE ...] [--tag NAME] [--work DIR]
 Writes benchmarks/results/spark_view_<tag>.{json,md,jpg} (the jpg: photo and Spark's image of each file, per view). Needs node, npm (the registry) and Chromium.
 """
 
@@ -35,6 +36,8 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from ctgs.io.run_model import load_run  # noqa: E402
 from record import write_record  # noqa: E402 (benchmarks/record.py)
+from ctgs.io.plain_ply import read_plain_ply  # noqa: E402
+from ctgs.io.splat import read_splat  # noqa: E402
 from ctgs.io.spz import read_spz  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
@@ -67,6 +70,9 @@ window.show = async (url, v) => {
     if (mesh) { scene.remove(mesh); mesh.dispose(); }
     mesh = new SplatMesh({ url });
     await mesh.initialized;
+    // PLY and .splat hold COLMAP's right-down-front frame: a half turn about x puts them in three.js's frame (the
+    // usual Spark recipe for 3DGS files); .spz files are already right-up-back.
+    if (v.flipX) mesh.quaternion.set(1, 0, 0, 0);
     scene.add(mesh);
     meshUrl = url;
   }
@@ -98,6 +104,7 @@ window.ready = true;
 """
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # COLMAP's right-down-front <-> three.js's / spz's right-up-back
+READERS = {".spz": read_spz, ".ply": read_plain_ply, ".splat": read_splat}  # each file read back for our renderer
 
 
 def install() -> str:
@@ -152,7 +159,8 @@ def png_rgb(data: bytes) -> torch.Tensor:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run_dir")
-    ap.add_argument("files", nargs="+", help=".spz files exported from RUN_DIR (ctgs export --format spz ...)")
+    ap.add_argument("files", nargs="+", help=".spz, .ply or .splat files exported from RUN_DIR (ctgs export --format "
+                    "spz|ply|splat ...)")
     ap.add_argument("--tag", required=True)
     ap.add_argument("--work", default=None, help="Folder served to the browser (default RUN_DIR/spark_view).")
     ap.add_argument("--frames", type=int, default=FRAMES, help="Most renders per view before the screenshot.")
@@ -189,14 +197,15 @@ def main() -> None:
             while not browser.evaluate("window.ready === true") and time.time() < deadline:
                 time.sleep(0.2)
             for name, path in zip(names, args.files):
-                ours_model = read_spz(path)
+                ours_model = READERS[os.path.splitext(path)[1]](path)
                 inputs = ours_model.render_inputs()
                 per_view = []
                 for view in views:
                     cam = view.camera
                     browser.set_viewport(cam.width, cam.height)
                     t = time.time()
-                    spec = {**three_view(cam), "frames": args.frames, "waitMs": args.wait_ms}
+                    spec = {**three_view(cam), "frames": args.frames, "waitMs": args.wait_ms,
+                            "flipX": not path.endswith(".spz")}
                     shown = browser.evaluate(f"window.show({json.dumps(name)}, {json.dumps(spec)})", timeout=1200)
                     seconds = time.time() - t
                     shot = png_rgb(browser.screenshot({"x": 0, "y": 0, "width": cam.width, "height": cam.height}))
@@ -240,7 +249,7 @@ def main() -> None:
 
 
 def markdown(r: dict) -> str:
-    lines = [f"# Our .spz exports in Spark (headless Chromium, SwiftShader) ({r['date']})", "",
+    lines = [f"# Our exports in Spark (headless Chromium, SwiftShader) ({r['date']})", "",
              f"Run `{r['run_dir']}`, test views {', '.join(r['test_views'])}. Viewer: {', '.join(r['viewer'])} "
              f"({r['chromium']}); each view rendered until two renders in a row change no pixel (at most "
              f"{r.get('frames', FRAMES)}, {r.get('wait_ms', WAIT_MS)} ms apart). Machine: {r['machine']['platform']}, "
@@ -248,7 +257,7 @@ def markdown(r: dict) -> str:
              f"Command: `{r['command']}` ({r['seconds']:.0f} s). Page errors: {r['page_errors'] or 'none'}.",
              f"Contact sheet `{r['contact_sheet']}`: one row per test view; the photo, then Spark's image of each "
              "file in the order below.", "",
-             "Spark vs ours: the screenshot against our renderer's image of the same file (read_spz); "
+             "Spark vs ours: the screenshot against our renderer's image of the same file (read back by ctgs); "
              "vs photo: against the test photo. Means over the test views.", "",
              "| file | splats | MB | Spark vs photo (dB) | ours vs photo (dB) | Spark vs ours (dB) |",
              "| --- | ---: | ---: | ---: | ---: | ---: |"]

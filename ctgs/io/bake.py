@@ -21,6 +21,10 @@ up to MAX_RINGS more rings of texels (whose texture is 0). A surfel whose texels
 its smaller sigma (a few coarse texels, whose centres may lie outside the surfel: its texture is a gentle gradient
 across it) stays one splat with its texture folded into one colour, as in the plain exports; so do untextured ones.
 
+With a splat budget (`ctgs export --bake-max-splats`, and .spz's 10M points), plan_levels bakes each surfel on its
+own texels, on 2^l x 2^l blocks of them averaged (one splat per block), or folded, choosing per surfel by the detail
+each option drops against the splats it saves: flat textures go coarse first (docs/model_format.md).
+
 What is approximate: coplanar splats composite in depth order rather than summing, so between texel centres the
 nearer splat weighs more than a bilinear lookup would; a lattice of half-texel Gaussians covers at most 90% of a
 cell even at the largest alpha (an opaque surfel lets 10% of what lies behind through, which in a trained scene
@@ -205,6 +209,9 @@ def plan_levels(model: SurfelModel, budget: int, sigma: float = BAKE_SIGMA,
     (counted as the bake counts them). The plan minimises sum E + lambda sum S, lambda the least (by bisection)
     for which sum S fits the budget: flat textures (E ~ 0 at every level) go coarse first, detailed ones last."""
     n = model.num_primitives
+    if n > budget:
+        raise UserError(f"--bake-max-splats {budget}: the model has {n} surfels and bakes to at least one splat each; "
+                        f"pass at least {n}")
     levels, errors, counts = [FOLD], [torch.zeros(n, dtype=torch.float64)], [torch.ones(n, dtype=torch.float64)]
     lattice_ok = _latticeable(model, lattice_max_texel, 0)
     if bool(lattice_ok.any()):
@@ -259,9 +266,6 @@ def plan_levels(model: SurfelModel, budget: int, sigma: float = BAKE_SIGMA,
     def total(choice: torch.Tensor) -> float:
         return float(S_safe.gather(1, choice[:, None]).sum())
 
-    if n > budget:
-        raise UserError(f"--bake-max-splats {budget}: the model has {n} surfels and bakes to at least one splat each; "
-                        f"pass at least {n}")
     finest = torch.where(lattice_ok, levels.index(0) if 0 in levels else 0, 0)  # the unbudgeted bake's plan
     choice = finest
     if total(finest) > budget:  # bisect lambda (geometrically): sum S falls as lambda grows
