@@ -210,8 +210,8 @@ def plan_levels(model: SurfelModel, budget: int, sigma: float = BAKE_SIGMA,
     for which sum S fits the budget: flat textures (E ~ 0 at every level) go coarse first, detailed ones last."""
     n = model.num_primitives
     if n > budget:
-        raise UserError(f"--bake-max-splats {budget}: the model has {n} surfels and bakes to at least one splat each; "
-                        f"pass at least {n}")
+        raise UserError(f"a bake to {budget} splats: the model has {n} surfels and bakes to at least one splat each; "
+                        f"pass --bake-max-splats of at least {n}")
     levels, errors, counts = [FOLD], [torch.zeros(n, dtype=torch.float64)], [torch.ones(n, dtype=torch.float64)]
     lattice_ok = _latticeable(model, lattice_max_texel, 0)
     if bool(lattice_ok.any()):
