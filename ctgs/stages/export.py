@@ -38,7 +38,10 @@ def _ctgs(e: Export) -> str:
 
 
 def _textures(e: Export) -> str:
-    return ("textures baked: a splat per texel" + e.bake_note) if e.baked else "textures folded into the DC colour"
+    if not e.baked:
+        return "textures folded into the DC colour"
+    return "textures baked: a splat per texel or texel block" + e.bake_note if e.bake_note else \
+        "textures baked: a splat per texel"
 
 
 def _ply(e: Export) -> str:
