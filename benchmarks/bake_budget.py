@@ -31,7 +31,7 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from ctgs.io.bake import FOLD, _latticeable, bake_texels, plan_levels  # noqa: E402
+from ctgs.io.bake import FOLD, LATTICE_MAX_TEXEL, _latticeable, bake_texels, plan_levels  # noqa: E402
 from ctgs.io.run_model import load_run  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
@@ -61,7 +61,7 @@ def uniform_levels(model, level: int) -> torch.Tensor:
     finest level it can be, else folded."""
     out = torch.full((model.num_primitives,), FOLD)
     for lv in range(level + 1):
-        out = torch.where(_latticeable(model, 2.0, lv), lv, out)
+        out = torch.where(_latticeable(model, LATTICE_MAX_TEXEL, lv), lv, out)
     return out
 
 

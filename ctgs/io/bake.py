@@ -47,6 +47,7 @@ import torch
 from ctgs.errors import UserError
 from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
 from ctgs.model.geometry import quat_to_rotmat
+from ctgs.model.jagged import texel_coords
 from ctgs.model.surfels import SurfelModel, jagged_offsets
 from ctgs.render.constants import CUTOFF_RHO, MAX_ALPHA, MIN_ALPHA
 from ctgs.train.texels import active_half_extent
@@ -132,7 +133,7 @@ def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA, lattice_max_texel
     for level in sorted(set(levels.tolist()) - {FOLD}):
         idx = torch.nonzero(levels == level).squeeze(1)
         coarse, shared = _level_model(model, level, levels == level)
-        rings, lat = _lattice_sizes(coarse, idx, shared)
+        rings, lat = _lattice_sizes(coarse, idx, shared.half)
         sizes = lat[:, 0] * lat[:, 1]
         for chunk in _chunks(sizes, chunk_splats):
             parts.append(_to_surfels(_lattice(coarse, idx[chunk], rings[chunk], lat[chunk], shared, sigma)))
@@ -157,6 +158,14 @@ def bake_texels(model: SurfelModel, sigma: float = BAKE_SIGMA, lattice_max_texel
 FOLD = -1  # plan level of a surfel baked as one splat, its texture folded into one colour
 
 
+def bake_bound(model: SurfelModel, lattice_max_texel: float = LATTICE_MAX_TEXEL) -> int:
+    """At least the full bake's splat count (its lattice points before the opacity cut), from per-surfel sizes
+    alone: where it fits a budget, the full bake does and no plan is needed."""
+    idx = torch.nonzero(_latticeable(model, lattice_max_texel, 0)).squeeze(1)
+    _, lat = _lattice_sizes(model, idx, active_half_extent(model).double())
+    return int((lat[:, 0] * lat[:, 1]).sum()) + model.num_primitives - len(idx)
+
+
 def _latticeable(model: SurfelModel, lattice_max_texel: float, level: int) -> torch.Tensor:
     """[N] bool: textured surfels that bake to a lattice at `level` (texels 2^level x as wide, tiling the grid,
     no wider than lattice_max_texel x the smaller sigma)."""
@@ -171,11 +180,8 @@ def _latticeable(model: SurfelModel, lattice_max_texel: float, level: int) -> to
 
 def _texel_rows(model: SurfelModel, which: torch.Tensor):
     """(surfel, iu, iv, texture row) of every texel of the surfels `which` ([N] bool)."""
-    res = model.tex_res.long() * which[:, None]
-    sizes = res[:, 0] * res[:, 1]
-    prim = torch.repeat_interleave(torch.arange(model.num_primitives), sizes)
-    local = torch.arange(int(sizes.sum())) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
-    return prim, local % res[prim, 0], local // res[prim, 0], model.tex_offset.long()[prim] + local
+    prim, iu, iv = texel_coords(model.tex_res.long() * which[:, None])
+    return prim, iu, iv, model.tex_offset.long()[prim] + iv * model.tex_res.long()[prim, 0] + iu
 
 
 def _level_model(model: SurfelModel, level: int, which: torch.Tensor) -> tuple[SurfelModel, "_Shared"]:
@@ -239,7 +245,7 @@ def plan_levels(model: SurfelModel, budget: int, sigma: float = BAKE_SIGMA,
                 break
             coarse, shared = _level_model(model, level, ok)
             idx = torch.nonzero(ok).squeeze(1)
-            rings, lat = _lattice_sizes(coarse, idx, shared)
+            rings, lat = _lattice_sizes(coarse, idx, shared.half)
             count = torch.full((n,), math.inf, dtype=torch.float64)
             for chunk in _chunks(lat[:, 0] * lat[:, 1], chunk_splats):
                 owner = _lattice_points(coarse, idx[chunk], rings[chunk], lat[chunk], shared, sigma)[0]
@@ -295,12 +301,12 @@ class _Shared:
         self.opacity = model.opacities.detach().double()  # [N]
 
 
-def _lattice_sizes(model: SurfelModel, idx: torch.Tensor, shared: _Shared) -> tuple[torch.Tensor, torch.Tensor]:
+def _lattice_sizes(model: SurfelModel, idx: torch.Tensor, half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """([M, 2] rings past the texture grid, [M, 2] lattice size) of surfels `idx`."""
     res = model.tex_res.long()[idx]
     k = model.texel_size.detach().double()[idx]
     grid_half = (res.double() - 1) / 2  # texel coordinate of the grid's centre
-    rings = torch.ceil(shared.half[idx] / k - grid_half).clamp(0, MAX_RINGS).long()
+    rings = torch.ceil(half[idx] / k - grid_half).clamp(0, MAX_RINGS).long()
     return rings, res + 2 * rings
 
 

@@ -181,14 +181,14 @@ def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits:
         raise UserError(f"{out}: is a folder; --format {fmt} writes one file, pass a file name with -o")
     note = ""
     if bake_textures:
-        from ctgs.io.bake import bake_texels, plan_levels
+        from ctgs.io.bake import bake_bound, bake_texels, plan_levels
         from ctgs.io.spz import MAX_POINTS
 
         budget = bake_max_splats
         if fmt == "spz" and (budget is None or budget > MAX_POINTS):
             budget = MAX_POINTS  # what .spz readers accept
         levels = None
-        if budget is not None:
+        if budget is not None and bake_bound(model) > budget:  # else the full bake fits: nothing to plan
             plan = plan_levels(model, budget)
             levels = plan["level"]
             if plan["splats"] < plan["full_splats"]:
