@@ -38,12 +38,12 @@ def default_preset() -> str:
 
 
 def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset=None,
-                   time_budget=None):
+                   time_budget=None, max_params=None):
     from ctgs.train.config import load_config, parse_set
 
     overrides = parse_set(list(sets))
     for key, value in (("iterations", iterations), ("images", images), ("backend", backend), ("seed", seed),
-                       ("time_budget", time_budget)):
+                       ("time_budget", time_budget), ("max_params", max_params)):
         if value is not None:
             overrides[key] = value
     saved = os.path.join(run_dir, "config.toml")
@@ -56,7 +56,8 @@ def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume,
 
 
 def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images=None, resume=False,
-               backend=None, seed=None, quiet=False, preset=None, time_budget=None, start_time=None) -> dict:
+               backend=None, seed=None, quiet=False, preset=None, time_budget=None, start_time=None,
+               max_params=None) -> dict:
     """Train; returns the summary. Without preset and config the machine's default preset is used (said on
     stderr unless quiet). A failure before the first checkpoint leaves no run folder behind."""
     import time
@@ -79,7 +80,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
             print(f"ctgs train: preset '{preset}' ({where}; --preset preview|fast|balanced|paper to choose, "
                   f"--time-budget MINUTES to fit a time)", file=sys.stderr)
     cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
-                         time_budget)
+                         time_budget, max_params)
     created = not os.path.exists(run_dir)
     try:
         scene = _load_scene(cfg)
@@ -125,6 +126,9 @@ def _list_keys(ctx, _param, value):
 @click.option("--time-budget", "time_budget", type=float, default=None, metavar="MINUTES",
               help="Plan the iteration count so the whole run ends within MINUTES on this machine (without it, "
                    "the run says how long its fixed length will take).")
+@click.option("--max-params", "max_params", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Size budget: the model ends with at most N parameters (textures coarsened where that loses "
+                   "least, splits stopped where needed; docs/training.md).")
 @click.option("--config", default=None, help="Config overlay: a TOML file or a shipped name (default, 2dgs, ...).")
 @click.option("--iterations", type=int, default=None, help="Override the number of iterations.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")
@@ -136,13 +140,14 @@ def _list_keys(ctx, _param, value):
 @click.option("-q", "--quiet", is_flag=True, help="No progress display.")
 @click.option("--list-keys", is_flag=True, expose_value=False, is_eager=True, callback=_list_keys,
               help="Print every config key with its default and help, then exit.")
-def command(scene_dir, run_dir, preset, time_budget, config, iterations, sets, images, resume, backend, seed, quiet):
+def command(scene_dir, run_dir, preset, time_budget, max_params, config, iterations, sets, images, resume, backend, seed,
+            quiet):
     """Train on SCENE_DIR, writing model.pt, config.toml, log.jsonl and train_summary.json to RUN_DIR."""
     import time
 
     start = time.monotonic()
     summary = train_main(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, quiet,
-                         preset=preset, time_budget=time_budget, start_time=start)
+                         preset=preset, time_budget=time_budget, start_time=start, max_params=max_params)
     click.echo(f"done: {summary['iterations']} iterations in {summary['train_seconds']:.0f} s, "
                f"test PSNR {summary['final_test_psnr']:.2f} dB, {summary['num_primitives']} primitives, "
                f"{summary['num_texels']} texels, {summary['num_params']} params -> {run_dir}")
@@ -151,6 +156,10 @@ def command(scene_dir, run_dir, preset, time_budget, config, iterations, sets, i
         at = summary["estimated_at_it"]
         click.echo(f"wall {summary['wall_seconds'] / 60:.2f} min (estimated {est[0] / 60:.2f} at the start"
                    + (f", {est[1] / 60:.2f} at iteration {at[1]}" if len(est) > 1 else "") + ")")
+    if summary.get("max_params"):
+        over = summary["num_params"] - summary["max_params"]
+        click.echo(f"size budget {summary['max_params']} params: " + ("held" if over <= 0 else
+                   f"missed by {over} (the primitives alone, with 2x2 textures, need more: lower max_primitives)"))
     if "time_budget_s" in summary:
         click.echo(f"time budget {summary['time_budget_s'] / 60:.1f} min: planned {summary['planned_iterations_initial']} "
                    f"iterations at start, ran {summary['iterations']} ({summary['replans']} re-plans), wall "

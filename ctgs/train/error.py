@@ -37,18 +37,27 @@ def accumulate_error(stats_per_view: list[tuple[torch.Tensor, torch.Tensor, int]
 
 
 @torch.no_grad()
-def compute_E(model, views, render_fn, lambda_ssim: float = 0.2) -> torch.Tensor:
+def compute_E(model, views, render_fn, lambda_ssim: float = 0.2, with_support: bool = False):
     """E over ALL `views` (objects with .camera and .image_t [H,W,3] tensors); render_fn(inputs, cam, err)
-    with err a function of the rendered rgb (ctgs.render.render's error_image)."""
+    with err a function of the rendered rgb (ctgs.render.render's error_image).
+
+    with_support: return (E, support) where support [N] is each primitive's blend weight summed over the pixels
+    of the view where it weighs most (the image area it covers at best, in pixels)."""
     inputs = model.render_inputs()
     inputs = type(inputs)(**{k: (v.detach() if torch.is_tensor(v) else v) for k, v in vars(inputs).items()})
     acc = []
+    support = None
     for view in views:
         # The error image of this very render (one pass on the CPU backend, see ctgs.render.render).
         stats = render_fn(inputs, view.camera, lambda rgb, gt=view.image_t: error_image(rgb.clamp(0, 1), gt,
                                                                                         lambda_ssim)).stats
         acc.append((stats.err, stats.contrib, view.image_t.shape[0] * view.image_t.shape[1]))
-    return accumulate_error(acc)
+        if with_support:
+            support = stats.contrib.clone() if support is None else torch.maximum(support, stats.contrib)
+    E = accumulate_error(acc)
+    if not with_support:
+        return E
+    return E, (support if support is not None else torch.zeros_like(E))
 
 
 def top_fraction_mask(values: torch.Tensor, fraction: float) -> torch.Tensor:

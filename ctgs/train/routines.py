@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.train import schedule, texels
+from ctgs.train import schedule, size_budget, texels
 from ctgs.train.error import compute_E, top_fraction_mask
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.split import prune, split
@@ -18,7 +18,11 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     background: optional function model -> [N] bool of primitives the ranking leaves out (never split or upscaled;
     the top fraction is taken among the others).
     """
-    E = compute_E(model, views, render_fn, cfg.lambda_ssim)
+    support = None
+    if cfg.max_params > 0:
+        E, support = compute_E(model, views, render_fn, cfg.lambda_ssim, with_support=True)
+    else:
+        E = compute_E(model, views, render_fn, cfg.lambda_ssim)
     if background is None:
         top = top_fraction_mask(E, cfg.top_fraction)
     else:
@@ -26,15 +30,22 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
         top = torch.zeros_like(bg)
         top[~bg] = top_fraction_mask(E[~bg], cfg.top_fraction)
     n0 = model.num_primitives
-    n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E)
+    if support is None:
+        n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E)
+    else:
+        n_split, top, support = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E,
+                                      carry=support)
     up = texels.upscale(model, opt, top, cfg.min_t2p_exp)
     down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
+    kept = model.opacities.detach() >= cfg.prune_opacity  # what prune keeps (support and up follow it)
     n_pruned = prune(model, opt, cfg.prune_opacity)
     model.k_min = compute_k_min(model.means.detach(), cameras)
     texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
+    # --max-params: what was just upscaled stays; the rest is coarsened where that loses least (size_budget)
+    budget = size_budget.fit(model, opt, cfg, keep=up[kept], support=None if support is None else support[kept])
     return {"E_mean": float(E.mean()) if E.numel() else 0.0, "E_p90": float(E.quantile(0.9)) if E.numel() else 0.0,
             "tau_tr": schedule.tau_tr(cfg, it), "n_before": n0, "split": n_split, "upscaled": int(up.sum()),
-            "downscaled": int(down.sum()), "pruned": n_pruned}
+            "downscaled": int(down.sum()), "pruned": n_pruned, **(budget or {})}
 
 
 @torch.no_grad()
@@ -45,4 +56,5 @@ def late_routine(model, opt, cfg, cameras) -> dict:
     n_pruned = prune(model, opt, cfg.prune_opacity_late)
     model.k_min = compute_k_min(model.means.detach(), cameras)
     texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
-    return {"downscaled": int(down.sum()), "pruned": n_pruned}
+    budget = size_budget.fit(model, opt, cfg)
+    return {"downscaled": int(down.sum()), "pruned": n_pruned, **(budget or {})}

@@ -42,6 +42,7 @@ import math
 from dataclasses import dataclass, replace
 
 from ctgs.train.config import TrainConfig
+from ctgs.train.size_budget import primitive_cap
 
 PAPER_PIXELS = 1.0e6  # "about 1 Mpx": M360 images_4 1237x822 (1.02 Mpx), Deep Blending 1332x876 (1.17 Mpx)
 PAPER_ITERATIONS = 30000
@@ -83,7 +84,9 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
     """
     s = scale_of(cfg, pixels)
     cap = int(round(cfg.primitives_per_pixel * pixels)) if cfg.primitives_per_pixel > 0 else 0
-    caps = [c for c in (cfg.max_primitives, cap) if c > 0]
+    # --max-params: no more primitives than the budget holds with the smallest textures (size_budget)
+    budget_cap = primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)
+    caps = [c for c in (cfg.max_primitives, cap, budget_cap) if c > 0]
     cfg = replace(cfg, max_primitives=min(caps) if caps else 0)
     if not cfg.scale_rules:
         return cfg
@@ -97,8 +100,10 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
 
 
 def init_point_cap(cfg: TrainConfig, pixels: float) -> int:
-    """Initial primitives: max_init_points, and at most primitives_per_pixel per training-image pixel (0 = all)."""
-    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels))) if c > 0]
+    """Initial primitives: max_init_points, at most primitives_per_pixel per training-image pixel, and no more than a
+    --max-params budget holds (size_budget.primitive_cap); 0 = all."""
+    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels)),
+                        primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)) if c > 0]
     return min(caps) if caps else 0
 
 
@@ -114,7 +119,8 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
                       ("tau_tr_end", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
                       ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
                       ("lambda_texture", "x 1e6 / HW"),
-                      ("max_primitives", "min(max_primitives, primitives_per_pixel x HW); 0 = no cap")):
+                      ("max_primitives", "min(max_primitives, primitives_per_pixel x HW, max_params / "
+                                         "(params per primitive + 3 x smallest texture)); 0 = no cap")):
         vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
         unit = {"lambda_texture": "per texel", "max_primitives": "primitives"}.get(key, "texels")
         rows.append({"setting": key, "unit": unit,

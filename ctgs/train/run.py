@@ -48,6 +48,8 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
                "preset": trainer.user_cfg.preset, "wall_seconds": round(trainer.wall_seconds(), 2),
                "image_pixels": trainer.pixels, "observed_values": trainer.observed_values(),
                "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1)}
+    if cfg.max_params > 0:
+        summary["max_params"] = cfg.max_params
     if trainer.planner is not None:
         summary.update(trainer.planner.summary())
     elif trainer.estimator is not None:

@@ -15,13 +15,14 @@ CHILD_OPACITY_FACTOR = math.exp(-0.5)  # each child's opacity: parent's x exp(-1
 
 @torch.no_grad()
 def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int = 0,
-          priority: torch.Tensor | None = None) -> tuple[int, torch.Tensor]:
+          priority: torch.Tensor | None = None, carry: torch.Tensor | None = None):
     """Split candidates whose active resolution on an axis exceeds tau (x axis first, then y).
 
     Children sit at +-(1/6 of the active extent) along the axis, quantised to whole texels, with half the
     scale on that axis and opacity x exp(-1/2); each child's texture is the parent's, shifted so texels
     stay at the same world positions. With max_primitives > 0, splits stop at the budget (largest
-    `priority` first). Returns (number of splits, the [N'] bool candidate mask carried to children).
+    `priority` first). Returns (number of splits, the [N'] bool candidate mask carried to children), and with
+    `carry` (an [N] per-primitive tensor) a third item: carry for the N' primitives (children inherit the parent's).
     """
     total = 0
     for axis in (0, 1):
@@ -60,6 +61,10 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
         candidates = candidates[idx]
         if priority is not None:
             priority = priority[idx]
+        if carry is not None:
+            carry = carry[idx]
+    if carry is not None:
+        return total, candidates, carry
     return total, candidates
 
 

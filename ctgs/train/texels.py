@@ -122,6 +122,31 @@ def texel_weights(model, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
     return torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
 
 
+def _roundtrips(model, sel: torch.Tensor):
+    """Yield (prims, act, down, E_d) per resolution group of the selected primitives: the activated textures
+    [G, 3, rv, ru], their x2 bicubic antialiased downsampling, and E_d [G] (see downscale)."""
+    from ctgs.model import jagged
+
+    for ru, rv, prims in _groups(model.tex_res, sel):
+        raw = jagged.blocks(model.textures_raw.detach(), model.tex_offset, prims, ru, rv)  # [G, rv, ru, 3]
+        act = (2 * torch.sigmoid(raw) - 1).permute(0, 3, 1, 2)  # [G, 3, rv, ru]
+        down = F.interpolate(act, size=(rv // 2, ru // 2), mode="bicubic", antialias=True, align_corners=False)
+        up = F.interpolate(down, size=(rv, ru), mode="bicubic", align_corners=False)
+        diff = (up - act).mean(1).abs()  # [G, rv, ru]
+        w = texel_weights(model, prims, ru, rv)
+        yield ru, rv, prims, down, (diff * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1e-12)
+
+
+@torch.no_grad()
+def downscale_error(model, candidates: torch.Tensor) -> torch.Tensor:
+    """[N] E_d of the candidates that can halve their resolution (> 2 texels on both axes), NaN elsewhere;
+    nothing changes."""
+    e_d = torch.full((model.num_primitives,), float("nan"), device=model.means.device)
+    for _, _, prims, _, ed in _roundtrips(model, candidates & (model.tex_res.min(1).values > 2)):
+        e_d[prims] = ed
+    return e_d
+
+
 @torch.no_grad()
 def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Double the texel size of candidates whose texture survives a x2 bicubic antialiased down/up round trip.
@@ -140,14 +165,7 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torc
         return accepted, e_d
     new_res = model.tex_res.clone()
     blocks = []
-    for ru, rv, prims in _groups(model.tex_res, sel):
-        raw = jagged.blocks(model.textures_raw.detach(), model.tex_offset, prims, ru, rv)  # [G, rv, ru, 3]
-        act = (2 * torch.sigmoid(raw) - 1).permute(0, 3, 1, 2)  # [G, 3, rv, ru]
-        down = F.interpolate(act, size=(rv // 2, ru // 2), mode="bicubic", antialias=True, align_corners=False)
-        up = F.interpolate(down, size=(rv, ru), mode="bicubic", align_corners=False)
-        diff = (up - act).mean(1).abs()  # [G, rv, ru]
-        w = texel_weights(model, prims, ru, rv)
-        ed = (diff * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1e-12)
+    for ru, rv, prims, down, ed in _roundtrips(model, sel):
         e_d[prims] = ed
         ok = ed < tau_ds
         if not bool(ok.any()):
@@ -166,6 +184,57 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torc
         edit.replace_blocks(model, opt, new_res, blocks)
         model.t2p_exp[accepted] += 1
     return accepted, e_d
+
+
+@torch.no_grad()
+def fit_texels(model, opt, max_texels: int, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA,
+               keep: torch.Tensor | None = None, support: torch.Tensor | None = None, trim_eps: float = 0.0,
+               reallocate: bool = True, steps: int = 16) -> dict:
+    """Coarsen textures until the model holds at most max_texels texels (a parameter budget), cheapest first.
+
+    Coarsening a texture one level (downscale with no threshold: texel size x2, a quarter of its texels) loses
+    about E_d (its round-trip error, per unit of image area) over the image area it covers, and saves about 3/4
+    of its texels; so textures go in increasing order of E_d x image area per texel, where the image area per texel
+    is support / texels (support [N]: the surfel's blend weight summed over the pixels of the training view where
+    it weighs most, when the caller rendered them) or else 4**t2p_exp (a texel's area in pixels of the closest
+    camera). Each step coarsens just enough textures to cover the excess, then reallocates (reallocate: the
+    resolutions round up, as between routines), until the count fits or nothing can be coarsened (textures of 2
+    texels on an axis, and `keep` [N] bool: left alone, e.g. just upscaled). With trim_eps > 0 the texels counted
+    are those the final trim will keep (trim_res): padding that trim drops does not count against the budget.
+    Returns {"budget_downscaled", "budget_texels"} (the count as measured, trimmed or not).
+    """
+    def sizes() -> torch.Tensor:
+        res = trim_res(model, trim_eps) if trim_eps > 0 else model.tex_res
+        return res.long().prod(1)
+
+    n_down = 0
+    for _ in range(steps):
+        counts = sizes()
+        excess = int(counts.sum()) - max_texels
+        if excess <= 0:
+            break
+        cand = (model.tex_res.min(1).values > 2) & (counts > 0)
+        if keep is not None:
+            cand &= ~keep
+        if not bool(cand.any()):
+            break
+        e_d = downscale_error(model, cand)
+        idx = torch.nonzero(cand).flatten()
+        n_tex = counts[idx].to(e_d.dtype)
+        if support is None:
+            per_texel = torch.pow(4.0, model.t2p_exp[idx].to(e_d.dtype))
+        else:
+            per_texel = support[idx].to(e_d.dtype) / n_tex
+        order = torch.argsort(e_d[idx] * per_texel, stable=True)
+        saved = torch.cumsum(0.75 * n_tex[order], 0)
+        k = min(int(torch.searchsorted(saved, torch.tensor(float(excess), dtype=saved.dtype))) + 1, len(order))
+        chosen = torch.zeros_like(cand)
+        chosen[idx[order[:k]]] = True
+        down, _ = downscale(model, opt, chosen, float("inf"))
+        n_down += int(down.sum())
+        if reallocate:
+            realloc(model, opt, cap, mode, sigma)
+    return {"budget_downscaled": n_down, "budget_texels": int(sizes().sum())}
 
 
 @torch.no_grad()

@@ -22,7 +22,7 @@ from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.train import checkpoint as ckpt
-from ctgs.train import rules, schedule, texels
+from ctgs.train import rules, schedule, size_budget, texels
 from ctgs.train.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.budget import BudgetPlanner
 from ctgs.train.config import TrainConfig
@@ -476,6 +476,10 @@ class Trainer:
             self._log({"type": "routine", "it": self.it, "kind": "trim", **stats, "n": self.model.num_primitives,
                        "texels": self.model.num_texels})
             yield Routine(self.it, "trim", stats)
+        if (budget := size_budget.fit(self.model, self.opt, cfg, final=True)) is not None:
+            self._log({"type": "routine", "it": self.it, "kind": "budget", **budget, "n": self.model.num_primitives,
+                       "texels": self.model.num_texels})
+            yield Routine(self.it, "budget", budget)
         p, s = self.evaluate()
         self._log({"type": "test", "it": self.it, "psnr": p, "ssim": s})
         yield Eval(self.it, p, s)
@@ -498,7 +502,9 @@ class Trainer:
                     and (self.planner is None or self.planner.measured_plan)):
                 self.textures_started = True
                 self._start_textures()
-                yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean())})
+                budget = size_budget.fit(model, opt, cfg)
+                yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean()),
+                                                    **(budget or {})})
             kind = schedule.routine_kind(cfg, it, self._shift)
             if kind == "full":
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
@@ -507,6 +513,8 @@ class Trainer:
                 yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras))
             elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it, self._shift):
                 texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
+                if (budget := size_budget.fit(model, opt, cfg)) is not None:
+                    yield Routine(it, "budget", budget)
             return
         # Baselines: 3DGS adaptive density control.
         if schedule.densify_active(cfg, it, self._shift):
