@@ -159,7 +159,8 @@ def command(scene_dir, run_dir, preset, time_budget, max_params, config, iterati
     if summary.get("max_params"):
         over = summary["num_params"] - summary["max_params"]
         click.echo(f"size budget {summary['max_params']} params: " + ("held" if over <= 0 else
-                   f"missed by {over} (the primitives alone, with 2x2 textures, need more: lower max_primitives)"))
+                   f"missed by {over} (what is left cannot be coarsened: textures 2 texels wide; "
+                   f"the 'budget' lines of {run_dir}/log.jsonl)"))
     if "time_budget_s" in summary:
         click.echo(f"time budget {summary['time_budget_s'] / 60:.1f} min: planned {summary['planned_iterations_initial']} "
                    f"iterations at start, ran {summary['iterations']} ({summary['replans']} re-plans), wall "

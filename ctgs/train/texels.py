@@ -123,8 +123,8 @@ def texel_weights(model, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
 
 
 def _roundtrips(model, sel: torch.Tensor):
-    """Yield (prims, act, down, E_d) per resolution group of the selected primitives: the activated textures
-    [G, 3, rv, ru], their x2 bicubic antialiased downsampling, and E_d [G] (see downscale)."""
+    """Yield (ru, rv, prims, down, E_d) per resolution group of the selected primitives: the x2 bicubic
+    antialiased downsampling of their activated textures [G, 3, rv/2, ru/2] and E_d [G] (see downscale)."""
     from ctgs.model import jagged
 
     for ru, rv, prims in _groups(model.tex_res, sel):
