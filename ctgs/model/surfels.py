@@ -39,6 +39,12 @@ TEXTURE_MODES = ("content_aware", "fixed", "none")
 FIXED_EXTENT_SIGMA = 3.0
 
 
+def params_per_primitive(max_sh_degree: int, textured: bool) -> int:
+    """SurfelModel.num_params per primitive: 3 position, 2 scale, 4 rotation, 1 opacity, 3 per SH coefficient
+    ((max_sh_degree + 1)^2 of them), and the texel-size exponent of a textured model."""
+    return 10 + 3 * (max_sh_degree + 1) ** 2 + (1 if textured else 0)
+
+
 @dataclass
 class SurfelModel:
     means: torch.Tensor
@@ -73,7 +79,7 @@ class SurfelModel:
         2DGS counts 58 (3 position, 2 scale, 4 rotation, 1 opacity, 48 SH at degree 3); the `none` mode has no
         texel size. SH are counted as stored: 3 per coefficient, (max_sh_degree + 1)^2 coefficients.
         """
-        per_prim = 10 + 3 * int(self.sh.shape[1]) + (0 if self.texture_mode == "none" else 1)
+        per_prim = params_per_primitive(self.max_sh_degree, self.texture_mode != "none")
         return per_prim * self.num_primitives + 3 * self.num_texels
 
     # ---- activations -------------------------------------------------------------------------

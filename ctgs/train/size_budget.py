@@ -15,15 +15,15 @@ from __future__ import annotations
 
 import torch
 
+from ctgs.model import surfels
 from ctgs.train import texels
 
 MIN_TEXELS = 4  # 2x2: the smallest texture a content-aware reallocation gives
 
 
 def params_per_primitive(method: str, max_sh_degree: int) -> int:
-    """SurfelModel.num_params per primitive: 3 position, 2 scale, 4 rotation, 1 opacity, 3 per SH coefficient, and the
-    texel-size exponent of a textured model."""
-    return 10 + 3 * (max_sh_degree + 1) ** 2 + (0 if method == "2dgs" else 1)
+    """SurfelModel.num_params per primitive of a `method` model (the 2dgs baseline has no texel size)."""
+    return surfels.params_per_primitive(max_sh_degree, textured=method != "2dgs")
 
 
 def primitive_cap(method: str, max_sh_degree: int, max_params: int, fixed_texture_res: int = 16) -> int:
