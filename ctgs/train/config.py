@@ -47,6 +47,9 @@ class TrainConfig:
     max_params: int = _f(0, "> 0: a size budget: the model never ends with more parameters (SurfelModel.num_params) "
                          "than this; textures are coarsened where that loses least (texels.fit_texels) and splits "
                          "/ densification stop where even 2x2 textures would not fit (0 = none, the paper)")
+    max_params_per_value: float = _f(0.0, "> 0 and max_params = 0: the size budget relative to the data, max_params "
+                                     "= this x the observed values (RGB of every training pixel; rules."
+                                     "with_size_budget); 0 = none (the paper)")
     preset: str = _f("", "the preset this config was built on (set by `ctgs train --preset`; informational)")
     # ---- initialisation ----
     max_init_points: int = _f(0, "farthest-point subsample SfM points above this count (0 = keep all)")
@@ -198,6 +201,7 @@ _RANGES = [
     ("tau_tr_pixel_exponent", lambda v: 0 <= v <= 1, "in [0, 1]"),
     ("prune_opacity", _prob, "in [0, 1)"), ("prune_opacity_late", _prob, "in [0, 1)"),
     ("max_primitives", _ge(0), ">= 0 (0 = unlimited)"), ("max_params", _ge(0), ">= 0 (0 = no budget)"),
+    ("max_params_per_value", _ge(0), ">= 0 (0 = no budget)"),
     ("max_texture_res", lambda v: v >= 2 and (v & (v - 1)) == 0, "a power of two >= 2"),
     ("min_t2p_exp", lambda v: 0 <= v <= 30, "in 0..30"),
     ("texture_sigma", lambda v: 0 < v <= 3, "in (0, 3] standard deviations"), ("fixed_texture_res", _ge(1), ">= 1"),

@@ -99,6 +99,15 @@ def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
     )
 
 
+def with_size_budget(cfg: TrainConfig, observed_values: int) -> TrainConfig:
+    """max_params from max_params_per_value x the observed values (RGB of every training pixel) when no explicit
+    max_params is given: a budget relative to the data, like the images it is fitted to (same image size and view
+    count -> same budget). Unchanged otherwise."""
+    if cfg.max_params > 0 or cfg.max_params_per_value <= 0:
+        return cfg
+    return replace(cfg, max_params=max(1, int(round(cfg.max_params_per_value * observed_values))))
+
+
 def init_point_cap(cfg: TrainConfig, pixels: float) -> int:
     """Initial primitives: max_init_points, at most primitives_per_pixel per training-image pixel, and no more than a
     --max-params budget holds (size_budget.primitive_cap); 0 = all."""

@@ -128,7 +128,9 @@ class Trainer:
                                 "pixels (it needs two training cameras with SfM points in view); set "
                                 "virtual_coverage = 0")
         self.virtual_order = torch.randperm(len(self.virtual), generator=torch.Generator().manual_seed(cfg.seed + 1))
-        self.cfg = rules.resolve(cfg, self.pixels)
+        # max_params_per_value: the size budget from the observed values (an explicit max_params wins)
+        budgeted = rules.with_size_budget(cfg, self.observed_values())
+        self.cfg = rules.resolve(budgeted, self.pixels)
         self.planner = None  # --time-budget: plans the run's length
         self.estimator = None  # a fresh run of fixed length: the same cost model, estimating its wall time only
         self.wall_before = 0.0  # wall seconds of earlier sessions of this run (resume)
@@ -148,7 +150,7 @@ class Trainer:
             if cfg.init_fill:
                 fill = fill_points(scene.points, scene.train)
                 extra = tuple(f if e is None else np.concatenate([e, f]) for e, f in zip(extra, fill))
-            self.model = init_model(scene.points, scene.point_colors, max_points=rules.init_point_cap(cfg, self.pixels),
+            self.model = init_model(scene.points, scene.point_colors, max_points=rules.init_point_cap(budgeted, self.pixels),
                                     opacity=cfg.init_opacity, max_sh_degree=cfg.max_sh_degree,
                                     random_rotation=cfg.random_rotation, normals=cfg.init_normals, texture_mode=mode,
                                     fixed_res=cfg.fixed_texture_res, seed=cfg.seed, extra_points=extra[0],
