@@ -32,6 +32,7 @@ from types import SimpleNamespace
 import torch
 
 from ctgs.io.run_model import load_run
+from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
 from ctgs.stages.train import _load_scene
@@ -47,11 +48,15 @@ def psnr(se: torch.Tensor) -> float:
     return float(-10 * torch.log10(se.mean()))
 
 
-def fit(inputs, view, sh_degree: int) -> dict:
-    """A view's PSNR and its open pixels (rendered alpha < OPEN_ALPHA)."""
+def fit(inputs, view, sh_degree: int, net=None) -> dict:
+    """A view's PSNR and its open pixels (rendered alpha < OPEN_ALPHA); with an LPIPS net also its LPIPS."""
     out = render(inputs, view.camera, sh_degree=sh_degree)
-    se = ((out.rgb.clamp(0, 1) - torch.from_numpy(view.image)) ** 2).mean(-1)
-    return {"name": view.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean())}
+    rgb = out.rgb.clamp(0, 1)
+    se = ((rgb - torch.from_numpy(view.image)) ** 2).mean(-1)
+    rec = {"name": view.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean())}
+    if net is not None:
+        rec["lpips"] = lpips_hwc(net, rgb, view.image)
+    return rec
 
 
 def by_view_table(title: str, groups: list, key: str, columns: list, extra=None) -> list[str]:
@@ -69,7 +74,7 @@ def by_view_table(title: str, groups: list, key: str, columns: list, extra=None)
     return lines
 
 
-def measure(run_dir: str) -> dict:
+def measure(run_dir: str, net=None) -> dict:
     with open(os.path.join(run_dir, "config.toml"), "rb") as fh:
         cfg = tomllib.load(fh)
     if int(cfg.get("validation_holdout", 0)) <= 0:
@@ -91,11 +96,12 @@ def measure(run_dir: str) -> dict:
     with torch.no_grad():
         for v in scene.test:
             a = render(scene_only, v.camera, sh_degree=model.sh_degree).alpha
-            views.append({**fit(inputs, v, model.sh_degree), "scene_alpha": float(a.mean()),
+            views.append({**fit(inputs, v, model.sh_degree, net), "scene_alpha": float(a.mean()),
                           "scene_below": float((a < OPEN_ALPHA).float().mean())})
         ends = [fit(inputs, v, model.sh_degree) for v in (scene.train[0], scene.train[-1])]
     return {"run": run_dir, "seed": int(cfg.get("seed", 0)), "views": views, "ends": ends,
             "psnr": statistics.fmean(v["psnr"] for v in views), "ssim": summary["final_test_ssim"],
+            "lpips": statistics.fmean(v["lpips"] for v in views) if net is not None else None,
             "summary_psnr": summary["final_test_psnr"], "primitives": summary["num_primitives"],
             "params": summary["num_params"], "far": int(far.sum()), "train_s": summary["train_seconds"],
             "iterations": summary["iterations"]}
@@ -107,7 +113,8 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    groups = [(name, [measure(d) for d in dirs]) for name, dirs in group_specs(args.group, "validation_runs.py")]
+    net, status = load_lpips()  # LPIPS of the validation views where the VGG weights are present (make lpips-weights)
+    groups = [(name, [measure(d, net) for d in dirs]) for name, dirs in group_specs(args.group, "validation_runs.py")]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
     ref_name, ref = groups[0]
@@ -117,11 +124,12 @@ def main() -> None:
              f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus), commit {commit}. Validation views "
              "only (the protocol's test views were never trained on or rendered). PSNR = mean over the validation "
              f"views of each view's PSNR (CPU backend, black background); open = rendered alpha < {OPEN_ALPHA}; scene "
-             "alpha = alpha without the primitives beyond 2x the scene's reach (`far`). Reference group: "
+             "alpha = alpha without the primitives beyond 2x the scene's reach (`far`); LPIPS (VGG, [0, 1] inputs) "
+             f"{'from ' + status.detail if net is not None else status.detail}. Reference group: "
              f"**{ref_name}**; differences pair runs by seed.", "",
              "## Groups", "",
-             "| group | runs | val PSNR (by seed) | mean | vs reference | val SSIM | primitives | params | train s |",
-             "| --- | ---: | --- | ---: | ---: | ---: | ---: | --- | ---: |"]
+             "| group | runs | val PSNR (by seed) | mean | vs reference | val SSIM | val LPIPS | primitives | params | train s |",
+             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | --- | ---: |"]
     for name, runs in groups:
         runs = sorted(runs, key=lambda r: r["seed"])
         mean = statistics.fmean(r["psnr"] for r in runs)
@@ -131,6 +139,7 @@ def main() -> None:
         params = " / ".join("%.2fM" % (r["params"] / 1e6) for r in runs)
         lines.append(f"| {name} | {len(runs)} | {by_seed} | {mean:.2f} | {vs} | "
                      f"{statistics.fmean(r['ssim'] for r in runs):.4f} | "
+                     + (f"{statistics.fmean(r['lpips'] for r in runs):.4f} | " if net is not None else "n/a | ") +
                      f"{statistics.fmean(r['primitives'] for r in runs) / 1e3:.1f}k | "
                      f"{params} | "
                      f"{statistics.fmean(r['train_s'] for r in runs):.0f} |")
