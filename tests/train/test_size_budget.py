@@ -131,3 +131,32 @@ def test_the_cli_refuses_a_budget_below_one(tmp_path):
 
     res = CliRunner().invoke(main, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--max-params", "0"])
     assert res.exit_code == 2 and "--max-params" in res.output and not (tmp_path / "run").exists()
+
+
+def test_a_budget_per_observed_value():
+    """max_params_per_value sets max_params from the observed values; an explicit max_params wins; 0 = none."""
+    cfg = TrainConfig(max_sh_degree=1, max_params_per_value=0.2)
+    assert rules.with_size_budget(cfg, 1_000_000).max_params == 200_000
+    assert rules.with_size_budget(cfg, 3).max_params == 1  # never 0 (which would mean no budget)
+    assert rules.with_size_budget(TrainConfig(max_params=5_000, max_params_per_value=0.2), 1_000_000).max_params == 5_000
+    assert rules.with_size_budget(TrainConfig(), 1_000_000).max_params == 0
+    with pytest.raises((ValueError, Exception), match="max_params_per_value"):
+        TrainConfig(max_params_per_value=-0.1).validate()
+
+
+def test_the_baselines_carry_no_relative_budget():
+    from ctgs.train.config import load_config
+
+    for preset in ("preview", "fast", "balanced"):
+        for base in ("2dgs", "fixed_texture"):
+            path = os.path.join(os.path.dirname(__file__), "..", "..", "configs", f"{base}.toml")
+            assert load_config(path, {}, preset=preset).max_params_per_value == 0
+
+
+@pytest.mark.slow
+def test_a_run_with_a_budget_per_observed_value(scene, tmp_path):
+    summary = train_main(scene, str(tmp_path / "run"), preset="fast", iterations=60, quiet=True,
+                         sets=("threads=1", "backend='cpu'", "max_params_per_value=0.01"))
+    assert summary["max_params"] == round(0.01 * summary["observed_values"])
+    assert summary["num_params"] <= summary["max_params"]
+    assert load_run(str(tmp_path / "run")).model.num_params() == summary["num_params"]
