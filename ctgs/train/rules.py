@@ -134,6 +134,11 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
         unit = {"lambda_texture": "per texel", "max_primitives": "primitives"}.get(key, "texels")
         rows.append({"setting": key, "unit": unit,
                      "rule": rule, "paper": getattr(cfg, key), "values": vals})
+    # the relative size budget: per training view (the budget is this times the number of training views)
+    vals = {label: with_size_budget(replace(cfg, max_params=0), 3 * w * h).max_params for label, (w, h) in sizes.items()}
+    rows.append({"setting": "max_params (from max_params_per_value)", "unit": "params per training view",
+                 "rule": "max_params_per_value x 3 H W x training views, unless max_params is given; 0 = no budget",
+                 "paper": cfg.max_params_per_value, "values": vals})
     for key in ITERATION_KEYS:
         vals = {label: schedule.at(replace(cfg, iterations=n), getattr(cfg, key)) for label, n in iterations.items()}
         rows.append({"setting": key, "unit": "iterations", "rule": "x iterations / 30000",
