@@ -46,7 +46,9 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
     rec_path = os.path.join(run, "paired_record.json")
     if os.path.exists(rec_path):
         with open(rec_path) as fh:
-            return {**json.load(fh), "reused": True}
+            rec = json.load(fh)
+        # a run linked in under this label (e.g. an earlier run of the same configuration under an older name)
+        return {**rec, "label": label, "trained_label": rec["label"], "reused": True}
     os.makedirs(args.work, exist_ok=True)
     log = run + ".log"
     resume = ["--resume"] if os.path.exists(os.path.join(run, "checkpoints", "last.pt")) else []
