@@ -43,6 +43,12 @@ REGISTRY = {
             ("content-aware", "balanced (10k it.)",
              [("paired_herzjesu25_balanced_fast_vm10.json", ("paired", "balanced"))]),
             ("content-aware", "paper (30k it.)", [("trade_vm9ph.json", ("trade", "images_8", "ca_paper"))]),
+            ("content-aware", "fast + size budget (s24)", [("trade_vm24h.json", ("trade", "images_8", "ca_fast"))]),
+            ("content-aware", "preview + size budget (s24)",
+             [("trade_vm24h.json", ("trade", "images_8", "ca_preview"))]),
+            ("2dgs", "fast + size budget's time (s24)", [("trade_vm24h.json", ("trade", "images_8", "2dgs_fast"))]),
+            ("2dgs", "preview + size budget's time (s24)",
+             [("trade_vm24h.json", ("trade", "images_8", "2dgs_preview"))]),
             ("2dgs", "preview's time", [("trade_vm5p.json", ("trade", "images_8", "2dgs_preview"))]),
             ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_8", "2dgs_fast"))]),
             ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_192]),
@@ -65,6 +71,9 @@ REGISTRY = {
             ("content-aware", "fast + tau_ds 0.04, --time-budget 20",
              [("paired_herzjesu25_384_fast_tau04_2dgs_budget20_vm22_3seeds.json",
                ("paired", "fast_tau_ds0.04_time_budget20"))]),
+            ("content-aware", "fast + size budget (s24), --time-budget 20",
+             [("paired_herzjesu25_384_fast_default_budget_2dgs_budget20_vm24_3seeds.json",
+               ("paired", "fast_time_budget20"))]),
             ("content-aware", "fast --max-params 1.28M, --time-budget 20",
              [("paired_herzjesu25_384_fast_maxparams_2dgs_budget20_vm23_3seeds.json",
                ("paired", "fast_time_budget20_max_params1284162"))]),
@@ -92,6 +101,12 @@ REGISTRY = {
             ("content-aware", "balanced (10k it.)",
              [("paired_demo192x144_balanced_fast_vm10.json", ("paired", "balanced"))]),
             ("content-aware", "paper (30k it.)", [("trade_vm9pd.json", ("trade", "192x144", "ca_paper"))]),
+            ("content-aware", "fast + size budget (s24)", [("trade_vm24d.json", ("trade", "192x144", "ca_fast"))]),
+            ("content-aware", "preview + size budget (s24)",
+             [("trade_vm24d.json", ("trade", "192x144", "ca_preview"))]),
+            ("2dgs", "fast + size budget's time (s24)", [("trade_vm24d.json", ("trade", "192x144", "2dgs_fast"))]),
+            ("2dgs", "preview + size budget's time (s24)",
+             [("trade_vm24d.json", ("trade", "192x144", "2dgs_preview"))]),
             ("2dgs", "preview's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_preview"))]),
             ("2dgs", "fast's time", [("trade_vm5d.json", ("trade", "192x144", "2dgs_fast"))]),
             ("2dgs", "balanced's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_balanced"))]),
@@ -215,7 +230,9 @@ def write(scene: str, points: list[dict]) -> None:
              f"{commit}, from the records below (nothing trained here; every run on the dev VM: 2 x86-64 cores, 24 GB, "
              "no GPU, one thread per training, two trainings side by side). Mean over the runs of a point, +- one "
              "standard deviation where there are several (seeds). Wall = the whole `ctgs train` command. The records "
-             "come from different commits (named per source): the trainer changed between them. Plot: "
+             "come from different commits (named per source): the trainer changed between them; `fast` and `preview` "
+             "points not marked 'size budget' predate session 24, when those presets took a default size budget of "
+             "0.3 parameters per observed value. Plot: "
              f"`trade_summary_{scene}.png`.", ""]
     for size in REGISTRY[scene]:
         lines += [f"## {size}", "", "| method | point | runs | iterations | test PSNR | wall min | params | sources |",
