@@ -85,6 +85,9 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     try:
         scene = _load_scene(cfg)
         trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
+        if not quiet and cfg.max_params == 0 and trainer.cfg.max_params > 0:
+            print(f"ctgs train: size budget {trainer.cfg.max_params} params ({cfg.max_params_per_value:g} per observed "
+                  "value; --set max_params_per_value=0 for none, --max-params N for another)", file=sys.stderr)
         write_config(run_dir, cfg.to_dict())
         return run_with_progress(trainer, quiet=quiet)
     except BaseException as exc:
@@ -158,7 +161,9 @@ def command(scene_dir, run_dir, preset, time_budget, max_params, config, iterati
                    + (f", {est[1] / 60:.2f} at iteration {at[1]}" if len(est) > 1 else "") + ")")
     if summary.get("max_params"):
         over = summary["num_params"] - summary["max_params"]
-        click.echo(f"size budget {summary['max_params']} params: " + ("held" if over <= 0 else
+        per = summary.get("max_params_per_value")
+        click.echo(f"size budget {summary['max_params']} params" + (f" ({per:g} per observed value)" if per else "")
+                   + ": " + ("held" if over <= 0 else
                    f"missed by {over} (what is left cannot be coarsened: textures 2 texels wide; "
                    f"the 'budget' lines of {run_dir}/log.jsonl)"))
     if "time_budget_s" in summary:

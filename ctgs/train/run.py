@@ -50,6 +50,8 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
                "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1)}
     if cfg.max_params > 0:
         summary["max_params"] = cfg.max_params
+        if trainer.user_cfg.max_params == 0 and trainer.user_cfg.max_params_per_value > 0:
+            summary["max_params_per_value"] = trainer.user_cfg.max_params_per_value  # where the budget came from
     if trainer.planner is not None:
         summary.update(trainer.planner.summary())
     elif trainer.estimator is not None:

@@ -158,5 +158,6 @@ def test_a_run_with_a_budget_per_observed_value(scene, tmp_path):
     summary = train_main(scene, str(tmp_path / "run"), preset="fast", iterations=60, quiet=True,
                          sets=("threads=1", "backend='cpu'", "max_params_per_value=0.01"))
     assert summary["max_params"] == round(0.01 * summary["observed_values"])
+    assert summary["max_params_per_value"] == 0.01  # where the budget came from
     assert summary["num_params"] <= summary["max_params"]
     assert load_run(str(tmp_path / "run")).model.num_params() == summary["num_params"]
