@@ -31,6 +31,19 @@ RESULTS = os.path.join(ROOT, "benchmarks", "results")
 HERZ_EQUAL_TIME_192 = ["equal_time_vm5.json", "equal_time_vm5_seed1.json", "equal_time_vm7_seed2.json",
                        "equal_time_vm7_seed3.json"] + [f"equal_time_vm10_seed{s}.json" for s in range(4, 8)]
 HERZ_EQUAL_TIME_384 = [f"equal_time_vm11_384_seed{s}.json" for s in range(3)]
+
+
+def size_budget_points(record: str, scale: str) -> list:
+    """The session-24 trade pairs of a trade.py record: `fast` and `preview` with their size budget, and 2DGS given
+    each one's wall time."""
+    points = []
+    for method, prefix, suffix in (("content-aware", "ca", ""), ("2dgs", "2dgs", "'s time")):
+        for preset in ("fast", "preview"):
+            points.append((method, f"{preset} + size budget{suffix} (s24)",
+                           [(record, ("trade", scale, f"{prefix}_{preset}"))]))
+    return points
+
+
 MIN_PSNR_SPAN = 2.0  # dB: the least PSNR range a panel shows (the seed spread of one herzjesu25 run is ~1 dB)
 REGISTRY = {
     "herzjesu25": {
@@ -43,12 +56,7 @@ REGISTRY = {
             ("content-aware", "balanced (10k it.)",
              [("paired_herzjesu25_balanced_fast_vm10.json", ("paired", "balanced"))]),
             ("content-aware", "paper (30k it.)", [("trade_vm9ph.json", ("trade", "images_8", "ca_paper"))]),
-            ("content-aware", "fast + size budget (s24)", [("trade_vm24h.json", ("trade", "images_8", "ca_fast"))]),
-            ("content-aware", "preview + size budget (s24)",
-             [("trade_vm24h.json", ("trade", "images_8", "ca_preview"))]),
-            ("2dgs", "fast + size budget's time (s24)", [("trade_vm24h.json", ("trade", "images_8", "2dgs_fast"))]),
-            ("2dgs", "preview + size budget's time (s24)",
-             [("trade_vm24h.json", ("trade", "images_8", "2dgs_preview"))]),
+            *size_budget_points("trade_vm24h.json", "images_8"),
             ("2dgs", "preview's time", [("trade_vm5p.json", ("trade", "images_8", "2dgs_preview"))]),
             ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_8", "2dgs_fast"))]),
             ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_192]),
@@ -104,12 +112,7 @@ REGISTRY = {
             ("content-aware", "balanced (10k it.)",
              [("paired_demo192x144_balanced_fast_vm10.json", ("paired", "balanced"))]),
             ("content-aware", "paper (30k it.)", [("trade_vm9pd.json", ("trade", "192x144", "ca_paper"))]),
-            ("content-aware", "fast + size budget (s24)", [("trade_vm24d.json", ("trade", "192x144", "ca_fast"))]),
-            ("content-aware", "preview + size budget (s24)",
-             [("trade_vm24d.json", ("trade", "192x144", "ca_preview"))]),
-            ("2dgs", "fast + size budget's time (s24)", [("trade_vm24d.json", ("trade", "192x144", "2dgs_fast"))]),
-            ("2dgs", "preview + size budget's time (s24)",
-             [("trade_vm24d.json", ("trade", "192x144", "2dgs_preview"))]),
+            *size_budget_points("trade_vm24d.json", "192x144"),
             ("2dgs", "preview's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_preview"))]),
             ("2dgs", "fast's time", [("trade_vm5d.json", ("trade", "192x144", "2dgs_fast"))]),
             ("2dgs", "balanced's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_balanced"))]),
