@@ -7,6 +7,10 @@ primitive farther than 2x the scene's reach dropped, ctgs.train.shell.far_mask: 
 see-through and something far behind fills in) are reported, with the run's validation SSIM, primitives, params and
 train time from its train_summary.json. Groups are compared with the first group (the reference) by seed.
 
+With --train-views, also the fit of every training view (PSNR, SSIM, LPIPS; the same black background): how much of
+a group's validation difference its training fit shows, i.e. whether it fits its own views better and does not
+carry that to new ones.
+
 Also the fit of the path's end cameras: PSNR and open pixels on the first and last training views (by name). On a
 one-sided capture (herzjesu25) their outer edges are seen by one or two views, like the extrapolated test view the
 validation views cannot stand in for; a run that leaves them open does not fit its own training data there.
@@ -33,6 +37,7 @@ import torch
 
 from ctgs.io.run_model import load_run
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
+from ctgs.metrics.ssim import ssim as ssim_of
 from ctgs.metrics.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
 from ctgs.stages.train import _load_scene
@@ -48,14 +53,18 @@ def psnr(se: torch.Tensor) -> float:
     return float(-10 * torch.log10(se.mean()))
 
 
-def fit(inputs, view, sh_degree: int, net=None) -> dict:
-    """A view's PSNR and its open pixels (rendered alpha < OPEN_ALPHA); with an LPIPS net also its LPIPS."""
+def fit(inputs, view, sh_degree: int, net=None, with_ssim: bool = False) -> dict:
+    """A view's PSNR and its open pixels (rendered alpha < OPEN_ALPHA); with an LPIPS net also its LPIPS; with_ssim
+    its SSIM."""
     out = render(inputs, view.camera, sh_degree=sh_degree)
     rgb = out.rgb.clamp(0, 1)
-    se = ((rgb - torch.from_numpy(view.image)) ** 2).mean(-1)
+    gt = torch.from_numpy(view.image)
+    se = ((rgb - gt) ** 2).mean(-1)
     rec = {"name": view.name, "psnr": psnr(se), "open": float((out.alpha < OPEN_ALPHA).float().mean())}
     if net is not None:
         rec["lpips"] = lpips_hwc(net, rgb, view.image)
+    if with_ssim:
+        rec["ssim"] = float(ssim_of(rgb, gt))
     return rec
 
 
@@ -74,7 +83,7 @@ def by_view_table(title: str, groups: list, key: str, columns: list, extra=None)
     return lines
 
 
-def measure(run_dir: str, net=None) -> dict:
+def measure(run_dir: str, net=None, train_views: bool = False) -> dict:
     with open(os.path.join(run_dir, "config.toml"), "rb") as fh:
         cfg = tomllib.load(fh)
     if int(cfg.get("validation_holdout", 0)) <= 0:
@@ -99,7 +108,8 @@ def measure(run_dir: str, net=None) -> dict:
             views.append({**fit(inputs, v, model.sh_degree, net), "scene_alpha": float(a.mean()),
                           "scene_below": float((a < OPEN_ALPHA).float().mean())})
         ends = [fit(inputs, v, model.sh_degree) for v in (scene.train[0], scene.train[-1])]
-    return {"run": run_dir, "seed": int(cfg.get("seed", 0)), "views": views, "ends": ends,
+        train = [fit(inputs, v, model.sh_degree, net, with_ssim=True) for v in scene.train] if train_views else None
+    return {"run": run_dir, "train": train, "seed": int(cfg.get("seed", 0)), "views": views, "ends": ends,
             "psnr": statistics.fmean(v["psnr"] for v in views), "ssim": summary["final_test_ssim"],
             "lpips": statistics.fmean(v["lpips"] for v in views) if net is not None else None,
             "summary_psnr": summary["final_test_psnr"], "primitives": summary["num_primitives"],
@@ -107,14 +117,41 @@ def measure(run_dir: str, net=None) -> dict:
             "iterations": summary["iterations"]}
 
 
+def train_fit_table(groups: list, ref_name: str, ref_by_seed: dict, with_lpips: bool) -> list[str]:
+    """Markdown lines: each group's mean fit of its training views next to its validation figures, and the
+    differences to the reference by seed (train against validation)."""
+    def mean(r, key, which):
+        return statistics.fmean(v[key] for v in r[which]) if which == "train" else r[key]
+
+    lines = ["", "## Training views (fit) against validation views (means over the views, then over seeds)", "",
+             f"{len(groups[0][1][0]['train'])} training views. Differences pair runs by seed with **{ref_name}**.", "",
+             "| group | train PSNR | val PSNR | train PSNR vs ref | val PSNR vs ref | train SSIM | train LPIPS | "
+             "val LPIPS | train LPIPS vs ref | val LPIPS vs ref |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for name, runs in groups:
+        def avg(key, which):
+            return statistics.fmean(mean(r, key, which) for r in runs)
+
+        def diff(key, which):
+            d = [mean(r, key, which) - mean(ref_by_seed[r["seed"]], key, which) for r in runs
+                 if r["seed"] in ref_by_seed]
+            return "" if name == ref_name or not d else f"{statistics.fmean(d):+.3f}"
+        lp = (f"{avg('lpips', 'train'):.4f} | {avg('lpips', 'val'):.4f} | {diff('lpips', 'train')} | "
+              f"{diff('lpips', 'val')}" if with_lpips else "n/a | n/a | | ")
+        lines.append(f"| {name} | {avg('psnr', 'train'):.2f} | {avg('psnr', 'val'):.2f} | {diff('psnr', 'train')} | "
+                     f"{diff('psnr', 'val')} | {avg('ssim', 'train'):.4f} | {lp} |")
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--group", action="append", required=True, help="NAME=RUN_DIR[,RUN_DIR...]")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--train-views", action="store_true", help="also PSNR / SSIM / LPIPS on every training view")
     args = ap.parse_args()
     torch.set_num_threads(1)
     net, status = load_lpips()  # LPIPS of the validation views where the VGG weights are present (make lpips-weights)
-    groups = [(name, [measure(d, net) for d in dirs]) for name, dirs in group_specs(args.group, "validation_runs.py")]
+    groups = [(name, [measure(d, net, args.train_views) for d in dirs]) for name, dirs in group_specs(args.group, "validation_runs.py")]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
     ref_name, ref = groups[0]
@@ -150,6 +187,8 @@ def main() -> None:
                            ("far", lambda r: str(r["far"])))
     lines += by_view_table("## Path-end training views (training fit where the fewest views overlap; seed order)",
                            groups, "ends", psnr_open)
+    if args.train_views:
+        lines += train_fit_table(groups, ref_name, ref_by_seed, net is not None)
     worst = max(abs(r["psnr"] - r["summary_psnr"]) for _, runs in groups for r in runs)
     lines += ["", f"Check: these PSNR means differ from the runs' own validation PSNR (train_summary.json) by at most "
               f"{worst:.3f} dB.", "", "Runs: " + "; ".join(f"{name}: " + ", ".join(r["run"] for r in runs)
