@@ -50,9 +50,6 @@ class TrainConfig:
     max_params_per_value: float = _f(0.0, "> 0 and max_params = 0: the size budget relative to the data, max_params "
                                      "= this x the observed values (RGB of every training pixel; rules."
                                      "with_size_budget); 0 = none (the paper)")
-    size_budget_from: str = _f("textures", "when the size budget is kept: textures (from the texture start: after "
-                               "every routine and reallocation) | late (from the first late routine: the main phase "
-                               "trains without it, the late phase coarsens to fit and trains on); the end: always")
     preset: str = _f("", "the preset this config was built on (set by `ctgs train --preset`; informational)")
     # ---- initialisation ----
     max_init_points: int = _f(0, "farthest-point subsample SfM points above this count (0 = keep all)")
@@ -152,8 +149,6 @@ class TrainConfig:
             raise UserError(f"config backend={self.backend!r}: use auto, cpu, cuda or reference")
         if self.device not in ("auto", "cpu", "cuda"):
             raise UserError(f"config device={self.device!r}: use auto, cpu or cuda")
-        if self.size_budget_from not in ("textures", "late"):
-            raise UserError(f"config size_budget_from={self.size_budget_from!r}: use textures or late")
         if self.texture_alloc not in ("pow2", "mult4"):
             raise UserError(f"config texture_alloc={self.texture_alloc!r}: use pow2 or mult4")
         if self.virtual_pixels not in ("held", "few"):

@@ -19,8 +19,7 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     the top fraction is taken among the others).
     """
     support = None
-    budgeted = size_budget.in_main_phase(cfg)
-    if budgeted:
+    if cfg.max_params > 0:
         E, support = compute_E(model, views, render_fn, cfg.lambda_ssim, with_support=True)
     else:
         E = compute_E(model, views, render_fn, cfg.lambda_ssim)
@@ -43,25 +42,19 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     model.k_min = compute_k_min(model.means.detach(), cameras)
     texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
     # --max-params: what was just upscaled stays; the rest is coarsened where that loses least (size_budget)
-    budget = (size_budget.fit(model, opt, cfg, keep=up[kept], support=None if support is None else support[kept])
-              if budgeted else None)
+    budget = size_budget.fit(model, opt, cfg, keep=up[kept], support=None if support is None else support[kept])
     return {"E_mean": float(E.mean()) if E.numel() else 0.0, "E_p90": float(E.quantile(0.9)) if E.numel() else 0.0,
             "tau_tr": schedule.tau_tr(cfg, it), "n_before": n0, "split": n_split, "upscaled": int(up.sum()),
             "downscaled": int(down.sum()), "pruned": n_pruned, **(budget or {})}
 
 
 @torch.no_grad()
-def late_routine(model, opt, cfg, cameras, views=None, render_fn=None) -> dict:
-    """After the main phase: downscale everything that passes, light pruning, k_min, reallocate; then, over a size
-    budget, coarsen to fit, ranked by the image area each texture covers when `views` and `render_fn` are given
-    (one render of every view, only when over the budget)."""
+def late_routine(model, opt, cfg, cameras) -> dict:
+    """After the main phase: downscale everything that passes, light pruning, k_min, reallocate."""
     down, _ = texels.downscale(model, opt, torch.ones(model.num_primitives, dtype=torch.bool,
                                                          device=model.means.device), cfg.tau_ds)
     n_pruned = prune(model, opt, cfg.prune_opacity_late)
     model.k_min = compute_k_min(model.means.detach(), cameras)
     texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
-    support = None
-    if views and render_fn is not None and 0 < cfg.max_params < model.num_params():
-        _, support = compute_E(model, views, render_fn, cfg.lambda_ssim, with_support=True)
-    budget = size_budget.fit(model, opt, cfg, support=support)
+    budget = size_budget.fit(model, opt, cfg)
     return {"downscaled": int(down.sum()), "pruned": n_pruned, **(budget or {})}

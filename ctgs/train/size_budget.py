@@ -41,13 +41,6 @@ def texel_budget(model, max_params: int) -> int:
     return (max_params - per_prim) // 3
 
 
-def in_main_phase(cfg) -> bool:
-    """Whether the budget is kept during the main phase (texture start, full routines, reallocations between them):
-    cfg.size_budget_from "textures". With "late" the late routines keep it (coarsening ranked by rendered image
-    area), and the end of the run always does."""
-    return cfg.max_params > 0 and cfg.size_budget_from == "textures"
-
-
 @torch.no_grad()
 def fit(model, opt, cfg, keep: torch.Tensor | None = None, support: torch.Tensor | None = None,
         final: bool = False) -> dict | None:

@@ -504,7 +504,7 @@ class Trainer:
                     and (self.planner is None or self.planner.measured_plan)):
                 self.textures_started = True
                 self._start_textures()
-                budget = size_budget.fit(model, opt, cfg) if size_budget.in_main_phase(cfg) else None
+                budget = size_budget.fit(model, opt, cfg)
                 yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean()),
                                                     **(budget or {})})
             kind = schedule.routine_kind(cfg, it, self._shift)
@@ -512,11 +512,10 @@ class Trainer:
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
                                                        self.cameras, self._background_mask()))
             elif kind == "late":
-                yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras, self.train_views,
-                                                       self.render_fn))
+                yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras))
             elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it, self._shift):
                 texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
-                if size_budget.in_main_phase(cfg) and (budget := size_budget.fit(model, opt, cfg)) is not None:
+                if (budget := size_budget.fit(model, opt, cfg)) is not None:
                     yield Routine(it, "budget", budget)
             return
         # Baselines: 3DGS adaptive density control.

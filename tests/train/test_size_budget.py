@@ -161,33 +161,3 @@ def test_a_run_with_a_budget_per_observed_value(scene, tmp_path):
     assert summary["max_params_per_value"] == 0.01  # where the budget came from
     assert summary["num_params"] <= summary["max_params"]
     assert load_run(str(tmp_path / "run")).model.num_params() == summary["num_params"]
-
-
-def test_size_budget_from_is_checked():
-    from ctgs.errors import UserError
-
-    with pytest.raises(UserError, match="size_budget_from"):
-        TrainConfig(size_budget_from="never").validate()
-    assert not size_budget.in_main_phase(TrainConfig(max_params=1000, size_budget_from="late"))
-    assert size_budget.in_main_phase(TrainConfig(max_params=1000))
-    assert not size_budget.in_main_phase(TrainConfig())
-
-
-@pytest.mark.slow
-def test_a_budget_kept_from_the_late_phase(scene, tmp_path):
-    """size_budget_from = late: nothing is coarsened for the budget before the full routines end; the late routines
-    do it (ranked by rendered support) and the run ends within the budget."""
-    budget = 20_000
-    sets = ("threads=1", "backend='cpu'", "size_budget_from='late'")
-    summary = train_main(scene, str(tmp_path / "run"), preset="fast", iterations=300, sets=sets, quiet=True,
-                         max_params=budget)
-    log = [json.loads(line) for line in open(os.path.join(tmp_path, "run", "log.jsonl"))]
-    routines = [r for r in log if r["type"] == "routine"]
-    end = max(r["it"] for r in routines if r["kind"] == "full")
-    assert not any("budget_downscaled" in r for r in routines if r["it"] <= end)
-    late = [r for r in routines if r["kind"] == "late"]
-    assert late and any(r.get("budget_downscaled", 0) > 0 for r in late)
-    # before the late phase the model was over the budget: the main phase trained without it
-    assert max(23 * r["n"] + 3 * r["texels"] for r in routines if r["it"] <= end) > budget
-    assert summary["num_params"] <= budget
-    assert load_run(str(tmp_path / "run")).model.num_params() == summary["num_params"]
