@@ -1,4 +1,5 @@
-"""Evaluate a run (or an exported/compressed model of it) on the run's test views.
+"""Evaluate a run (or an exported/compressed model of it) on the run's test views (or, split "train", on the views
+it was trained on: how well it fits its own photos; the gap to the test views is what did not generalise).
 
 Order matters for the figures: the model is loaded and every test view rendered first (timed,
 synchronised, one untimed warm-up), peak memory is read right after rendering, and only then is the
@@ -35,6 +36,7 @@ class EvalOptions:
     lpips: bool = True
     lpips_weights: str | None = None
     dataset: str | None = None  # table grouping; None = name of the scene folder's parent
+    split: str = "test"  # "test": the protocol's test views; "train": the views the run was trained on
 
 
 def _render_fn(backend: str):
@@ -82,8 +84,18 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
         check_same_frame(run.world_origin, scene, run.run_dir)
     else:
         check_same_frame(manifest.get("source", {}).get("world_origin"), scene, opts.model_dir)
-    if not scene.test:
-        raise UserError(f"{run.scene_dir}: no test views (holdout={run.holdout}); train with holdout > 0 to evaluate")
+    if opts.split == "train":
+        from ctgs.scene.loader import validation_split
+
+        # a validation run (validation_holdout > 0) was trained without its validation views
+        views, _ = validation_split(scene.train, int(run.config.get("validation_holdout", 0)))
+    elif opts.split == "test":
+        views = scene.test
+        if not views:
+            raise UserError(f"{run.scene_dir}: no test views (holdout={run.holdout}); train with holdout > 0 to "
+                            "evaluate, or evaluate the training views with --split train")
+    else:
+        raise UserError(f"eval split {opts.split!r}: use test or train")
     render = _render_fn(backend)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -91,8 +103,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     renders, alphas, times = [], [], []
     with torch.no_grad():
         inputs = model.render_inputs()
-        render(inputs, scene.test[0].camera.to(device), model.sh_degree)  # warm-up: JIT build, caches
-        for view in scene.test:
+        render(inputs, views[0].camera.to(device), model.sh_degree)  # warm-up: JIT build, caches
+        for view in views:
             cam = view.camera.to(device)
             _sync(device)
             t0 = time.perf_counter()
@@ -118,7 +130,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
     # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
     with atomic.atomic_dir(opts.out_dir) as out:
-        rows, strips = _write_views(out, scene, renders, alphas, times, net, device)
+        rows, strips = _write_views(out, views, renders, alphas, times, net, device)
         summary = run.summary or {}
         mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
         metrics = {
@@ -126,7 +138,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             "scene": os.path.basename(os.path.normpath(run.scene_dir)),
             "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
             "run_dir": run.run_dir, "model_source": model_source, "scene_dir": run.scene_dir,
-            "images": run.images, "holdout": run.holdout, "num_test_views": len(rows),
+            "images": run.images, "holdout": run.holdout, "split": opts.split, "num_views": len(rows),
+            "num_test_views": len(rows) if opts.split == "test" else None,
             "psnr": mean("psnr"), "ssim": mean("ssim"), "open_pixels": mean("open"),
             "lpips": None if net is None else mean("lpips"), "lpips_status": status,
             "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
@@ -148,7 +161,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     return metrics
 
 
-def _write_views(out: str, scene, renders: list, alphas: list, times: list, net,
+def _write_views(out: str, views: list, renders: list, alphas: list, times: list, net,
                  device) -> tuple[list[ImageMetrics], list[str]]:
     """Per-view metrics, out/renders/*.png, out/strips/*.png and out/per_image.csv; returns (rows, strip names)."""
     from ctgs.io.images import write_image
@@ -158,7 +171,7 @@ def _write_views(out: str, scene, renders: list, alphas: list, times: list, net,
     os.makedirs(os.path.join(out, "strips"))
     rows: list[ImageMetrics] = []
     gts = []
-    for view, rgb, alpha, dt in zip(scene.test, renders, alphas, times):
+    for view, rgb, alpha, dt in zip(views, renders, alphas, times):
         gt = torch.as_tensor(view.image, dtype=torch.float32)
         if gt.shape != rgb.shape:
             raise UserError(f"{view.image_path}: image is {list(gt.shape)}, render {list(rgb.shape)}; "

@@ -97,15 +97,18 @@ def _mean(values: list):
 
 
 def variant(m: dict) -> str:
-    """"" for an uncompressed model, else how it was compressed (e.g. "compressed balanced: scalar K=256")."""
+    """"" for an uncompressed model on its test views, else how it was compressed (e.g. "compressed balanced: scalar
+    K=256") and, evaluated on its training views (`ctgs eval --split train`), "training views"."""
+    views = "training views" if m.get("split") == "train" else ""
     if not (m.get("compressed") or m.get("codebook_size")):
-        return ""
+        return views
     target = m.get("compression_target")
     enc = m.get("texture_encoding")
     mode = "" if enc in (None, "codebook") else enc  # "codebook": the first ctgs compress (vector, v1 folders)
     k = f"K={m['codebook_size']}" if m.get("codebook_size") else ""
     detail = " ".join(x for x in (mode, k) if x)
-    return "compressed" + (f" {target}" if target else "") + (f": {detail}" if detail else "")
+    return (views + ", " if views else "") + "compressed" + (f" {target}" if target else "") + (
+        f": {detail}" if detail else "")
 
 
 def storage_bytes(m: dict):

@@ -117,6 +117,14 @@ def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: in
     )
 
 
+def validation_split(views: list, k: int) -> tuple[list, list]:
+    """(training, validation) views for `validation_holdout = k` (tuning mode): every k-th view from the (k//2)-th
+    is a validation view; k <= 0: all training, none for validation."""
+    if k <= 0:
+        return list(views), []
+    return ([v for i, v in enumerate(views) if i % k != k // 2], [v for i, v in enumerate(views) if i % k == k // 2])
+
+
 def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, load_images: bool = True) -> Scene:
     """Read SCENE_DIR/sparse/0 (or sparse/) and SCENE_DIR/<images>; see the module docstring."""
     scene_dir = os.path.abspath(scene_dir)

@@ -54,9 +54,14 @@ def _table(paths: tuple[str, ...], out: str) -> None:
 @click.option("--lpips-weights", default=None, type=click.Path(dir_okay=False), envvar="CTGS_VGG16_WEIGHTS",
               help="VGG16 weights .pth (torchvision layout); see docs/metrics.md for the lookup order.")
 @click.option("--dataset", default=None, help="Dataset name for --table grouping (default: scene's parent folder).")
+@click.option("--split", type=click.Choice(["test", "train"]), default="test", show_default=True,
+              help="Views to evaluate: the test views, or the views the run was trained on (how well it fits its "
+                   "own photos; the gap to the test views is what did not generalise). Default output for train: "
+                   "RUN_DIR/eval-train.")
 @click.option("--table", is_flag=True, help="Aggregate the metrics.json of RUN_DIRS into the paper's table.")
-def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights, dataset, table) -> None:
-    """Render the test views of RUN_DIR and write metrics.json, per_image.csv, renders/ and strips/."""
+def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights, dataset, split, table) -> None:
+    """Render the test views of RUN_DIR (or its training views: --split train) and write metrics.json,
+    per_image.csv, renders/ and strips/."""
     if table:
         if not out_dir:
             raise UserError("--table needs -o OUT (folder for table.md and table.csv)")
@@ -68,12 +73,14 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
 
     run_dir = run_dirs[0]
     if out_dir is None:
-        suffix = "" if model_dir is None else "-" + os.path.basename(os.path.normpath(model_dir))
+        suffix = ("" if split == "test" else "-train") + (
+            "" if model_dir is None else "-" + os.path.basename(os.path.normpath(model_dir)))
         out_dir = os.path.join(run_dir, "eval" + suffix)
     m = evaluate(run_dir, EvalOptions(out_dir=out_dir, model_dir=model_dir, backend=backend, device=device,
-                                      lpips=lpips, lpips_weights=lpips_weights, dataset=dataset))
+                                      lpips=lpips, lpips_weights=lpips_weights, dataset=dataset, split=split))
     lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
-    click.echo(f"{out_dir}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['points']} points, "
+    views = f" ({m['num_views']} training views)" if split == "train" else ""
+    click.echo(f"{out_dir}{views}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['points']} points, "
                f"{m['texels']} texels, {m['params']} params, {m['bytes_on_disk'] / 1e6:.3f} MB, "
                f"{m['fps']:.1f} FPS ({m['backend']}, {m['device']})")
     worst = max(m["per_image"], key=lambda r: r["open"])

@@ -16,12 +16,11 @@ def _load_scene(cfg):
 
     holdout = cfg.holdout if cfg.holdout > 0 else None
     scene = load_scene(cfg.scene_dir, images=cfg.images, holdout=holdout)
-    k = cfg.validation_holdout
-    if k > 0:
+    if cfg.validation_holdout > 0:
+        from ctgs.scene.loader import validation_split
+
         # Tuning mode: the protocol's test views are never seen; validation views come from the training set.
-        views = scene.train
-        scene.test = [v for i, v in enumerate(views) if i % k == k // 2]
-        scene.train = [v for i, v in enumerate(views) if i % k != k // 2]
+        scene.train, scene.test = validation_split(scene.train, cfg.validation_holdout)
     return scene
 
 

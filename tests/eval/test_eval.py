@@ -16,7 +16,7 @@ from ctgs.metrics.psnr import psnr
 # Every metrics.json must carry these keys (docs/metrics.md), with these types (None allowed where listed).
 SCHEMA = {
     "schema": str, "schema_version": int, "scene": str, "dataset": str, "run_dir": str, "model_source": str,
-    "scene_dir": str, "images": str, "holdout": int, "num_test_views": int, "psnr": float, "ssim": float, "open_pixels": float,
+    "scene_dir": str, "images": str, "holdout": int, "split": str, "num_views": int, "num_test_views": int, "psnr": float, "ssim": float, "open_pixels": float,
     "lpips": (float, type(None)), "lpips_status": str, "points": int, "texels": int, "params": int,
     "texels_per_primitive": float, "model_memory_bytes": int, "bytes_on_disk": int, "texture_encoding": str,
     "codebook_size": (int, type(None)), "compressed": bool, "compression_target": (str, type(None)), "fps": float, "render_ms_mean": float, "backend": str, "device": str,
@@ -63,6 +63,37 @@ def test_eval_writes_schema_and_artifacts(run_dir):
 
     s = read_image(os.path.join(out, strips[0]))
     assert s.shape[:2] == (32, 3 * 40)  # gt | render | error side by side
+
+
+def test_eval_on_the_training_views(run_dir, tmp_path):
+    """--split train: the views the run was fitted to (7 of the 9 here), into RUN_DIR/eval-train; a validation run's
+    validation views are not among them."""
+    import shutil
+
+    import torch
+
+    res = _eval(run_dir, "--split", "train", "--backend", "reference", "--no-lpips")
+    m = json.load(open(os.path.join(run_dir, "eval-train", "metrics.json")))
+    names = [r["name"] for r in m["per_image"]]
+    assert m["split"] == "train" and m["num_views"] == 7 and m["num_test_views"] is None
+    assert "000.png" not in names and "008.png" not in names and len(set(names)) == 7
+    assert "7 training views" in res.output
+    test = json.load(open(os.path.join(run_dir, "eval", "metrics.json"))) if os.path.isfile(
+        os.path.join(run_dir, "eval", "metrics.json")) else None
+    assert test is None or test["split"] == "test"
+    # A validation run (validation_holdout = 3: training views 1, 4, 7 of the 7 held out) is scored on the other 4.
+    val = tmp_path / "valrun"
+    shutil.copytree(run_dir, val, ignore=shutil.ignore_patterns("eval*"))
+    ckpt = torch.load(val / "model.pt", weights_only=False)
+    ckpt["config"] = {**ckpt["config"], "validation_holdout": 3}
+    torch.save(ckpt, val / "model.pt")
+    _eval(str(val), "--split", "train", "--backend", "reference", "--no-lpips")
+    mv = json.load(open(val / "eval-train" / "metrics.json"))
+    assert [r["name"] for r in mv["per_image"]] == [n for i, n in enumerate(names) if i % 3 != 1]
+    from ctgs.metrics.report import build_table
+
+    md, _ = build_table([m, {**m, "split": "test"}])
+    assert "(training views)" in md  # never averaged with the test figures
 
 
 def test_eval_exported_and_compressed_models(run_dir, tmp_path):
