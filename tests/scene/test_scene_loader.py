@@ -150,3 +150,13 @@ def test_simple_pinhole_is_accepted(tiny_demo):
     _rewrite_camera(tiny_demo, "SIMPLE_PINHOLE", [50.0, 30.0, 20.0])
     cam = load_scene(tiny_demo, load_images=False).train[0].camera
     assert (cam.fx, cam.fy, cam.cx, cam.cy) == (50.0, 50.0, 30.0, 20.0)
+
+
+def test_validation_split_holds_out_every_kth_from_the_middle():
+    from ctgs.scene.loader import validation_split
+
+    views = list(range(10))
+    assert validation_split(views, 4) == ([0, 1, 3, 4, 5, 7, 8, 9], [2, 6])
+    assert validation_split(views, 0) == (views, [])
+    train, val = validation_split(views, 8)
+    assert val == [4] and len(train) == 9
