@@ -89,6 +89,9 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
 
         # a validation run (validation_holdout > 0) was trained without its validation views
         views, _ = validation_split(scene.train, int(run.config.get("validation_holdout", 0)))
+        if not views:
+            raise UserError(f"{run.scene_dir}: no training views (holdout={run.holdout}); nothing to score with "
+                            "--split train")
     elif opts.split == "test":
         views = scene.test
         if not views:
