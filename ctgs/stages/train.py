@@ -12,13 +12,11 @@ from ctgs.errors import Terminated, UserError
 
 
 def _load_scene(cfg):
-    from ctgs.scene.loader import load_scene
+    from ctgs.scene.loader import load_scene, validation_split
 
     holdout = cfg.holdout if cfg.holdout > 0 else None
     scene = load_scene(cfg.scene_dir, images=cfg.images, holdout=holdout)
     if cfg.validation_holdout > 0:
-        from ctgs.scene.loader import validation_split
-
         # Tuning mode: the protocol's test views are never seen; validation views come from the training set.
         scene.train, scene.test = validation_split(scene.train, cfg.validation_holdout)
     return scene
