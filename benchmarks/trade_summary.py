@@ -171,7 +171,7 @@ def runs_of(path: str, selector: tuple) -> tuple[list[dict], str]:
 def summarise(scene: str) -> list[dict]:
     points = []
     for size, entries in REGISTRY[scene].items():
-        for method, label, sources in entries:
+        for number, (method, label, sources) in enumerate(entries, start=1):
             runs, origins = [], []
             for name, selector in sources:
                 picked, source = runs_of(os.path.join(RESULTS, name), selector)
@@ -183,7 +183,7 @@ def summarise(scene: str) -> list[dict]:
                 stat[key] = statistics.fmean(values)
                 stat[key + "_sd"] = statistics.stdev(values) if len(values) > 1 else 0.0
             its = sorted({r["iterations"] for r in runs})
-            points.append({"size": size, "method": method, "label": label, "n": len(runs), **stat,
+            points.append({"size": size, "number": number, "method": method, "label": label, "n": len(runs), **stat,
                            "iterations": its, "sources": origins})
     return points
 
@@ -196,19 +196,23 @@ def plot(scene: str, points: list[dict], path: str) -> None:
     import matplotlib.ticker
 
     sizes = list(REGISTRY[scene])
-    fig, axes = plt.subplots(2, len(sizes), figsize=(6.5 * len(sizes), 9), squeeze=False)
+    rows_of_key = max(len(REGISTRY[scene][size]) for size in sizes)
+    key_h = 0.75 + 0.17 * rows_of_key  # inches: one line per point of the longest column
+    fig, axes = plt.subplots(3, len(sizes), figsize=(6.5 * len(sizes), 9 + key_h), squeeze=False,
+                             gridspec_kw={"height_ratios": [4.5, 4.5, key_h]})
     for col, size in enumerate(sizes):
+        mine = [p for p in points if p["size"] == size]
         for row, (key, xlabel) in enumerate((("wall_min", "wall-clock minutes (2-core VM, log scale)"),
                                              ("params", "parameters (log scale)"))):
             ax = axes[row][col]
-            for p in (p for p in points if p["size"] == size):
+            for p in mine:
                 c = COLOURS[p["method"]]
                 x = p[key] / (1e6 if key == "params" else 1)
                 ax.errorbar(x, p["psnr"], yerr=p["psnr_sd"] or None, fmt="o" if p["n"] > 1 else "s", color=c,
                             ms=7 if p["n"] > 1 else 5, capsize=3, mfc=c if p["n"] > 1 else "white")
-                text = p["label"] + (f" (n={p['n']})" if p["n"] > 1 else "")
-                ax.annotate(text, (x, p["psnr"]), textcoords="offset points", fontsize=7, color=c,
-                            xytext=(6, 3) if p["method"] == "content-aware" else (6, -10))
+                # the point's number: its line in the key below the panels and its row in the .md table
+                ax.annotate(str(p["number"]), (x, p["psnr"]), textcoords="offset points", fontsize=8, color=c,
+                            fontweight="bold", xytext=(5, 2) if p["method"] == "content-aware" else (5, -9))
             ax.set_xscale("log")
             xs = [p[key] / (1e6 if key == "params" else 1) for p in points if p["size"] == size]
             lo, hi = min(xs) / 1.4, max(xs) * 1.6  # room for the labels, also when every point has one x
@@ -225,6 +229,12 @@ def plot(scene: str, points: list[dict], path: str) -> None:
                 ax.set_ylim(mid - MIN_PSNR_SPAN / 2 - 0.2, mid + MIN_PSNR_SPAN / 2 + 0.2)
             ax.set_title(f"{scene} {size}")
             ax.grid(alpha=0.3, which="both")
+        key_ax = axes[2][col]
+        key_ax.axis("off")
+        for i, p in enumerate(mine):
+            key_ax.text(0.0, 1.0 - i / max(rows_of_key, 1), f"{p['number']:>2}  {p['label']}"
+                        + (f" (n={p['n']})" if p["n"] > 1 else ""), transform=key_ax.transAxes, fontsize=8,
+                        color=COLOURS[p["method"]], va="top", family="monospace")
     handles = [plt.Line2D([], [], color=COLOURS["content-aware"], marker="o", ls="", label="content-aware (ours)"),
                plt.Line2D([], [], color=COLOURS["2dgs"], marker="o", ls="", label="2dgs"),
                plt.Line2D([], [], color="k", marker="o", ls="", label="mean over seeds, bar = 1 sd"),
@@ -254,12 +264,12 @@ def write(scene: str, points: list[dict]) -> None:
              "0.3 parameters per observed value. Plot: "
              f"`trade_summary_{scene}.png`.", ""]
     for size in REGISTRY[scene]:
-        lines += [f"## {size}", "", "| method | point | runs | iterations | test PSNR | wall min | params | sources |",
-                  "| --- | --- | ---: | --- | --- | --- | --- | --- |"]
+        lines += [f"## {size}", "", "| # | method | point | runs | iterations | test PSNR | wall min | params | sources |",
+                  "| ---: | --- | --- | ---: | --- | --- | --- | --- | --- |"]
         for p in (p for p in points if p["size"] == size):
             sd = lambda k, f: f"{f.format(p[k])}" + (f" +- {f.format(p[k + '_sd'])}" if p["n"] > 1 else "")  # noqa: E731
             its = "/".join(str(i) for i in p["iterations"])
-            lines.append(f"| {p['method']} | {p['label']} | {p['n']} | {its} | {sd('psnr', '{:.2f}')} | "
+            lines.append(f"| {p['number']} | {p['method']} | {p['label']} | {p['n']} | {its} | {sd('psnr', '{:.2f}')} | "
                          f"{sd('wall_min', '{:.1f}')} | {p['params'] / 1e6:.2f}M | {'; '.join(p['sources'])} |")
         lines.append("")
     tmp = base + ".md.tmp"
