@@ -42,6 +42,7 @@ def survey(run_dir: str, factors: list[float], drop: float) -> dict:
     import torch
 
     from ctgs.io.run_model import load_run
+    from ctgs.metrics.evaluate import veil_share
     from ctgs.metrics.psnr import psnr
     from ctgs.render.api import render
     from ctgs.scene import load_scene
@@ -67,7 +68,8 @@ def survey(run_dir: str, factors: list[float], drop: float) -> dict:
             a = psnr(out.rgb.clamp(0, 1), gt)
             b = psnr(render(without, v.camera, sh_degree=deg).rgb.clamp(0, 1), gt) if bool(big.any()) else a
             rows.append({"view": v.name, "psnr": a, "psnr_without": b, "weight_px": w,
-                         "pixels": v.camera.width * v.camera.height})
+                         "pixels": v.camera.width * v.camera.height,
+                         "veil": veil_share(inp, v.camera, deg, "cpu")})
         return rows
 
     with torch.no_grad():
@@ -111,11 +113,13 @@ def main() -> None:
              f"scale exceeds the factor x the scene extent (3DGS's camera extent). 'Removed': those above "
              f"{args.drop} x extent set to opacity 0; PSNR of the run as it is -> without them, mean over the "
              "views, and the worst single-view change; weight: their summed blending weight (sum of alpha T) as a "
-             "share of the view's pixels, largest over the views. A diagnosis: nothing is chosen from it.", "",
+             "share of the view's pixels, largest over the views. Veil: `ctgs eval`'s measure (the largest share of a "
+             "view's blending weight that one primitive centred outside the view carries), largest over the training "
+             "views, and per test view. A diagnosis: nothing is chosen from it.", "",
              "| run | primitives | extent | " + " | ".join(f"> {f}x" for f in fl) +
              " | removed | their scales | train PSNR -> without | largest train weight | test PSNR -> without | "
-             "best test-view gain | largest test weight |",
-             "| --- | ---: | ---: | " + " | ".join("---:" for _ in fl) + " | ---: | --- | --- | ---: | --- | --- | ---: |"]
+             "best test-view gain | largest test weight | veil, train max | veil per test view |",
+             "| --- | ---: | ---: | " + " | ".join("---:" for _ in fl) + " | ---: | --- | --- | ---: | --- | --- | ---: | ---: | --- |"]
     for r in res:
         tr, te = r["train"], r["test"]
         gains = [(x["psnr_without"] - x["psnr"], x["view"]) for x in te]
@@ -128,7 +132,8 @@ def main() -> None:
                      " | ".join(str(r["counts"][f]) for f in fl) +
                      f" | {r['dropped']} | {sc} | {_mean(tr, 'psnr'):.2f} -> {_mean(tr, 'psnr_without'):.2f} | "
                      f"{100 * wtr:.1f}% | {_mean(te, 'psnr'):.2f} -> {_mean(te, 'psnr_without'):.2f} | "
-                     f"{g:+.2f} dB ({gv}) | {100 * wte:.1f}% |")
+                     f"{g:+.2f} dB ({gv}) | {100 * wte:.1f}% | {max(x['veil'] for x in tr):.3f} | "
+                     + " / ".join(f"{x['veil']:.3f}" for x in te) + " |")
     lines.append("")
     with open(out + ".md.tmp", "w") as fh:
         fh.write("\n".join(lines))

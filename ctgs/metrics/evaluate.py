@@ -45,6 +45,27 @@ def _render_fn(backend: str):
     return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg)
 
 
+def veil_share(inputs, cam, sh_degree: int, backend: str) -> float:
+    """The largest share of the view's blending weight (sum of alpha T over its pixels) carried by one primitive
+    whose centre lies outside the view (behind the near plane or projecting off the image).
+
+    Blending follows centre depth (docs/renderer.md, Ordering): a surfel far larger than the scene, centred off
+    to the side of a camera, is blended in front of the surface it crosses there, a veil over the view. Over the
+    training views of 24 herzjesu25 runs (content-aware and 2dgs, 192 and 384 px) no such primitive carried more
+    than 12% of a view (benchmarks/results/oversized_herzjesu25_vm27.md, session 27)."""
+    from ctgs.render import render
+
+    err = torch.zeros(cam.height, cam.width, device=inputs.means.device)
+    contrib = render(inputs, cam, backend=backend, sh_degree=sh_degree, error_image=err).stats.contrib.float()
+    pc = inputs.means.float() @ cam.R.float().T + cam.t.float()
+    z = pc[:, 2]
+    u = cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx
+    v = cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy
+    inside = (z > cam.near) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    outside = contrib[~inside]
+    return float(outside.max()) / (cam.width * cam.height) if outside.numel() else 0.0
+
+
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -103,7 +124,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
 
-    renders, alphas, times = [], [], []
+    renders, alphas, times, veils = [], [], [], []
     with torch.no_grad():
         inputs = model.render_inputs()
         render(inputs, views[0].camera.to(device), model.sh_degree)  # warm-up: JIT build, caches
@@ -116,6 +137,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             times.append(time.perf_counter() - t0)
             renders.append(out.rgb.clamp(0.0, 1.0).float().cpu())
             alphas.append(out.alpha.reshape(out.rgb.shape[:2]).float().cpu())
+            veils.append(veil_share(inputs, cam, model.sh_degree, backend))  # after the timing: not in the FPS
     if device.type == "cuda":
         peak, peak_kind = torch.cuda.max_memory_allocated(device), "cuda_max_memory_allocated"
     else:
@@ -133,7 +155,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
     # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
     with atomic.atomic_dir(opts.out_dir) as out:
-        rows, strips = _write_views(out, views, renders, alphas, times, net, device)
+        rows, strips = _write_views(out, views, renders, alphas, times, veils, net, device)
         summary = run.summary or {}
         mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
         metrics = {
@@ -144,6 +166,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             "images": run.images, "holdout": run.holdout, "split": opts.split, "num_views": len(rows),
             "num_test_views": len(rows) if opts.split == "test" else None,
             "psnr": mean("psnr"), "ssim": mean("ssim"), "open_pixels": mean("open"),
+            "veil_max": max(r.veil for r in rows),
             "lpips": None if net is None else mean("lpips"), "lpips_status": status,
             "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
             "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
@@ -164,7 +187,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     return metrics
 
 
-def _write_views(out: str, views: list, renders: list, alphas: list, times: list, net,
+def _write_views(out: str, views: list, renders: list, alphas: list, times: list, veils: list, net,
                  device) -> tuple[list[ImageMetrics], list[str]]:
     """Per-view metrics, out/renders/*.png, out/strips/*.png and out/per_image.csv; returns (rows, strip names)."""
     from ctgs.io.images import write_image
@@ -174,7 +197,7 @@ def _write_views(out: str, views: list, renders: list, alphas: list, times: list
     os.makedirs(os.path.join(out, "strips"))
     rows: list[ImageMetrics] = []
     gts = []
-    for view, rgb, alpha, dt in zip(views, renders, alphas, times):
+    for view, rgb, alpha, dt, veil in zip(views, renders, alphas, times, veils):
         gt = torch.as_tensor(view.image, dtype=torch.float32)
         if gt.shape != rgb.shape:
             raise UserError(f"{view.image_path}: image is {list(gt.shape)}, render {list(rgb.shape)}; "
@@ -186,7 +209,7 @@ def _write_views(out: str, views: list, renders: list, alphas: list, times: list
             lp = lpips_hwc(net, rgb.to(device), gt.to(device))
         open_px = alpha < OPEN_ALPHA
         rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3,
-                                 float(open_px.float().mean()), masked_psnr(rgb, gt, ~open_px)))
+                                 float(open_px.float().mean()), masked_psnr(rgb, gt, ~open_px), veil))
         write_image(os.path.join(out, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
         gts.append(gt)
 

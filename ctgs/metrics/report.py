@@ -41,6 +41,9 @@ class ImageMetrics:
     render_ms: float  # render only, synchronised
     open: float = float("nan")  # share of the pixels whose rendered alpha is below OPEN_ALPHA
     psnr_covered: float | None = None  # PSNR over the other pixels (None: every pixel open)
+    # the largest share of the view's blending weight (sum of alpha T over its pixels) that one primitive whose
+    # centre lies outside the view carries: a veil blended in front of the scene (docs/renderer.md, Ordering)
+    veil: float = float("nan")
 
 
 def _finite(x):
@@ -61,11 +64,12 @@ def write_metrics_json(path: str, metrics: dict) -> None:
 def write_per_image_csv(path: str, rows: list[ImageMetrics]) -> None:
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["name", "psnr", "ssim", "lpips", "render_ms", "open", "psnr_covered"])
+    w.writerow(["name", "psnr", "ssim", "lpips", "render_ms", "open", "psnr_covered", "veil"])
     for r in rows:
         d = asdict(r)
         w.writerow([d["name"], f"{r.psnr:.4f}", f"{r.ssim:.5f}", "" if r.lpips is None else f"{r.lpips:.5f}",
-                    f"{r.render_ms:.3f}", f"{r.open:.5f}", "" if r.psnr_covered is None else f"{r.psnr_covered:.4f}"])
+                    f"{r.render_ms:.3f}", f"{r.open:.5f}", "" if r.psnr_covered is None else f"{r.psnr_covered:.4f}",
+                    f"{r.veil:.5f}"])
     atomic.write_text(path, buf.getvalue())
 
 

@@ -12,6 +12,9 @@ from ctgs.metrics.report import OPEN_ALPHA
 
 # The worst test view gets a line when at least this share of its pixels is open.
 OPEN_NOTE = 0.01
+# ... and when one primitive centred outside it carries at least this share of its blending weight (a veil; over
+# the training views of 24 herzjesu25 runs the largest was 12%: ctgs.metrics.evaluate.veil_share).
+VEIL_NOTE = 0.15
 
 
 def _metrics_path(path: str) -> str:
@@ -88,5 +91,10 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
         covered = "" if worst["psnr_covered"] is None else f", {worst['psnr_covered']:.2f} dB over the other pixels"
         click.echo(f"{worst['name']}: {100 * worst['open']:.1f}% of the pixels open (rendered alpha < {OPEN_ALPHA}: the "
                    f"background shows), PSNR {worst['psnr']:.2f} dB{covered}")
+    veiled = max(m["per_image"], key=lambda r: r["veil"])
+    if veiled["veil"] >= VEIL_NOTE:  # one surfel blended in front of the scene: docs/renderer.md, Ordering
+        click.echo(f"{veiled['name']}: one primitive centred outside the view carries {100 * veiled['veil']:.0f}% of "
+                   f"its blending weight (a veil in front of the scene; docs/renderer.md, Ordering), PSNR "
+                   f"{veiled['psnr']:.2f} dB")
     if m["lpips"] is None:
         click.echo(f"LPIPS {m['lpips_status']}")
