@@ -5,7 +5,7 @@ than the scene whose centre lies far to the side of a camera, at a small depth, 
 surface it crosses in that camera's image: a semi-transparent veil over the whole view. Session 27 found one
 (`benchmarks/results/blame_herzjesu25_192_fast_s2_view0008_vm27.md`: scale 100 in a scene of extent 6.6,
 +5.6 dB on one test view when removed). This counts, for each run, the primitives whose largest scale exceeds
-each of --factors x the scene extent (3DGS's camera extent), and for those above the largest factor given
+each of --factors x the scene extent (the trainer's, 3DGS's camera extent), and for those above the largest factor given
 (--drop, default 1.0) reports the PSNR of every training view and every test view with them removed against the
 run as it is, and their summed blending weight in both.
 
@@ -30,19 +30,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 
-def scene_extent(views) -> float:
-    """3DGS's camera extent: 1.1 x the largest distance of a camera centre from their mean."""
-    import torch
-
-    c = torch.stack([v.camera.center.float() for v in views])
-    return 1.1 * float((c - c.mean(0)).norm(dim=1).max())
-
-
 def survey(run_dir: str, factors: list[float], drop: float) -> dict:
     import torch
 
     from ctgs.io.run_model import load_run
-    from ctgs.metrics.evaluate import veil_share
+    from ctgs.metrics.evaluate import outside_share
     from ctgs.metrics.psnr import psnr
     from ctgs.render.api import render
     from ctgs.scene import load_scene
@@ -50,11 +42,10 @@ def survey(run_dir: str, factors: list[float], drop: float) -> dict:
     run = load_run(run_dir)
     model = run.model
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
-    inp = model.render_inputs()
-    inp = type(inp)(**{k: (v.detach() if torch.is_tensor(v) else v) for k, v in vars(inp).items()})
+    inp = model.render_inputs()  # the caller holds torch.no_grad(): no graph
     deg = model.sh_degree
-    extent = scene_extent(scene.train)
-    max_scale = model.scales.detach().max(1).values
+    extent = scene.extent  # the trainer's: 1.1 x the largest distance of a camera centre from their mean
+    max_scale = model.scales.max(1).values
     counts = {str(f): int((max_scale > f * extent).sum()) for f in factors}
     big = max_scale > drop * extent
     without = dataclasses.replace(inp, opacities=torch.where(big, torch.zeros_like(inp.opacities), inp.opacities))
@@ -69,11 +60,10 @@ def survey(run_dir: str, factors: list[float], drop: float) -> dict:
             b = psnr(render(without, v.camera, sh_degree=deg).rgb.clamp(0, 1), gt) if bool(big.any()) else a
             rows.append({"view": v.name, "psnr": a, "psnr_without": b, "weight_px": w,
                          "pixels": v.camera.width * v.camera.height,
-                         "veil": veil_share(inp, v.camera, deg, "cpu")})
+                         "veil": outside_share(out.stats.contrib, inp.means, v.camera)})
         return rows
 
-    with torch.no_grad():
-        train, test = per_view(scene.train), per_view(scene.test)
+    train, test = per_view(scene.train), per_view(scene.test)
     return {"run": os.path.abspath(run_dir), "primitives": model.num_primitives, "extent": extent,
             "counts": counts, "drop_factor": drop, "dropped": int(big.sum()),
             "dropped_scales": sorted((float(s) for s in max_scale[big]), reverse=True)[:10],
@@ -97,7 +87,8 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     t0 = time.time()
-    res = [survey(r, args.factors, args.drop) for r in args.runs]
+    with torch.no_grad():
+        res = [survey(r, args.factors, args.drop) for r in args.runs]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
     machine = f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
@@ -110,7 +101,7 @@ def main() -> None:
     fl = [str(f) for f in args.factors]
     lines = [f"# Oversized primitives ({machine})", "",
              f"Command: `{meta['command']}` on {meta['date']}, commit {commit}. Counts: primitives whose largest "
-             f"scale exceeds the factor x the scene extent (3DGS's camera extent). 'Removed': those above "
+             f"scale exceeds the factor x the scene extent (the trainer's: 3DGS's camera extent over every camera). 'Removed': those above "
              f"{args.drop} x extent set to opacity 0; PSNR of the run as it is -> without them, mean over the "
              "views, and the worst single-view change; weight: their summed blending weight (sum of alpha T) as a "
              "share of the view's pixels, largest over the views. Veil: `ctgs eval`'s measure (the largest share of a "

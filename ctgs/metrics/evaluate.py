@@ -56,8 +56,14 @@ def veil_share(inputs, cam, sh_degree: int, backend: str) -> float:
     from ctgs.render import render
 
     err = torch.zeros(cam.height, cam.width, device=inputs.means.device)
-    contrib = render(inputs, cam, backend=backend, sh_degree=sh_degree, error_image=err).stats.contrib.float()
-    pc = inputs.means.float() @ cam.R.float().T + cam.t.float()
+    return outside_share(render(inputs, cam, backend=backend, sh_degree=sh_degree, error_image=err).stats.contrib,
+                         inputs.means, cam)
+
+
+def outside_share(contrib: torch.Tensor, means: torch.Tensor, cam) -> float:
+    """veil_share from a render's per-primitive `contrib` [N] (ErrorStats) and the centres `means` [N, 3]."""
+    contrib = contrib.float()
+    pc = means.float() @ cam.R.float().T + cam.t.float()
     z = pc[:, 2]
     u = cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx
     v = cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy
