@@ -12,7 +12,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -67,11 +69,41 @@ def write_json(path: str, obj, *, indent: int | None = 2) -> None:
     write_text(path, json.dumps(obj, indent=indent) + "\n")
 
 
+@contextmanager
+def signals_deferred(signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM until the block ends, then deliver them to the handlers that were in place.
+
+    For writers whose own cleanup breaks when an exception lands mid-write: torch.save's zip writer, interrupted by
+    the CLI's SIGTERM handler, failed again in its __exit__ ("unexpected pos 64 vs 0") and that RuntimeError replaced
+    the stop, so `ctgs train` ended with a traceback and exit 1 instead of 143 (seen in CI). The block completes
+    (the file is renamed into place), then the process stops as it would have. Outside the main thread (where
+    handlers cannot be changed) and for handlers installed outside Python, nothing is deferred.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = {s: signal.getsignal(s) for s in signums}
+    previous = {s: h for s, h in previous.items() if h is not None}
+    for s in previous:
+        signal.signal(s, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for s in dict.fromkeys(caught):
+            signal.raise_signal(s)
+
+
 def torch_save(obj, path: str, *, fsync: bool = True) -> None:
-    """torch.save to `path` atomically (fsync by default: checkpoints and model.pt are what a run is for)."""
+    """torch.save to `path` atomically (fsync by default: checkpoints and model.pt are what a run is for).
+
+    Ctrl-C and SIGTERM wait until the file is in place (signals_deferred): a checkpoint takes a fraction of a second,
+    and a stop that lands inside torch.save otherwise ends in torch's own error instead of a clean stop."""
     import torch
 
-    with atomic_path(path, fsync=fsync) as tmp, open(tmp, "wb") as fh:
+    with signals_deferred(), atomic_path(path, fsync=fsync) as tmp, open(tmp, "wb") as fh:
         torch.save(obj, fh)
 
 

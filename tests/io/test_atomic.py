@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import os
+import signal
 import stat
 
 import pytest
 import torch
 
+from ctgs.errors import Terminated
 from ctgs.io import atomic
 
 
@@ -76,3 +78,51 @@ def test_no_replace_refuses_an_existing_folder(tmp_path):
         with atomic.atomic_dir(str(tmp_path / "x"), replace=False) as tmp:
             open(os.path.join(tmp, "new"), "w").write("n")
     assert _names(tmp_path / "x") == ["keep"] and _names(tmp_path) == ["x"]
+
+
+class _SignalsWhilePickled:
+    """Sends SIGTERM to this process while torch.save pickles it: a stop landing mid-write, deterministically."""
+
+    def __reduce__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return (dict, ())
+
+
+def test_a_stop_during_torch_save_lands_after_the_file_is_whole(tmp_path):
+    """The CLI's SIGTERM handler raised inside torch.save's zip writer, whose __exit__ then failed ("unexpected pos"):
+    the stop became a RuntimeError (exit 1, a traceback). Now the save completes and the stop is raised after it."""
+    path = str(tmp_path / "last.pt")
+    before = signal.getsignal(signal.SIGTERM)
+
+    def stop(signum, frame):
+        raise Terminated(signum)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        with pytest.raises(Terminated):
+            atomic.torch_save({"w": torch.arange(1000.0), "x": _SignalsWhilePickled()}, path)
+        assert signal.getsignal(signal.SIGTERM) is stop  # the handler is back in place
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    state = torch.load(path, weights_only=False)
+    assert torch.equal(state["w"], torch.arange(1000.0)) and state["x"] == {}
+    assert os.listdir(tmp_path) == ["last.pt"]
+
+
+def test_signals_deferred_delivers_nothing_when_nothing_came(tmp_path):
+    calls = []
+    before = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, lambda s, f: calls.append(s))
+    try:
+        with atomic.signals_deferred():
+            pass
+        assert calls == []
+        with atomic.signals_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):  # give the interpreter bytecode boundaries to run the (holding) handler
+                pass
+            assert calls == []
+        assert calls == [signal.SIGINT]  # held, then delivered once
+    finally:
+        signal.signal(signal.SIGINT, before)
