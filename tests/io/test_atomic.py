@@ -109,7 +109,7 @@ def test_a_stop_during_torch_save_lands_after_the_file_is_whole(tmp_path):
     assert os.listdir(tmp_path) == ["last.pt"]
 
 
-def test_signals_deferred_delivers_nothing_when_nothing_came(tmp_path):
+def test_signals_deferred_holds_a_signal_and_delivers_it_once_after(tmp_path):
     calls = []
     before = signal.getsignal(signal.SIGINT)
     signal.signal(signal.SIGINT, lambda s, f: calls.append(s))
