@@ -62,13 +62,8 @@ def veil_share(inputs, cam, sh_degree: int, backend: str) -> float:
 
 def outside_share(contrib: torch.Tensor, means: torch.Tensor, cam) -> float:
     """veil_share from a render's per-primitive `contrib` [N] (ErrorStats) and the centres `means` [N, 3]."""
-    contrib = contrib.float()
-    pc = means.float() @ cam.R.float().T + cam.t.float()
-    z = pc[:, 2]
-    u = cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx
-    v = cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy
-    inside = (z > cam.near) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    outside = contrib[~inside]
+    inside = cam.project(means.float())[3]
+    outside = contrib.float()[~inside]
     return float(outside.max()) / (cam.width * cam.height) if outside.numel() else 0.0
 
 

@@ -34,6 +34,17 @@ class Camera:
     def center(self) -> torch.Tensor:  # [3] camera centre in world coordinates
         return -self.R.transpose(0, 1) @ self.t
 
+    def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """World points [N, 3] -> pixel coordinates u, v (continuous), camera-space depth z, each [N], and `inside`
+        [N] bool: in front of the near plane and on the image. Computed in the points' dtype and device."""
+        vm = self.viewmat.detach().to(device=points.device, dtype=points.dtype)
+        pc = points @ vm[:3, :3].T + vm[:3, 3]
+        z = pc[:, 2]
+        u = self.fx * pc[:, 0] / z.clamp_min(1e-9) + self.cx
+        v = self.fy * pc[:, 1] / z.clamp_min(1e-9) + self.cy
+        inside = (z > self.near) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        return u, v, z, inside
+
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by `factor` (e.g. 0.5 for images_2)."""
         w, h = max(1, round(self.width * factor)), max(1, round(self.height * factor))

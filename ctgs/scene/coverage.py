@@ -31,12 +31,7 @@ def seen_classes(cam, train_cams, points: np.ndarray, depths: int = DEPTHS) -> t
     h, w = cam.height, cam.width
     vm = cam.viewmat.detach().cpu().double()
     r, t = vm[:3, :3], vm[:3, 3]
-    pts = torch.from_numpy(np.asarray(points, np.float64))
-    pc = pts @ r.T + t
-    z = pc[:, 2]
-    u = cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx
-    v = cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy
-    inside = (z > cam.near) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    _, _, z, inside = cam.project(torch.from_numpy(np.asarray(points, np.float64)))
     if int(inside.sum()) < MIN_POINTS:
         raise ValueError(f"fewer than {MIN_POINTS} SfM points project into the view: no depth range to sample")
     zs = z[inside]
