@@ -47,7 +47,8 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
                "num_params": model.num_params(), "final_test_psnr": test_psnr, "final_test_ssim": test_ssim,
                "preset": trainer.user_cfg.preset, "wall_seconds": round(trainer.wall_seconds(), 2),
                "image_pixels": trainer.pixels, "observed_values": trainer.observed_values(),
-               "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1)}
+               "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1),
+               "scene_extent": trainer.extent, "near_plane": trainer.near}
     if cfg.max_params > 0:
         summary["max_params"] = cfg.max_params
         if trainer.user_cfg.max_params == 0 and trainer.user_cfg.max_params_per_value > 0:

@@ -103,6 +103,7 @@ class Trainer:
         if self.device.type == "cpu":
             fused.tune_allocator()  # freed [T, 3] temporaries are reused, not faulted in afresh
         self.extent = float(scene.extent)
+        self.near = float(scene.train[0].camera.near) if scene.train else None  # the scene's (loader.near_plane)
         self.num_sfm_points = len(scene.points)
         self.world_origin = [float(x) for x in getattr(scene, "origin", (0.0, 0.0, 0.0))]  # saved with the model
         # init_shell: the sphere that tells the shell's far primitives from the scene's (ctgs.train.shell.far_mask).
