@@ -8,10 +8,8 @@ Conventions (3DGS/2DGS, so numbers are comparable):
 - a scene whose cameras lie more than RECENTRE_EXTENTS extents from the origin (georeferenced models: UTM, ECEF)
   is moved so that their mean centre is the origin (`Scene.origin` says where, in the model's frame): float32
   positions there would be coarser than a pixel's footprint. Trained models live in this working frame;
-- every camera's near plane comes from the scene itself (`near_plane`), so a scene behaves the same in any unit (an
-  absolute near plane, gsplat 0.01, 2DGS 0.2 world units, culls a whole scene whose coordinates are small): a fifth
-  of the depth of the nearest content the SfM points show in any view, and at least NEAR_FRACTION x extent.
-  Nothing the capture observed is that close to a camera; a surfel there is a floater (docs/renderer.md, Near plane);
+- every camera's near plane is NEAR_FRACTION x extent (`near_plane`), so a scene behaves the same in any unit:
+  an absolute near plane (gsplat 0.01, 2DGS 0.2 world units) culls a whole scene whose coordinates are small;
 - RGBA images are composited over black (3DGS's default background), see ctgs.io.images.
 """
 
@@ -39,12 +37,6 @@ RECENTRE_EXTENTS = 100.0
 # The near plane as a fraction of the scene extent: 0.01 world units (Camera's default, gsplat's) at an extent of 10
 # (COLMAP's normalised scale), and the same fraction at any scale.
 NEAR_FRACTION = 1e-3
-# ... and as a fraction of the nearest observed content: per view the NEAR_CONTENT_QUANTILE quantile of the depths of
-# the SfM points inside its image (robust to a few stray points), the smallest over all views (test views included:
-# only their poses, which every protocol gives the renderer), times NEAR_CONTENT_FRACTION. Chosen before any run
-# (session 29): 3DGS/2DGS cull at 0.2 units in COLMAP scenes whose nearest content is ~1.5-4 units away.
-NEAR_CONTENT_FRACTION = 0.2
-NEAR_CONTENT_QUANTILE = 0.01
 
 
 def is_test_index(idx: int, holdout: int | None) -> bool:
@@ -85,40 +77,12 @@ def check_same_frame(model_origin, scene: Scene, what: str) -> None:
                         f"or by a ctgs that did not recentre far-away scenes: retrain it with this ctgs")
 
 
-def content_depth(viewmats: list[np.ndarray], sizes: list[tuple[float, float, float, float, int, int]],
-                  points: np.ndarray) -> float | None:
-    """Depth of the nearest content the points show: per view (world->camera 4x4, (fx, fy, cx, cy, W, H)) the
-    NEAR_CONTENT_QUANTILE quantile of the depths of the points in front of it and inside its image, the smallest
-    over the views; None where no view sees a point."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    best = None
-    for vm, (fx, fy, cx, cy, w, h) in zip(viewmats, sizes):
-        vm = np.asarray(vm, dtype=np.float64)
-        pc = pts @ vm[:3, :3].T + vm[:3, 3]
-        z = pc[:, 2]
-        front = z > 0
-        if not front.any():
-            continue
-        u = fx * pc[front, 0] / z[front] + cx
-        v = fy * pc[front, 1] / z[front] + cy
-        seen = z[front][(u >= 0) & (u < w) & (v >= 0) & (v < h)]
-        seen = seen[np.isfinite(seen)]
-        if len(seen):
-            d = float(np.quantile(seen, NEAR_CONTENT_QUANTILE))
-            best = d if best is None else min(best, d)
-    return best
-
-
-def near_plane(extent: float, content: float | None = None) -> float:
-    """World-unit near plane of a scene of this extent whose nearest observed content lies at depth `content`
-    (`content_depth`): the larger of NEAR_FRACTION x extent and NEAR_CONTENT_FRACTION x content; Camera's default
-    where neither is a positive finite number (e.g. a single camera and no points)."""
-    cands = []
-    if np.isfinite(extent) and extent > 0:
-        cands.append(NEAR_FRACTION * float(extent))
-    if content is not None and np.isfinite(content) and content > 0:
-        cands.append(NEAR_CONTENT_FRACTION * float(content))
-    return float(max(cands)) if cands else Camera.near
+def near_plane(extent: float) -> float:
+    """World-unit near plane of a scene of this extent (NEAR_FRACTION x extent; Camera's default where the extent
+    is 0 or not finite, e.g. a single camera)."""
+    if not (np.isfinite(extent) and extent > 0):
+        return Camera.near
+    return float(NEAR_FRACTION * extent)
 
 
 def _find_image(images_dir: str, name: str) -> str | None:
@@ -201,13 +165,7 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
 
     centers = np.stack([-im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images])  # [C, 3]
     extent = scene_extent(centers)
-    intrinsics = []
-    for image, (_, width, height) in zip(model.images, loaded):
-        intr = model.cameras[image.camera_id]
-        sx, sy = width / intr.width, height / intr.height
-        intrinsics.append((intr.fx * sx, intr.fy * sy, intr.cx * sx, intr.cy * sy, width, height))
-    content = content_depth([im.viewmat for im in model.images], intrinsics, model.points)
-    near = near_plane(extent, content)
+    near = near_plane(extent)
     origin = world_origin(centers, extent)
     views = []
     for image, path, (pixels, width, height) in zip(model.images, paths, loaded):
@@ -230,7 +188,5 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
             "num_registered": len(model.images),
             "num_unregistered": model.num_unregistered,
             "holdout": holdout or 0,
-            "near": near,
-            "content_depth": content,
         },
     )

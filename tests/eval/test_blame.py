@@ -15,9 +15,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmar
 import blame  # noqa: E402
 
 
-def _plant_floater(run: str, view: str) -> tuple[int, float]:
-    """Add one opaque, large, grey surfel in front of test camera `view` (half way to the nearest observed content,
-    2.5 near planes out: the near plane culls anything closer), facing it; returns its index and distance."""
+def _plant_floater(run: str, view: str) -> int:
+    """Add one opaque, large, grey surfel 0.3 units in front of test camera `view`, facing it; returns its index."""
     from ctgs.model.geometry import rotmat_to_quat
     from ctgs.model.surfels import jagged_offsets
     from ctgs.scene import load_scene
@@ -28,11 +27,10 @@ def _plant_floater(run: str, view: str) -> tuple[int, float]:
     scene = load_scene(blob["scene_dir"], images=blob["images"], holdout=blob["holdout"], load_images=False)
     cam = next(v.camera for v in scene.test if v.name == view)
     r_c2w = cam.R.float().T  # columns: camera x, y, z (viewing axis) in world
-    dist = 2.5 * cam.near
-    centre = cam.center.float() + dist * r_c2w[:, 2]
+    centre = cam.center.float() + 0.3 * r_c2w[:, 2]
     n = st["means"].shape[0]
     st["means"] = torch.cat([st["means"], centre[None]])
-    st["log_scales"] = torch.cat([st["log_scales"], torch.full((1, 2), math.log(0.2 * dist / 0.3))])
+    st["log_scales"] = torch.cat([st["log_scales"], torch.full((1, 2), math.log(0.2))])
     st["quats"] = torch.cat([st["quats"], rotmat_to_quat(r_c2w[None])])  # surfel normal = the viewing axis
     st["opacity_logits"] = torch.cat([st["opacity_logits"], torch.tensor([6.0])])
     st["sh"] = torch.cat([st["sh"], torch.zeros(1, *st["sh"].shape[1:])])
@@ -41,7 +39,7 @@ def _plant_floater(run: str, view: str) -> tuple[int, float]:
     st["tex_res"] = torch.cat([st["tex_res"], torch.zeros(1, 2, dtype=st["tex_res"].dtype)])
     st["tex_offset"] = jagged_offsets(st["tex_res"])
     torch.save(blob, path)
-    return n, dist
+    return n
 
 
 def _images_from_model(run: str) -> None:
@@ -63,13 +61,13 @@ def _images_from_model(run: str) -> None:
 def test_blame_ranks_the_planted_floater_first(tmp_path):
     run = make_run(str(tmp_path), views=9, width=48, height=36, n=300)
     _images_from_model(run)
-    planted, dist = _plant_floater(run, "000.png")
+    planted = _plant_floater(run, "000.png")
     res = blame.blame(run, None, candidates=20)
     assert res["view"] == "000.png"  # the default is the worst view, which the floater made
     top = res["rows"][0]
     assert top["primitive"] == planted
     assert top["gain_db"] > 1.0
-    assert top["dist_to_test_camera"] == pytest.approx(dist, rel=1e-3)
+    assert top["dist_to_test_camera"] == pytest.approx(0.3, abs=1e-3)
     assert top["opacity"] > 0.99
     # every other candidate costs far less than the floater; removing the worst ones together gains at least as much
     assert all(r["gain_db"] < top["gain_db"] / 2 for r in res["rows"][1:])
