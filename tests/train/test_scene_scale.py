@@ -81,6 +81,9 @@ def test_training_is_the_same_at_any_scale(scenes, tmp_path):
         assert s["final_test_psnr"] == pytest.approx(ref["final_test_psnr"], abs=0.3), factor
         assert s["num_primitives"] == pytest.approx(ref["num_primitives"], rel=0.05), factor
         assert s["num_texels"] == pytest.approx(ref["num_texels"], rel=0.05), factor
+        scale = 1.0 if factor == "moved" else factor  # the summary records the scene's extent and near plane
+        assert s["scene_extent"] == pytest.approx(scale * ref["scene_extent"], rel=1e-4), factor
+        assert s["near_plane"] == pytest.approx(NEAR_FRACTION * s["scene_extent"], rel=1e-6), factor
 
 
 @pytest.mark.slow
