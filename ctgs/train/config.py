@@ -116,6 +116,11 @@ class TrainConfig:
     tau_tr_iters: int = _f(7000, "iterations of the linear tau_tr decay (paper scale)")
     prune_opacity: float = _f(10.0 / 255.0, "prune below this opacity during routines")
     prune_opacity_late: float = _f(1.0 / 255.0, "prune threshold after routine_until")
+    content_opacity_reset: bool = _f(False, "content-aware runs: at the first full routine at or past each multiple "
+                                     "of opacity_reset_every (up to densify_until), after the routine, clamp "
+                                     "opacities to <= 2 x prune_opacity (3DGS's ratio of reset value to prune "
+                                     "threshold, 0.01 / 0.005) and zero their Adam moments; the next full routine "
+                                     "prunes what the training views did not bring back (false = the paper: no reset)")
     max_primitives: int = _f(0, "primitive budget: no splits beyond it (0 = unlimited)")
     max_texture_res: int = _f(256, "hard cap on texels per axis")
     texture_alloc: str = _f("pow2", "texture allocation rounding: pow2 (authors' code) | mult4 (a multiple of 4: "

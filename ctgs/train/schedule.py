@@ -112,6 +112,19 @@ def opacity_reset(cfg: TrainConfig, it: int, shift: float = 0.0) -> bool:
     return it <= at(cfg, cfg.densify_until) and every(cfg, cfg.opacity_reset_every, it, shift)
 
 
+def content_opacity_reset(cfg: TrainConfig, it: int, shift: float = 0.0) -> bool:
+    """Content-aware runs with content_opacity_reset: True at a full routine whose period (it - routine period, it]
+    holds a multiple of opacity_reset_every at or before densify_until (the reset then follows that routine, so a
+    whole routine period passes before the next prune). Stateless, so a resumed run resets where the whole run would."""
+    if not cfg.content_opacity_reset or routine_kind(cfg, it, shift) != "full":
+        return False
+    reset_period, routine_period = at(cfg, cfg.opacity_reset_every), at(cfg, cfg.routine_every)
+    if reset_period <= 0:
+        return False
+    last = math.floor((it + shift) / reset_period + _EPS) * reset_period - shift  # the last multiple at or before it
+    return last > 0 and last > it - max(routine_period, 1.0) + _EPS and last <= at(cfg, cfg.densify_until) + _EPS
+
+
 def texture_lr(cfg: TrainConfig, it: int) -> float:
     """0 before texture_start (and for 2dgs); then lr_texture, constant (paper) or, with lr_texture_final > 0,
     decaying exponentially to lr_texture_final at the last iteration."""

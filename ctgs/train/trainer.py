@@ -512,6 +512,10 @@ class Trainer:
             if kind == "full":
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
                                                        self.cameras, self._background_mask()))
+                if schedule.content_opacity_reset(cfg, it, self._shift):
+                    value = 2.0 * cfg.prune_opacity
+                    reset_opacity(model, opt, value)
+                    yield Routine(it, "opacity_reset", {"value": value})
             elif kind == "late":
                 yield Routine(it, "late", late_routine(model, opt, cfg, self.cameras))
             elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it, self._shift):

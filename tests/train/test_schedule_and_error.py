@@ -129,3 +129,22 @@ def test_scale_lr_constant_by_default_and_exponential_decay_when_asked():
     assert math.isclose(schedule.scale_lr(d, 750), math.sqrt(0.015 * 0.005), rel_tol=1e-9)
     assert schedule.scale_lr(d, 100) > schedule.scale_lr(d, 1000) > schedule.scale_lr(d, 1499)
     assert schedule.learning_rates(d, 750, 1.0, 16, "cpu")["log_scales"] == schedule.scale_lr(d, 750)
+
+
+def test_content_opacity_reset_follows_a_full_routine_up_to_densify_until():
+    # Off by default (the paper has no reset in content-aware runs).
+    fast = TrainConfig(iterations=3000, routine_every=1000, opacity_reset_every=7500)
+    assert not any(schedule.content_opacity_reset(fast, i) for i in range(1, 3000))
+    # fast's calendar: full routines every 100 from 100 to 2500, resets every 750 up to 1500: the reset due at 750
+    # waits for the routine at 800, the one at 1500 falls on a routine, 2250 is past densify_until.
+    on = TrainConfig(iterations=3000, routine_every=1000, opacity_reset_every=7500, content_opacity_reset=True)
+    assert [i for i in range(1, 3000) if schedule.content_opacity_reset(on, i)] == [800, 1500]
+    # balanced: routines every 166.7 iterations (fired at 167, 334, ...), resets at 2500 and 5000, both routines.
+    bal = TrainConfig(iterations=10000, routine_every=500, opacity_reset_every=7500, content_opacity_reset=True)
+    assert [i for i in range(1, 10000) if schedule.content_opacity_reset(bal, i)] == [2500, 5000]
+    # Never in a baseline run (they have their own 3DGS reset) nor between routines.
+    assert not any(schedule.content_opacity_reset(TrainConfig(iterations=3000, method="2dgs", content_opacity_reset=True), i)
+                   for i in range(1, 3000))
+    # A re-planned run's shifted calendar: still once per reset period, at a full routine.
+    shifted = [i for i in range(1, 3000) if schedule.content_opacity_reset(on, i, shift=37.0)]
+    assert len(shifted) == 2 and all(schedule.routine_kind(on, i, 37.0) == "full" for i in shifted)
