@@ -53,6 +53,9 @@ def test_presets_load_and_paper_is_the_authors_recipe():
     its = [load_config(None, preset=p).iterations for p in ("preview", "fast", "balanced")]
     assert its == sorted(its) and len(set(its)) == 3
     assert set(PRESETS) == {"preview", "fast", "balanced", "paper"}
+    # Opacity resets in content-aware runs: only `balanced` took them (session 30, validation views); the paper has none.
+    assert [load_config(None, preset=p).content_opacity_reset for p in ("preview", "fast", "balanced", "paper")] == \
+        [False, False, True, False]
     # A config overlay and --set apply on top of the preset.
     c = load_config("2dgs", {"iterations": 77}, preset="fast")
     assert c.method == "2dgs" and c.iterations == 77 and c.random_background is True
