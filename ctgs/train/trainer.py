@@ -513,7 +513,7 @@ class Trainer:
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
                                                        self.cameras, self._background_mask()))
                 if schedule.content_opacity_reset(cfg, it, self._shift):
-                    value = 2.0 * cfg.prune_opacity
+                    value = max(2.0 * cfg.prune_opacity, 0.01)  # at least 3DGS's reset value (prune_opacity = 0)
                     reset_opacity(model, opt, value)
                     yield Routine(it, "opacity_reset", {"value": value})
             elif kind == "late":

@@ -53,3 +53,10 @@ def test_reset_after_the_routine_then_pruned_by_the_next(scene, tmp_path):
     assert [(it, kind) for it, kind, *_ in off] == [(40, "full"), (80, "full")]
     assert off[0][4] == seen[0][4] and off[0][2] > 2 * value  # the same routine; without the reset, opaque surfels
     assert seen[2][4]["pruned"] > off[1][4]["pruned"], (seen, off)
+
+
+def test_prune_opacity_zero_resets_to_3dgs_value_and_stays_finite(scene, tmp_path):
+    # The extreme: prune_opacity = 0 would make the reset value 0 (logit -inf); it is 0.01 instead, and the run ends.
+    _, seen = _run(scene, str(tmp_path / "zero"), ("content_opacity_reset=true", "prune_opacity=0.0"))
+    reset = [s for s in seen if s[1] == "opacity_reset"]
+    assert len(reset) == 1 and reset[0][4]["value"] == 0.01 and reset[0][2] <= 0.01 * (1 + 1e-5)
