@@ -119,8 +119,9 @@ class TrainConfig:
     content_opacity_reset: bool = _f(False, "content-aware runs: at the first full routine at or past each multiple "
                                      "of opacity_reset_every (up to densify_until), after the routine, clamp "
                                      "opacities to <= 2 x prune_opacity (3DGS's ratio of reset value to prune "
-                                     "threshold, 0.01 / 0.005; at least 0.01) and zero their Adam moments; the next full routine "
-                                     "prunes what the training views did not bring back (false = the paper: no reset)")
+                                     "threshold, 0.01 / 0.005; at least 0.01) and zero their Adam moments; the next "
+                                     "full routine prunes what the training views did not bring back (false = the "
+                                     "paper: no reset)")
     max_primitives: int = _f(0, "primitive budget: no splits beyond it (0 = unlimited)")
     max_texture_res: int = _f(256, "hard cap on texels per axis")
     texture_alloc: str = _f("pow2", "texture allocation rounding: pow2 (authors' code) | mult4 (a multiple of 4: "

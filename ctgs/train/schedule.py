@@ -118,9 +118,7 @@ def content_opacity_reset(cfg: TrainConfig, it: int, shift: float = 0.0) -> bool
     whole routine period passes before the next prune). Stateless, so a resumed run resets where the whole run would."""
     if not cfg.content_opacity_reset or routine_kind(cfg, it, shift) != "full":
         return False
-    reset_period, routine_period = at(cfg, cfg.opacity_reset_every), at(cfg, cfg.routine_every)
-    if reset_period <= 0:
-        return False
+    reset_period, routine_period = at(cfg, cfg.opacity_reset_every), at(cfg, cfg.routine_every)  # both > 0 (validate)
     last = math.floor((it + shift) / reset_period + _EPS) * reset_period - shift  # the last multiple at or before it
     return last > 0 and last > it - max(routine_period, 1.0) + _EPS and last <= at(cfg, cfg.densify_until) + _EPS
 

@@ -143,8 +143,8 @@ def test_content_opacity_reset_follows_a_full_routine_up_to_densify_until():
     bal = TrainConfig(iterations=10000, routine_every=500, opacity_reset_every=7500, content_opacity_reset=True)
     assert [i for i in range(1, 10000) if schedule.content_opacity_reset(bal, i)] == [2500, 5000]
     # Never in a baseline run (they have their own 3DGS reset) nor between routines.
-    assert not any(schedule.content_opacity_reset(TrainConfig(iterations=3000, method="2dgs", content_opacity_reset=True), i)
-                   for i in range(1, 3000))
+    baseline = TrainConfig(iterations=3000, method="2dgs", content_opacity_reset=True)
+    assert not any(schedule.content_opacity_reset(baseline, i) for i in range(1, 3000))
     # A re-planned run's shifted calendar: still once per reset period, at a full routine.
     shifted = [i for i in range(1, 3000) if schedule.content_opacity_reset(on, i, shift=37.0)]
     assert len(shifted) == 2 and all(schedule.routine_kind(on, i, 37.0) == "full" for i in shifted)
