@@ -49,10 +49,8 @@ def veil_share(inputs, cam, sh_degree: int, backend: str) -> float:
     """The largest share of the view's blending weight (sum of alpha T over its pixels) carried by one primitive
     whose centre lies outside the view (behind the near plane or projecting off the image).
 
-    Under centre-depth order a surfel far larger than the scene, centred off to the side of a camera, was blended
-    in front of the surface it crosses there, a veil over the view; blending now keys such primitives by where
-    their plane crosses the image (docs/renderer.md, "Blending order"), so what this still finds is a primitive
-    that really lies in front there, or one the single per-view key places wrongly. Over the
+    Blending follows centre depth (docs/renderer.md, Ordering): a surfel far larger than the scene, centred off
+    to the side of a camera, is blended in front of the surface it crosses there, a veil over the view. Over the
     training views of 24 herzjesu25 runs (content-aware and 2dgs, 192 and 384 px) no such primitive carried more
     than 12% of a view (benchmarks/results/oversized_herzjesu25_vm27.md, session 27)."""
     from ctgs.render import render

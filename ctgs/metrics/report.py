@@ -42,7 +42,7 @@ class ImageMetrics:
     open: float = float("nan")  # share of the pixels whose rendered alpha is below OPEN_ALPHA
     psnr_covered: float | None = None  # PSNR over the other pixels (None: every pixel open)
     # the largest share of the view's blending weight (sum of alpha T over its pixels) that one primitive whose
-    # centre lies outside the view carries: a veil blended in front of the scene (docs/renderer.md, "Blending order")
+    # centre lies outside the view carries: a veil blended in front of the scene (docs/renderer.md, Ordering)
     veil: float = float("nan")
 
 

@@ -84,7 +84,7 @@ def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
 
 @dataclass
 class _Prims:
-    """The M primitives in front of the near plane, in blending order (sort_depth, then index)."""
+    """The M primitives in front of the near plane, sorted front to back (centre depth, then index)."""
 
     index: torch.Tensor  # [M] int64 original index
     mu: torch.Tensor  # [M, 3] camera-space centre, world units
@@ -117,38 +117,16 @@ def _check(s: SurfelInputs) -> None:
     need("tex_offset", s.tex_offset, f"[{n}]", tuple(s.tex_offset.shape) == (n,))
 
 
-def sort_depth(mu: torch.Tensor, n: torch.Tensor, camera: Camera) -> torch.Tensor:
-    """Blending-order key of primitives in front of the near plane (docs/renderer.md, "Blending order"; the
-    kernels' sort_depth in ctgs/surfel.h, the same expressions): mu [K, 3] camera-space centres, n [K, 3] unit
-    normals -> [K]. The centre depth where the centre projects inside the image ([0, W] x [0, H]); otherwise the
-    depth at which the plane crosses the ray through the image point nearest the projected centre, when that hit is
-    well defined and in front of the near plane; else the centre depth."""
-    z = mu[:, 2]
-    mx = camera.fx * mu[:, 0] / z + camera.cx
-    my = camera.fy * mu[:, 1] / z + camera.cy
-    x, y = mx.clamp(0.0, float(camera.width)), my.clamp(0.0, float(camera.height))
-    inside = (x == mx) & (y == my)
-    dx, dy = (x - camera.cx) / camera.fx, (y - camera.cy) / camera.fy
-    denom = n[:, 0] * dx + n[:, 1] * dy + n[:, 2]
-    ok = denom.abs() > PARALLEL_EPS * torch.sqrt(dx * dx + dy * dy + 1.0)
-    n_mu = n[:, 0] * mu[:, 0] + n[:, 1] * mu[:, 1] + n[:, 2] * mu[:, 2]
-    t = n_mu / torch.where(ok, denom, torch.ones_like(denom))
-    use_t = ~inside & ok & (t >= camera.near)
-    return torch.where(use_t, t, z)
-
-
 def _preprocess(s: SurfelInputs, camera: Camera, sh_degree: int) -> _Prims:
     dtype, device = s.means.dtype, s.means.device
     view = camera.viewmat.to(device=device, dtype=dtype)
     rv, tv = view[:3, :3], view[:3, 3]  # [3, 3], [3]
     mu_all = s.means @ rv.T + tv  # [N, 3]
     keep = torch.nonzero(mu_all[:, 2].detach() >= camera.near).squeeze(1)  # z < near: culled
-    rot_all = rv @ quat_to_rotmat(s.quats[keep])  # [K, 3, 3]
-    key = sort_depth(mu_all[keep].detach(), rot_all[:, :, 2].detach(), camera)
-    order = torch.sort(key, stable=True).indices  # stable: ties by index
+    order = torch.sort(mu_all[keep, 2].detach(), stable=True).indices  # stable: ties by index
     idx = keep[order]  # [M]
 
-    rot = rot_all[order]  # [M, 3, 3]
+    rot = rv @ quat_to_rotmat(s.quats[idx])  # [M, 3, 3]
     center = -rv.T @ tv  # [3] camera centre, world
     dirs = s.means[idx] - center  # [M, 3]
     sq = (dirs * dirs).sum(-1, keepdim=True)

@@ -92,9 +92,9 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
         click.echo(f"{worst['name']}: {100 * worst['open']:.1f}% of the pixels open (rendered alpha < {OPEN_ALPHA}: the "
                    f"background shows), PSNR {worst['psnr']:.2f} dB{covered}")
     veiled = max(m["per_image"], key=lambda r: r["veil"])
-    if veiled["veil"] >= VEIL_NOTE:  # one surfel blended in front of the scene: docs/renderer.md, "Blending order"
+    if veiled["veil"] >= VEIL_NOTE:  # one surfel blended in front of the scene: docs/renderer.md, Ordering
         click.echo(f"{veiled['name']}: one primitive centred outside the view carries {100 * veiled['veil']:.0f}% of "
-                   f"its blending weight (a veil in front of the scene; docs/renderer.md, 'Blending order'), PSNR "
+                   f"its blending weight (a veil in front of the scene; docs/renderer.md, Ordering), PSNR "
                    f"{veiled['psnr']:.2f} dB")
     if m["lpips"] is None:
         click.echo(f"LPIPS {m['lpips_status']}")

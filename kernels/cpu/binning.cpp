@@ -151,13 +151,13 @@ void bin_primitives(const SceneArgs<S>& a, std::vector<SurfelPrim<S>>& prims, st
       for (int tx = r.x0; tx < r.x1; ++tx) ++off[ty * ntx + tx + 1];
   }
   for (int k = 0; k < num_tiles; ++k) off[k + 1] += off[k];
-  // Sorting once globally by (sort_depth, index) and then bucketing stably by tile leaves every tile
+  // Sorting once globally by (centre depth, index) and then bucketing stably by tile leaves every tile
   // list in blending order without a per-tile sort. The keys are copied out so the sort reads
   // contiguous memory.
   std::vector<std::pair<S, int32_t>> order;
   order.reserve(N);
   for (int i = 0; i < N; ++i)
-    if (bounds[i].x0 <= bounds[i].x1 && bounds[i].y0 <= bounds[i].y1) order.emplace_back(sort_depth(prims[i], a.K), i);
+    if (bounds[i].x0 <= bounds[i].x1 && bounds[i].y0 <= bounds[i].y1) order.emplace_back(prims[i].mu.z, i);
   sort_by_depth(order);
   bins->list.resize(off[num_tiles]);
   std::vector<int64_t> cursor(off.begin(), off.end() - 1);

@@ -19,7 +19,7 @@ namespace cpu {
 template <typename S>
 using SceneArgs = ctgs::SceneArgs<S>;
 
-// Per-tile lists: tile k blends list[offsets[k] .. offsets[k+1]) in order (sort_depth of ctgs/surfel.h, then index).
+// Per-tile lists: tile k blends list[offsets[k] .. offsets[k+1]) in order (centre depth, then index).
 struct TileBins {
   std::vector<int64_t> offsets;  // [num_tiles + 1]
   std::vector<int32_t> list;     // [pairs] primitive indices

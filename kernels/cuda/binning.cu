@@ -1,6 +1,6 @@
 // Per-tile depth-sorted lists of the CUDA backend (3DGS/gsplat style): every (tile, primitive) pair gets a
 // 64-bit key tile << RANK_BITS | depth_rank and one stable radix sort leaves each tile's pairs contiguous
-// and in blending order. The depth rank (position of the primitive when all are sorted by sort_depth (ctgs/surfel.h),
+// and in blending order. The depth rank (position of the primitive when all are sorted by centre depth,
 // ties by index) replaces the usual 32 raw depth bits: it reproduces the CPU backend's order exactly, for
 // float and double depths alike (raw float bits would tie doubles that differ past float precision), and
 // needs only ceil(log2 N) bits, so the pair sort makes fewer radix passes.
@@ -38,11 +38,10 @@ inline int bit_width(unsigned long long x) {
 }
 
 template <typename S>
-__global__ void depth_keys_kernel(int N, const SurfelPrim<S>* prims, Intrinsics<S> K, unsigned long long* keys,
-                                  int32_t* index) {
+__global__ void depth_keys_kernel(int N, const SurfelPrim<S>* prims, unsigned long long* keys, int32_t* index) {
   const int i = blockIdx.x * blockDim.x + threadIdx.x;
   if (i >= N) return;
-  S z = sort_depth(prims[i], K);  // ctgs/surfel.h: centre depth, or the plane's depth in the image for centres outside
+  S z = prims[i].mu.z;
   if (z == S(0)) z = S(0);  // -0 and +0 compare equal on the CPU (then the index decides): one key for both
   keys[i] = depth_key(z);
   index[i] = i;
@@ -109,7 +108,7 @@ TileList bin_tiles(const SceneArgs<S>& a, const SurfelPrim<S>* prims, const Pixe
   int32_t* index = scratch<int32_t>(alloc, N);
   int32_t* order = scratch<int32_t>(alloc, N);
   int32_t* rank = scratch<int32_t>(alloc, N);
-  depth_keys_kernel<S><<<grid_1d(N), LINEAR_BLOCK, 0, stream>>>(N, prims, a.K, keys, index);
+  depth_keys_kernel<S><<<grid_1d(N), LINEAR_BLOCK, 0, stream>>>(N, prims, keys, index);
   CTGS_CUDA_LAUNCH_CHECK("depth_keys_kernel");
   size_t bytes = 0;
   // int64 item counts here too: one cub instantiation for both sorts (it dominates the compile time).

@@ -7,7 +7,6 @@ test camera is compared at its image size, with textures on and off.
 
 from __future__ import annotations
 
-import math
 import os
 
 import numpy as np
@@ -179,41 +178,3 @@ def test_controls_move_the_camera_and_a_camera_jump_restores_the_view(page, demo
     ref = read_rgb(os.path.join(demo["on"], os.path.splitext(cam["name"])[0] + ".png"))
     assert psnr(shot, ref) >= MIN_VIEW_PSNR
     assert not browser.page_errors(), browser.page_errors()
-
-
-def test_a_surfel_centred_off_to_the_side_is_blended_where_it_crosses_the_view(tmp_path):
-    """The viewer's sort worker keys a primitive centred outside the image as the renderers do (docs/renderer.md,
-    "Blending order"): a surfel centred 100 units to the side at depth 1, tilted so that it crosses the view about
-    39 units away, stays behind the wall at depth 5 (by centre depth it would veil the view), and a copy tilted to
-    cross in front of the wall stays in front. Browser and `ctgs render` agree on both."""
-    from ctgs.model.surfels import SurfelModel, jagged_offsets
-    from ctgs.render import render
-    from ctgs.render.camera import Camera
-    from ctgs.io.web_bundle import write_web_bundle
-
-    W, H, F = 64, 48, 50.0
-    cam = Camera(fx=F, fy=F, cx=W / 2, cy=H / 2, width=W, height=H, viewmat=torch.eye(4), near=0.05)
-    cams = [{"name": "v", "split": "test", "width": W, "height": H, "fx": F, "fy": F, "cx": W / 2, "cy": H / 2,
-             "near": 0.05, "viewmat": torch.eye(4, dtype=torch.float64).reshape(-1).tolist()}]
-    for slope, veiled in ((49.0, False), (1.0, True)):
-        theta = math.atan2(slope, 100.0)  # normal (sin, 0, cos) through (100, 0, 1)
-        res = torch.zeros(2, 2, dtype=torch.int32)
-        model = SurfelModel(
-            means=torch.tensor([[0.0, 0.0, 5.0], [100.0, 0.0, 1.0]]),
-            log_scales=torch.tensor([[20.0, 20.0], [100.0, 100.0]]).log(),
-            quats=torch.tensor([[1.0, 0.0, 0.0, 0.0], [math.cos(theta / 2), 0.0, math.sin(theta / 2), 0.0]]),
-            opacity_logits=torch.tensor([0.99, 0.8]).logit(),
-            sh=torch.tensor([[[0.3, 0.3, 0.3]], [[1.2, -1.2, -1.2]]]),  # grey wall, red surfel
-            textures_raw=torch.zeros(0, 3), k_min=torch.full((2,), 0.1), t2p_exp=torch.zeros(2, dtype=torch.int32),
-            tex_res=res, tex_offset=jagged_offsets(res), sh_degree=0, texture_mode="none")
-        with torch.no_grad():
-            ref = render(model.render_inputs(), cam, backend="cpu", sh_degree=0).rgb.clamp(0, 1).numpy()
-        red = float(ref[..., 0].mean() - ref[..., 1].mean())
-        assert (red > 0.2) if veiled else (red < 0.01), red
-        web = str(tmp_path / f"web_{int(slope)}")
-        write_web_bundle(model, web, cams)
-        with ViewerServer(web) as server, Browser() as browser:
-            page = ViewerPage(browser, server.url)
-            page.fit_viewport(W, H)
-            shot = page.capture(0)
-        assert psnr(shot, ref) >= MIN_VIEW_PSNR, (slope, psnr(shot, ref))

@@ -1,26 +1,19 @@
-// Blending-order sort off the main thread. docs/renderer.md ("Blending order") blends in increasing
-// sort_depth, ties by index: the centre depth mu_c.z when the centre projects inside the image, else the
-// depth at which the surfel's plane crosses the ray through the image point nearest its projected centre
-// (when that hit is well defined and in front of the near plane). The viewer draws back to front, so it
-// gets that order reversed. Surfels whose centre lies before the near plane are dropped.
+// Depth sort off the main thread. docs/renderer.md blends in increasing centre depth mu_c.z, ties by
+// index; the viewer draws back to front, so it gets that order reversed. Surfels whose centre lies
+// before the near plane are dropped (they contribute nowhere).
 //
-// Messages in:  {type: "init", means: Float32Array [N*3], normals: Float32Array [N*3] (world, unit)}
-//               {type: "sort", id, view: Float64Array(16) row-major world->camera, near,
-//                intr: {fx, fy, cx, cy, width, height}}
+// Messages in:  {type: "init", means: Float32Array [N*3]}
+//               {type: "sort", id, view: Float64Array(16) row-major world->camera, near}
 // Messages out: {type: "sorted", id, order: Uint32Array (back to front), count, ms}
 
 "use strict";
 
 let means = null;  // Float32Array [N*3]
-let normals = null;  // Float32Array [N*3]
 let depth = null;  // Float32Array [N]
 let keys = null, keys2 = null, idx = null, idx2 = null;  // Uint32Array [N] scratch
 
-const PARALLEL_EPS = 1e-6;  // docs/renderer.md: the ray/plane hit is valid iff |n.d| > PARALLEL_EPS |d|
-
-function init(m, nrm) {
+function init(m) {
   means = m;
-  normals = nrm;
   const n = m.length / 3;
   depth = new Float32Array(n);
   keys = new Uint32Array(n);
@@ -49,34 +42,16 @@ function radixSort(count) {
   return v;  // after an even number of passes: the original idx array
 }
 
-function sort(view, near, intr) {
+function sort(view, near) {
   const t0 = performance.now();
   const n = depth.length;
-  const {fx, fy, cx, cy, width, height} = intr;
+  const r0 = view[8], r1 = view[9], r2 = view[10], t = view[11];  // third row: camera-space z
   const f32 = new Float32Array(1), u32 = new Uint32Array(f32.buffer);
   let count = 0;
   for (let i = 0; i < n; ++i) {
-    const wx = means[3 * i], wy = means[3 * i + 1], wz = means[3 * i + 2];
-    const z = view[8] * wx + view[9] * wy + view[10] * wz + view[11];
+    const z = Math.fround(r0 * means[3 * i] + r1 * means[3 * i + 1] + r2 * means[3 * i + 2] + t);
     if (!(z >= near)) continue;  // mu_c.z < near (or NaN): culled
-    let key = z;
-    const x = view[0] * wx + view[1] * wy + view[2] * wz + view[3];
-    const y = view[4] * wx + view[5] * wy + view[6] * wz + view[7];
-    const mx = fx * x / z + cx, my = fy * y / z + cy;
-    const px = Math.min(Math.max(mx, 0), width), py = Math.min(Math.max(my, 0), height);
-    if (px !== mx || py !== my) {  // centre outside the image: the plane's depth at the image point nearest it
-      const ax = normals[3 * i], ay = normals[3 * i + 1], az = normals[3 * i + 2];
-      const nx = view[0] * ax + view[1] * ay + view[2] * az;
-      const ny = view[4] * ax + view[5] * ay + view[6] * az;
-      const nz = view[8] * ax + view[9] * ay + view[10] * az;
-      const dx = (px - cx) / fx, dy = (py - cy) / fy;
-      const denom = nx * dx + ny * dy + nz;
-      if (Math.abs(denom) > PARALLEL_EPS * Math.sqrt(dx * dx + dy * dy + 1)) {
-        const t = (nx * x + ny * y + nz * z) / denom;
-        if (t >= near) key = t;
-      }
-    }
-    f32[0] = key;
+    f32[0] = z;
     const b = u32[0];
     keys[count] = (b & 0x80000000) ? ~b >>> 0 : (b | 0x80000000) >>> 0;  // float order as unsigned order
     idx[count] = i;
@@ -91,9 +66,9 @@ function sort(view, near, intr) {
 self.onmessage = (e) => {
   const msg = e.data;
   if (msg.type === "init") {
-    init(msg.means, msg.normals);
+    init(msg.means);
   } else if (msg.type === "sort") {
-    const {order, count, ms} = sort(msg.view, msg.near, msg.intr);
+    const {order, count, ms} = sort(msg.view, msg.near);
     self.postMessage({type: "sorted", id: msg.id, order, count, ms}, [order.buffer]);
   }
 };

@@ -5,21 +5,6 @@ import {loadBundle} from "./bundle.js";
 import {Controls, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm, column} from "./camera.js";
 import {Renderer} from "./renderer.js";
 
-// World-space unit normals [N*3] from the bundle's unit quaternions (w, x, y, z): the rotation's third column, as in
-// ctgs.render.reference.quat_to_rotmat. The sort worker needs them for surfels centred outside the image.
-function surfelNormals(quats) {
-  const n = quats.length / 4, out = new Float32Array(3 * n);
-  for (let i = 0; i < n; ++i) {
-    let w = quats[4 * i], x = quats[4 * i + 1], y = quats[4 * i + 2], z = quats[4 * i + 3];
-    const r = Math.hypot(w, x, y, z) || 1;
-    w /= r; x /= r; y /= r; z /= r;
-    out[3 * i] = 2 * (x * z + w * y);
-    out[3 * i + 1] = 2 * (y * z - w * x);
-    out[3 * i + 2] = 1 - 2 * (x * x + y * y);
-  }
-  return out;
-}
-
 const $ = (id) => document.getElementById(id);
 const SHADERS = {surfelVert: "surfel.vert", surfelFrag: "surfel.frag", compositeVert: "composite.vert",
   compositeFrag: "composite.frag"};
@@ -73,7 +58,7 @@ class Viewer {
     this.worker = new Worker("sort_worker.js");
     this.worker.onmessage = (e) => this.onSorted(e.data);
     this.worker.onerror = (e) => this.fail(new Error(`sort worker: ${e.message}`));
-    this.worker.postMessage({type: "init", means: arrays.means.slice(), normals: surfelNormals(arrays.quats)});
+    this.worker.postMessage({type: "init", means: arrays.means.slice()});
     this.controls = new Controls(canvas, this);
     this.buildUi();
     const want = this.params.get("camera");
@@ -145,9 +130,7 @@ class Viewer {
   }
 
   key(cam) {
-    // The blending order depends on the intrinsics too (surfels centred outside the image: docs/renderer.md).
-    return cam.viewmat.map((v) => v.toPrecision(9)).join(",") + "|" + cam.near + "|"
-      + [cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height].join(",");
+    return cam.viewmat.map((v) => v.toPrecision(9)).join(",") + "|" + cam.near;
   }
 
   // ---- sorting -------------------------------------------------------------------------------------
@@ -155,8 +138,7 @@ class Viewer {
     const key = this.key(cam);
     if (this.sortInFlight) { this.sortWanted = true; return; }
     this.sortInFlight = {id: ++this.sortId, key};
-    const intr = {fx: cam.fx, fy: cam.fy, cx: cam.cx, cy: cam.cy, width: cam.width, height: cam.height};
-    this.worker.postMessage({type: "sort", id: this.sortId, view: new Float64Array(cam.viewmat), near: cam.near, intr});
+    this.worker.postMessage({type: "sort", id: this.sortId, view: new Float64Array(cam.viewmat), near: cam.near});
   }
 
   onSorted(msg) {

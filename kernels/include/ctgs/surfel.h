@@ -61,26 +61,6 @@ HOST_DEVICE inline SurfelPrim<S> load_prim(int i, const S* mu_c, const S* Rc, co
   return P;
 }
 
-// Blending-order key (docs/renderer.md, "Blending order"). Primitives blend in increasing key, ties by index.
-// The key is the centre depth mu.z when the centre projects inside the image ([0, W] x [0, H], continuous
-// coordinates). Otherwise it is the depth at which the primitive's plane crosses the ray through the image point
-// nearest the projected centre (the clamp of (mx, my) to the image), when that hit is well defined and in front of
-// the near plane; else mu.z. A surfel centred just beside the camera and far to the side (a scale of 100 in a scene
-// of extent 7, seen on a herzjesu25 test view) has a small centre depth but crosses the view far behind the scene;
-// by centre depth it was blended first and veiled the whole view. Inside the image nothing changes.
-template <typename S>
-HOST_DEVICE inline S sort_depth(const SurfelPrim<S>& P, const Intrinsics<S>& K) {
-  const S w = S(K.width), h = S(K.height);
-  const S x = P.mx < S(0) ? S(0) : (P.mx > w ? w : P.mx);
-  const S y = P.my < S(0) ? S(0) : (P.my > h ? h : P.my);
-  if (x == P.mx && y == P.my) return P.mu.z;
-  const Vec3<S> d = make_vec3((x - K.cx) / K.fx, (y - K.cy) / K.fy, S(1));
-  const S denom = dot(P.n, d);
-  if (!(fabs(denom) > S(PARALLEL_EPS) * sqrt(dot(d, d)))) return P.mu.z;  // edge-on there (or NaN): centre depth
-  const S t = P.n_mu / denom;
-  return t >= K.near_plane ? t : P.mu.z;  // the plane crosses that ray behind the near plane: centre depth
-}
-
 // Camera ray through the centre of pixel (x, y): d = ((x+0.5-cx)/fx, (y+0.5-cy)/fy, 1), so t = depth.
 template <typename S>
 struct PixelRay {
