@@ -87,8 +87,11 @@ def densify_and_prune(model, opt, acc: GradAccumulator, cfg, extent: float, gen:
     return {"cloned": len(cl), "split": len(sp), "pruned": int(drop.sum())}
 
 
+RESET_OPACITY = 0.01  # 3DGS's reset value
+
+
 @torch.no_grad()
-def reset_opacity(model, opt, value: float = 0.01) -> None:
+def reset_opacity(model, opt, value: float = RESET_OPACITY) -> None:
     """3DGS opacity reset: clamp opacities to <= value and zero their Adam moments."""
     o = torch.minimum(model.opacities.detach(), torch.tensor(value))
     model.opacity_logits.data.copy_(torch.log(o / (1 - o)))

@@ -26,7 +26,7 @@ from ctgs.train import rules, schedule, size_budget, texels
 from ctgs.train.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.budget import BudgetPlanner
 from ctgs.train.config import TrainConfig
-from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
+from ctgs.train.densify import RESET_OPACITY, GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
 from ctgs.train.fill import fill_points
 from ctgs.train.init import init_model
@@ -513,7 +513,7 @@ class Trainer:
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
                                                        self.cameras, self._background_mask()))
                 if schedule.content_opacity_reset(cfg, it, self._shift):
-                    value = max(2.0 * cfg.prune_opacity, 0.01)  # at least 3DGS's reset value (prune_opacity = 0)
+                    value = max(2.0 * cfg.prune_opacity, RESET_OPACITY)  # prune_opacity = 0 would give 0
                     reset_opacity(model, opt, value)
                     yield Routine(it, "opacity_reset", {"value": value})
             elif kind == "late":
