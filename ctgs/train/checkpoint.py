@@ -23,7 +23,9 @@ def restore_rng(state: dict, gen: torch.Generator) -> None:
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
     if state.get("cuda") is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        # One state per GPU of the machine that saved it; a resume may see fewer (or other) GPUs.
+        for i, s in enumerate(state["cuda"][: torch.cuda.device_count()]):
+            torch.cuda.set_rng_state(s, i)
 
 
 def checkpoint_path(run_dir: str) -> str:

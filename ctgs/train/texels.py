@@ -227,7 +227,7 @@ def fit_texels(model, opt, max_texels: int, cap: int, mode: str = "pow2", sigma:
             per_texel = support[idx].to(e_d.dtype) / n_tex
         order = torch.argsort(e_d[idx] * per_texel, stable=True)
         saved = torch.cumsum(0.75 * n_tex[order], 0)
-        k = min(int(torch.searchsorted(saved, torch.tensor(float(excess), dtype=saved.dtype))) + 1, len(order))
+        k = min(int(torch.searchsorted(saved, saved.new_tensor(float(excess)))) + 1, len(order))
         chosen = torch.zeros_like(cand)
         chosen[idx[order[:k]]] = True
         down, _ = downscale(model, opt, chosen, float("inf"))
