@@ -442,7 +442,8 @@ class Trainer:
                 self._log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                            "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
                            "sh_degree": self.model.sh_degree, "lr_pos": lrs["means"],
-                           "seconds": round(self.train_seconds, 3), "wall": round(self.wall_seconds(), 3)})
+                           "seconds": round(self.train_seconds, 3), "wall": round(self.wall_seconds(), 3),
+                           **self._device_memory()})
             yield Step(it, float(loss.detach()), terms.psnr, self.model.num_primitives, self.model.num_texels,
                        self.train_seconds)
             for ev in events:
@@ -489,6 +490,13 @@ class Trainer:
         self._save_checkpoint()
         summary = self._finish(p, s)
         yield Done(self.it, summary)
+
+    def _device_memory(self) -> dict:
+        """{"cuda_peak_mb": peak memory torch's allocator has held on the training GPU so far} on CUDA, else {}
+        (no synchronisation: the allocator's own counter)."""
+        if self.device.type != "cuda":
+            return {}
+        return {"cuda_peak_mb": round(torch.cuda.max_memory_allocated(self.device) / 2**20, 1)}
 
     def _background_mask(self):
         """With init_shell: a function model -> [N] bool of the far primitives the split/upscale ranking leaves out."""

@@ -31,6 +31,12 @@ from ctgs.errors import UserError
 from ctgs.render import render
 
 HAS_CUDA = torch.cuda.is_available()
+# Measurement hooks for the agreement table (benchmarks/cuda_agreement.py): with CTGS_AGREEMENT_LOG=FILE every
+# comparison below appends its observed error (one JSON line: test, kind, name, dtype, err, scale, tol) to
+# FILE before it asserts; CTGS_AGREEMENT_RECORD_ONLY=1 also skips the asserts (a measuring run, so that one
+# failure does not hide the comparisons after it). Neither is set in a normal test run.
+AGREEMENT_LOG = os.environ.get("CTGS_AGREEMENT_LOG", "")
+RECORD_ONLY = os.environ.get("CTGS_AGREEMENT_RECORD_ONLY", "") == "1"
 # CTGS_CUDA_TESTS_ON_CPU=1 on a machine without a GPU runs the GPU tests with the CPU backend on both sides:
 # it checks this file's own code (helpers, shapes, thresholds), never the CUDA kernels.
 DRY_RUN = not HAS_CUDA and os.environ.get("CTGS_CUDA_TESTS_ON_CPU", "") == "1"
@@ -97,11 +103,37 @@ def _render_both(s, cam, dtype, *, background=None, error_image=None, grads=Fals
     return res
 
 
+def _max_abs_diff(x: torch.Tensor, y: torch.Tensor) -> float:
+    """max |x - y| in float64; inf where either side is non-finite and they differ (NaN never passes)."""
+    if x.numel() == 0:
+        return 0.0
+    x, y = x.double(), y.double()
+    d = torch.where(x == y, torch.zeros_like(x), (x - y).abs())  # equal infinities differ by 0, not NaN
+    return float(torch.nan_to_num(d, nan=math.inf).max())
+
+
+def _record(kind: str, name: str, dtype, err: float, scale: float | None, tol: float) -> None:
+    """Append one observed error to CTGS_AGREEMENT_LOG (no-op when unset). err: absolute for images and
+    statistics, relative to `scale` (max |CPU gradient|) for gradients, as each assert compares it."""
+    if not AGREEMENT_LOG:
+        return
+    import json
+
+    rec = {"test": os.environ.get("PYTEST_CURRENT_TEST", "").split(" ")[0], "kind": kind, "name": name,
+           "dtype": str(dtype).replace("torch.", ""), "err": err, "scale": scale, "tol": tol}
+    with open(AGREEMENT_LOG, "a") as fh:
+        fh.write(json.dumps(rec) + "\n")
+
+
 def _assert_images_close(a, b, dtype):
     atol = ATOL_F64 if dtype == torch.float64 else ATOL_F32
     for name in ("rgb", "alpha", "depth"):
         x, y = getattr(a, name), getattr(b, name)
         assert x.dtype == dtype and x.shape == y.shape, name
+        _record("image", name, dtype, _max_abs_diff(x, y) if bool(torch.isfinite(x).all()) else math.inf, None,
+                atol)
+        if RECORD_ONLY:
+            continue
         assert torch.isfinite(x).all(), f"{name}: non-finite (or never written) pixels on cuda"
         torch.testing.assert_close(x, y, atol=atol, rtol=0, msg=name)
 
@@ -110,9 +142,12 @@ def _assert_grads_close(ga, gb, names, dtype):
     rtol = GRAD_RTOL_F64 if dtype == torch.float64 else GRAD_RTOL_F32
     for name, x, y in zip(names, ga, gb):
         assert x.shape == y.shape, name
-        assert torch.isfinite(x).all(), f"{name}: non-finite gradient on cuda"
         scale = y.abs().max().item() if y.numel() else 0.0
-        err = (x - y).abs().max().item() if y.numel() else 0.0
+        err = _max_abs_diff(x, y) if bool(torch.isfinite(x).all()) else math.inf
+        _record("grad", name, dtype, err / max(scale, 1e-30), scale, rtol)
+        if RECORD_ONLY:
+            continue
+        assert torch.isfinite(x).all(), f"{name}: non-finite gradient on cuda"
         assert err <= rtol * max(scale, 1e-30), f"{name}: max abs err {err:.3g} vs max |grad| {scale:.3g}"
 
 
@@ -146,6 +181,8 @@ def test_tile_lists_identical_to_cpu(dtype, n, width, height):
     gpu_forward = load_cpu().forward_cpu if DRY_RUN else load_cuda().forward_cuda
     b = gpu_forward(*[t.contiguous().to(GPU) for t in args], *cam_args, None, 2, True)
     offsets, lists = (a[5], b[5].cpu()), (a[6], b[6].cpu())
+    same = torch.equal(offsets[0], offsets[1]) and torch.equal(lists[0], lists[1])
+    _record("bins", f"tile lists ({n} prims, {width}x{height})", dtype, 0.0 if same else 1.0, None, 0.0)
     assert torch.equal(offsets[0], offsets[1])
     assert torch.equal(lists[0], lists[1])
     assert lists[0].numel() > 0
@@ -166,12 +203,20 @@ def test_forward_and_stats_match_cpu(seed, dtype):
     assert b.alpha.mean() > 0.2  # the scene covers a good part of the image
     _assert_images_close(a, b, dtype)
     assert b.stats.count.sum() > 0
+    mismatch = int((a.stats.count - b.stats.count).abs().sum())
+    atol = (ATOL_F64 if dtype == torch.float64 else ATOL_F32) * 100
+    rtol = 0 if dtype == torch.float64 else 1e-3
+    _record("stats", "count (pixels, summed |diff|)", dtype, float(mismatch), None,
+            0.0 if dtype == torch.float64 else float(MAX_COUNT_MISMATCH_F32))
+    for name in ("contrib", "err"):
+        x, y = getattr(a.stats, name), getattr(b.stats, name)
+        _record("stats", name, dtype, _max_abs_diff(x, y), float(y.abs().max()), atol)
+    if RECORD_ONLY:
+        return
     if dtype == torch.float64:
         assert torch.equal(a.stats.count, b.stats.count)
     else:
-        assert int((a.stats.count - b.stats.count).abs().sum()) <= MAX_COUNT_MISMATCH_F32
-    atol = (ATOL_F64 if dtype == torch.float64 else ATOL_F32) * 100
-    rtol = 0 if dtype == torch.float64 else 1e-3
+        assert mismatch <= MAX_COUNT_MISMATCH_F32
     torch.testing.assert_close(a.stats.contrib, b.stats.contrib, atol=atol, rtol=rtol)
     torch.testing.assert_close(a.stats.err, b.stats.err, atol=atol, rtol=rtol)
 

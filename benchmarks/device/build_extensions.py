@@ -1,0 +1,29 @@
+"""Build ctgs_cpu and ctgs_cuda on the dev machine for the lent GPU machine (benchmarks/device/session.sh).
+
+Run with a Python and torch matching the device's (KINDS.md of the device tool: Python 3.12, torch
+2.11.0+cu130), e.g. a venv made for the purpose; nvcc 13.0 compiles for sm_90 (no GPU needed). The builds
+land in CTGS_CACHE_DIR/torch_extensions/<name>-<key>, where the device hook (sitecustomize.py) finds them
+when the key (sources, flags, torch, Python) matches.
+
+    CTGS_CACHE_DIR=.gpu/ctgs_cache TORCH_CUDA_ARCH_LIST=9.0 CUDA_HOME=/usr/local/cuda \
+        venv312/bin/python benchmarks/device/build_extensions.py
+"""
+
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
+os.environ.setdefault("CUDA_HOME", "/usr/local/cuda")
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from ctgs.render import _ext, _ext_cuda  # noqa: E402
+
+for name, sources, flags in (
+        ("ctgs_cpu", _ext.CPU_SOURCES, dict(extra_cflags=_ext.CPU_CFLAGS, extra_ldflags=_ext.CPU_LDFLAGS)),
+        ("ctgs_cuda", _ext_cuda.CUDA_SOURCES, dict(extra_cflags=_ext_cuda.CUDA_CFLAGS,
+                                                   extra_cuda_cflags=_ext_cuda.CUDA_NVCC_FLAGS))):
+    t = time.time()
+    m = _ext.jit_build(name, sources, what=name, fallback="cpu", verbose=False, first_use="minutes", **flags)
+    print(f"{name}: {m.__file__} ({time.time() - t:.0f} s)", flush=True)

@@ -1,0 +1,110 @@
+#!/usr/bin/env bash
+# One call on a lent GPU machine (the `device` tool): CUDA tests with the agreement log, the kernel benchmark
+# against gsplat, and timed paper-scale training on herzjesu25, each phase under its own time limit so that
+# a failure or a slow phase leaves the others their time. Everything lands in $OUT/results.tgz plus
+# $OUT/session.log (the device returns at most 8 files).
+#
+# What travels with it (an ignored folder named in `carry`, built on the dev machine; see
+# benchmarks/device/README.md): $G/ctgs_cache (prebuilt extensions), $G/py/gsplat + $G/gsplat_cuda.so,
+# $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl).
+#
+#   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train (default: all four)
+#   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS
+set -u
+PHASES=${1:-tests,bench,ncu,train}
+G=${G:-.gpu}
+OUT=${OUT:-/tmp/ctgs_out}
+R=/tmp/ctgs_results
+mkdir -p "$OUT" "$R"
+exec > >(tee -a "$OUT/session.log") 2>&1
+t_start=$(date +%s)
+stamp() { echo "== $(($(date +%s) - t_start)) s: $*"; }
+pack() { tar czf "$OUT/results.tgz" -C "$R" . 2>/dev/null; }  # after every phase: a killed call still returns
+
+stamp "setup"
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site "$G"/whl/*.whl \
+  || echo "wheel install failed"
+export PYTHONPATH="$PWD/benchmarks/device:$PWD:/tmp/site:$PWD/$G/py"
+export CTGS_PREBUILT=1 CTGS_CACHE_DIR="$PWD/$G/ctgs_cache" PYTHONUNBUFFERED=1 MAX_JOBS=16
+export GSPLAT_PREBUILT="$PWD/$G/gsplat_cuda.so" TORCH_CUDA_ARCH_LIST=9.0
+export CTGS_COLMAP_PICKLE="$PWD/$G/scenes/herzjesu25/colmap.pkl"
+nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.max.sm --format=csv
+python3 - <<'EOF' > "$R/machine.json"
+import json, platform, subprocess, torch
+p = torch.cuda.get_device_properties(0)
+drv = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"], capture_output=True,
+                     text=True).stdout.strip()
+commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+print(json.dumps({"gpu": p.name, "sms": p.multi_processor_count, "driver": drv, "torch": torch.__version__,
+                  "cuda": torch.version.cuda, "python": platform.python_version(), "commit": commit or "?",
+                  "command": "benchmarks/device/session.sh"}))
+EOF
+cat "$R/machine.json"
+stamp "extensions"
+python3 -c "
+import torch
+from ctgs.render._ext import load_cpu
+from ctgs.render._ext_cuda import load_cuda
+load_cpu(); load_cuda(); print('extensions ok')
+" || echo "extension load FAILED"
+
+if [[ $PHASES == *tests* ]]; then
+  stamp "tests"
+  rm -f "$R/agreement.jsonl"
+  CTGS_AGREEMENT_LOG="$R/agreement.jsonl" timeout "${TESTS_S:-240}" python3 -m pytest -q -ra -p no:cacheprovider \
+    tests/render/test_cuda_backend.py -k "not compile_with_nvcc" 2>&1 | tee "$R/pytest_cuda.log" | tail -40
+  if grep -qE "[0-9]+ (failed|error)" "$R/pytest_cuda.log"; then
+    stamp "tests: measuring run (record only)"
+    rm -f "$R/agreement_all.jsonl"
+    CTGS_AGREEMENT_LOG="$R/agreement_all.jsonl" CTGS_AGREEMENT_RECORD_ONLY=1 timeout 150 python3 -m pytest -q \
+      -p no:cacheprovider tests/render/test_cuda_backend.py -k "not compile_with_nvcc" 2>&1 | tail -5
+    python3 benchmarks/cuda_agreement.py "$R/agreement_all.jsonl" --machine "$R/machine.json" -o "$R/cuda_agreement_all" \
+      > /dev/null
+  fi
+  python3 benchmarks/cuda_agreement.py "$R/agreement.jsonl" --machine "$R/machine.json" -o "$R/cuda_agreement" | tail -45
+pack
+fi
+
+if [[ $PHASES == *bench* ]]; then
+  stamp "bench"
+  timeout "${BENCH_S:-180}" python3 benchmarks/bench_cuda.py --out "$R" --profile 2>&1 | tee "$R/bench.log" | tail -40
+pack
+fi
+
+if [[ $PHASES == *ncu* ]]; then
+  stamp "ncu"
+  NCU=$(command -v ncu || ls /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -1)
+  for tex in "" "--textured"; do
+    timeout "${NCU_S:-50}" "$NCU" --clock-control none -k regex:"forward_kernel|backward_kernel" --launch-skip 4 \
+      --launch-count 2 --section SpeedOfLight --section LaunchStats --section Occupancy --section WarpStateStats \
+      --section SchedulerStats --section MemoryWorkloadAnalysis --section ComputeWorkloadAnalysis \
+      python3 benchmarks/device/ncu_target.py $tex > "$R/ncu${tex:+_textured}.txt" 2>&1
+    echo "ncu${tex} rc=$?"; grep -E "forward_kernel|backward_kernel|Duration|Compute \(SM\) Throughput|Memory Throughput|Registers Per|Achieved Occupancy" \
+      "$R/ncu${tex:+_textured}.txt" | head -24
+  done
+pack
+fi
+
+train() {  # name seconds extra-args...
+  local name=$1 secs=$2; shift 2
+  stamp "train $name (${secs} s)"
+  rm -rf "/tmp/runs/$name"
+  timeout -s TERM "$secs" python3 -m ctgs train "$G/scenes/herzjesu25" -o "/tmp/runs/$name" --backend cuda -q "$@" \
+    2>&1 | tail -15
+  echo "rc=${PIPESTATUS[0]}"
+  mkdir -p "$R/train_$name"
+  cp /tmp/runs/$name/log.jsonl /tmp/runs/$name/config.toml /tmp/runs/$name/summary.json "$R/train_$name/" 2>/dev/null
+  tail -2 "/tmp/runs/$name/log.jsonl" 2>/dev/null
+}
+if [[ $PHASES == *train* ]]; then
+  train paper "${TRAIN_A_S:-150}" --preset "${TRAIN_PRESET:-paper}" ${TRAIN_ITERS:+--iterations $TRAIN_ITERS}
+  pack
+  train 2dgs "${TRAIN_B_S:-100}" --preset "${TRAIN_PRESET:-paper}" --config configs/2dgs.toml \
+    ${TRAIN_ITERS:+--iterations $TRAIN_ITERS}
+  nvidia-smi --query-gpu=memory.used,clocks.sm --format=csv
+fi
+
+stamp "pack"
+tar czf "$OUT/results.tgz" -C "$R" .
+ls -la "$OUT"
+stamp "done"
