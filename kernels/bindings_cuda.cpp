@@ -139,6 +139,94 @@ std::vector<Tensor> backward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor 
   return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};
 }
 
+// ---- per-primitive preprocessing (kernels/cuda/dense.cu): the CPU binding's camera_space / sh_color ----
+// num_threads is accepted for symmetry with the CPU binding and ignored.
+
+void check_float_cuda(const Tensor& t, const char* fn, const char* name, const char* shape) {
+  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && (t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble),
+              fn, ": ", name, " must be a contiguous float CUDA tensor ", shape, ", got ", t.sizes(), " ",
+              t.scalar_type(), " on ", t.device());
+}
+
+// {mu_c [N, 3], Rc [N, 3, 3]}: the primitives in the camera space of view [4, 4].
+std::vector<Tensor> camera_space_cuda(Tensor means, Tensor quats, Tensor view, int64_t num_threads) {
+  check_float_cuda(quats, "camera_space", "quats", "[N, 4]");
+  const int64_t n = quats.size(0);
+  check_tensor(quats, "quats", "[N, 4]", {n, 4}, quats.scalar_type(), quats.device());
+  check_tensor(means, "means", "[N, 3]", {n, 3}, quats.scalar_type(), quats.device());
+  check_tensor(view, "view", "[4, 4]", {4, 4}, quats.scalar_type(), quats.device());
+  const c10::cuda::CUDAGuard guard(quats.device());
+  Tensor mu_c = torch::empty({n, 3}, quats.options()), Rc = torch::empty({n, 3, 3}, quats.options());
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  AT_DISPATCH_FLOATING_TYPES(quats.scalar_type(), "ctgs_camera_space_cuda", [&] {
+    ctgs::gpu::camera_space<scalar_t>(means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                      view.data_ptr<scalar_t>(), n, mu_c.data_ptr<scalar_t>(),
+                                      Rc.data_ptr<scalar_t>(), stream);
+  });
+  return {mu_c, Rc};
+}
+
+// {grad_means [N, 3], grad_quats [N, 4]} of camera_space_cuda for the upstream gradients.
+std::vector<Tensor> camera_space_backward_cuda(Tensor quats, Tensor view, Tensor grad_mu_c, Tensor grad_Rc,
+                                               int64_t num_threads) {
+  check_float_cuda(quats, "camera_space_backward", "quats", "[N, 4]");
+  const int64_t n = quats.size(0);
+  const auto dt = quats.scalar_type();
+  const at::Device dev = quats.device();
+  check_tensor(quats, "quats", "[N, 4]", {n, 4}, dt, dev);
+  check_tensor(view, "view", "[4, 4]", {4, 4}, dt, dev);
+  check_tensor(grad_mu_c, "grad_mu_c", "[N, 3]", {n, 3}, dt, dev);
+  check_tensor(grad_Rc, "grad_Rc", "[N, 3, 3]", {n, 3, 3}, dt, dev);
+  const c10::cuda::CUDAGuard guard(dev);
+  Tensor gm = torch::empty({n, 3}, quats.options()), gq = torch::empty_like(quats);
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_camera_space_backward_cuda", [&] {
+    ctgs::gpu::camera_space_backward<scalar_t>(quats.data_ptr<scalar_t>(), view.data_ptr<scalar_t>(), n,
+                                               grad_mu_c.data_ptr<scalar_t>(), grad_Rc.data_ptr<scalar_t>(),
+                                               gm.data_ptr<scalar_t>(), gq.data_ptr<scalar_t>(), stream);
+  });
+  return {gm, gq};
+}
+
+void check_sh_args_cuda(const Tensor& means, const Tensor& center, const Tensor& sh, int64_t degree) {
+  check_float_cuda(means, "sh_color", "means", "[N, 3]");
+  check_tensor(means, "means", "[N, 3]", {means.size(0), 3}, means.scalar_type(), means.device());
+  check_tensor(center, "center", "[3]", {3}, means.scalar_type(), means.device());
+  check_tensor(sh, "sh", "[N, K, 3]", {means.size(0), -1, 3}, means.scalar_type(), means.device());
+  TORCH_CHECK(degree >= 0 && degree <= 3 && sh.size(1) >= (degree + 1) * (degree + 1),
+              "sh_color: degree ", degree, " needs (degree + 1)^2 <= K = ", sh.size(1), " and degree in 0..3");
+}
+
+// colors [N, 3] = SH_degree(normalize(means - center)) + 0.5.
+Tensor sh_color_cuda(Tensor means, Tensor center, Tensor sh, int64_t degree, int64_t num_threads) {
+  check_sh_args_cuda(means, center, sh, degree);
+  const c10::cuda::CUDAGuard guard(means.device());
+  Tensor colors = torch::empty_like(means);
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "ctgs_sh_color_cuda", [&] {
+    ctgs::gpu::sh_color<scalar_t>(means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), sh.data_ptr<scalar_t>(),
+                                  means.size(0), int(sh.size(1)), int(degree), colors.data_ptr<scalar_t>(), stream);
+  });
+  return colors;
+}
+
+// {grad_means [N, 3], grad_sh [N, K, 3]} of sh_color_cuda for the upstream gradient grad_colors [N, 3].
+std::vector<Tensor> sh_color_backward_cuda(Tensor means, Tensor center, Tensor sh, int64_t degree, Tensor grad_colors,
+                                           int64_t num_threads) {
+  check_sh_args_cuda(means, center, sh, degree);
+  check_tensor(grad_colors, "grad_colors", "[N, 3]", {means.size(0), 3}, means.scalar_type(), means.device());
+  const c10::cuda::CUDAGuard guard(means.device());
+  Tensor gm = torch::empty_like(means), gs = torch::empty_like(sh);
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "ctgs_sh_color_backward_cuda", [&] {
+    ctgs::gpu::sh_color_backward<scalar_t>(means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(),
+                                           sh.data_ptr<scalar_t>(), means.size(0), int(sh.size(1)), int(degree),
+                                           grad_colors.data_ptr<scalar_t>(), gm.data_ptr<scalar_t>(),
+                                           gs.data_ptr<scalar_t>(), stream);
+  });
+  return {gm, gs};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -147,5 +235,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "tile_list, count, contrib, err)");
   m.def("backward_cuda", &backward_cuda, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
         "v_texel_size, v_textures, v_background)");
+  m.def("camera_space_cuda", &camera_space_cuda, "{mu_c, Rc}: world -> camera space of means and quaternions");
+  m.def("camera_space_backward_cuda", &camera_space_backward_cuda,
+        "gradient of camera_space_cuda w.r.t. means, quats");
+  m.def("sh_color_cuda", &sh_color_cuda, "SH(normalize(mean - centre)) + 0.5 per primitive");
+  m.def("sh_color_backward_cuda", &sh_color_backward_cuda, "gradient of sh_color_cuda w.r.t. means and SH");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
 }

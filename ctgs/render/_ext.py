@@ -125,7 +125,9 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
             extra_include_paths=[str(kernels / "include"), str(kernels)],
             build_directory=str(folder),
             verbose=verbose or os.environ.get("CTGS_VERBOSE_BUILD", "") == "1",
-            **flags,
+            # copies: torch appends to the lists it is given (-L paths to extra_ldflags), which would change
+            # the module-level flag lists and so the build key of a later call
+            **{k: list(v) for k, v in flags.items()},
         )
     except (RuntimeError, OSError, ImportError) as exc:
         last = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__

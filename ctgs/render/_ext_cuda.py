@@ -16,7 +16,8 @@ from types import ModuleType
 from ctgs.errors import UserError
 from ctgs.render._ext import jit_build, require_compiler
 
-CUDA_SOURCES = ["bindings_cuda.cpp", "cuda/preprocess.cu", "cuda/binning.cu", "cuda/forward.cu", "cuda/backward.cu"]
+CUDA_SOURCES = ["bindings_cuda.cpp", "cuda/preprocess.cu", "cuda/binning.cu", "cuda/forward.cu", "cuda/backward.cu",
+                "cuda/dense.cu"]
 # The C++ standard is torch's own (it adds it): its headers need it, and the kernels are C++17-clean
 # (kernels/check_cuda_build.py). -fmad=false: forward and backward each recompute alpha with the shared
 # header math inside different kernels; without FMA contraction both get bit-identical values (the CPU
@@ -64,3 +65,24 @@ def load_cuda(verbose: bool = False) -> ModuleType:
                                  first_use="a few minutes", extra_cflags=CUDA_CFLAGS,
                                  extra_cuda_cflags=CUDA_NVCC_FLAGS)
         return _cuda_module
+
+
+_cuda_failed = False
+
+
+def cuda_fusable(*tensors) -> bool:
+    """Whether the CUDA extension's per-primitive kernels (camera space, SH colour) apply to these tensors:
+    all contiguous float32/float64 CUDA tensors, and the extension builds here (else callers use PyTorch,
+    e.g. on a machine without the CUDA toolkit)."""
+    import torch
+
+    global _cuda_failed
+    if _cuda_failed or not all(t.is_cuda and t.is_contiguous() and t.dtype in (torch.float32, torch.float64)
+                               for t in tensors):
+        return False
+    try:
+        load_cuda()
+    except UserError:
+        _cuda_failed = True
+        return False
+    return True

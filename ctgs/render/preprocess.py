@@ -22,24 +22,48 @@ class CameraSpacePrims:
     colors: torch.Tensor  # [N, 3] SH(view dir) + 0.5, unclamped
 
 
+def compiled(device: torch.device):
+    """The compiled extension holding the per-primitive kernels for tensors on `device` and its name suffix:
+    (module, "cpu") or (module, "cuda")."""
+    if device.type == "cuda":
+        from ctgs.render._ext_cuda import load_cuda
+
+        return load_cuda(), "cuda"
+    from ctgs.fused import cpu_ext
+
+    return cpu_ext(), "cpu"
+
+
+def fusable_here(*tensors: torch.Tensor) -> bool:
+    """Whether the compiled per-primitive kernels apply: contiguous float CPU tensors with the CPU extension
+    (ctgs.fused.fusable), or contiguous float CUDA tensors with the CUDA extension."""
+    if tensors and tensors[0].is_cuda:
+        from ctgs.render._ext_cuda import cuda_fusable
+
+        return cuda_fusable(*tensors)
+    from ctgs.fused import fusable
+
+    return fusable(*tensors)
+
+
 class _CameraSpace(torch.autograd.Function):
-    """(mu_c, Rc) of camera_space_torch in one compiled pass each way (kernels/cpu/camera.cpp)."""
+    """(mu_c, Rc) of camera_space_torch in one compiled pass each way (kernels/include/ctgs/preprocess.h:
+    kernels/cpu/camera.cpp on the CPU, kernels/cuda/dense.cu on a GPU)."""
 
     @staticmethod
     def forward(ctx, means, quats, view):
-        from ctgs.fused import cpu_ext
-
+        ext, dev = compiled(means.device)
         ctx.save_for_backward(quats, view)
-        return tuple(cpu_ext().camera_space_cpu(means, quats, view, torch.get_num_threads()))
+        return tuple(getattr(ext, f"camera_space_{dev}")(means, quats, view, torch.get_num_threads()))
 
     @staticmethod
     def backward(ctx, grad_mu_c, grad_Rc):
-        from ctgs.fused import cpu_ext
-
         quats, view = ctx.saved_tensors
-        grad_mu_c = torch.zeros(quats.shape[0], 3, dtype=quats.dtype) if grad_mu_c is None else grad_mu_c.contiguous()
-        grad_Rc = torch.zeros(quats.shape[0], 3, 3, dtype=quats.dtype) if grad_Rc is None else grad_Rc.contiguous()
-        gm, gq = cpu_ext().camera_space_backward_cpu(quats, view, grad_mu_c, grad_Rc, torch.get_num_threads())
+        ext, dev = compiled(quats.device)
+        n = quats.shape[0]
+        grad_mu_c = quats.new_zeros(n, 3) if grad_mu_c is None else grad_mu_c.contiguous()
+        grad_Rc = quats.new_zeros(n, 3, 3) if grad_Rc is None else grad_Rc.contiguous()
+        gm, gq = getattr(ext, f"camera_space_backward_{dev}")(quats, view, grad_mu_c, grad_Rc, torch.get_num_threads())
         return (gm if ctx.needs_input_grad[0] else None), (gq if ctx.needs_input_grad[1] else None), None
 
 
@@ -50,14 +74,14 @@ def camera_space_torch(means: torch.Tensor, quats: torch.Tensor, view: torch.Ten
 
 
 def camera_space(means: torch.Tensor, quats: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """camera_space_torch, on the CPU in one compiled pass each way (differentiable w.r.t. means and quats,
-    not the view; the same values to float rounding: tests/render/test_preprocess.py)."""
-    from ctgs.fused import fusable
-
+    """camera_space_torch in one compiled pass each way, on the CPU and on a GPU (differentiable w.r.t. means
+    and quats, not the view; the same values to float rounding: tests/render/test_preprocess.py,
+    tests/render/test_cuda_backend.py)."""
     if (not view.requires_grad and means.ndim == 2 and means.shape[1] == 3 and quats.ndim == 2
-            and quats.shape[1] == 4 and quats.shape[0] == means.shape[0] and quats.dtype == means.dtype):
+            and quats.shape[1] == 4 and quats.shape[0] == means.shape[0] and quats.dtype == means.dtype
+            and view.dtype == means.dtype and view.device == means.device == quats.device):
         m, q, v = means.contiguous(), quats.contiguous(), view.detach().contiguous()
-        if fusable(m, q, v):
+        if fusable_here(m, q, v):
             mu_c, Rc = _CameraSpace.apply(m, q, v)
             return mu_c, Rc
     return camera_space_torch(means, quats, view)

@@ -47,36 +47,39 @@ def view_dirs(means: torch.Tensor, camera_center: torch.Tensor) -> torch.Tensor:
 
 
 class _ShColor(torch.autograd.Function):
-    """sh_to_color(sh, view_dirs(means, center), degree) in one compiled pass (kernels/cpu/sh.cpp)."""
+    """sh_to_color(sh, view_dirs(means, center), degree) in one compiled pass (kernels/include/ctgs/preprocess.h:
+    kernels/cpu/sh.cpp on the CPU, kernels/cuda/dense.cu on a GPU)."""
 
     @staticmethod
     def forward(ctx, means, sh, center, degree):
-        from ctgs.fused import cpu_ext
+        from ctgs.render.preprocess import compiled
 
+        ext, dev = compiled(means.device)
         ctx.save_for_backward(means, sh, center)
         ctx.degree = degree
-        return cpu_ext().sh_color_cpu(means, center, sh, degree, torch.get_num_threads())
+        return getattr(ext, f"sh_color_{dev}")(means, center, sh, degree, torch.get_num_threads())
 
     @staticmethod
     def backward(ctx, grad_colors):
-        from ctgs.fused import cpu_ext
+        from ctgs.render.preprocess import compiled
 
         means, sh, center = ctx.saved_tensors
-        gm, gs = cpu_ext().sh_color_backward_cpu(means, center, sh, ctx.degree, grad_colors.contiguous(),
-                                                 torch.get_num_threads())
+        ext, dev = compiled(means.device)
+        gm, gs = getattr(ext, f"sh_color_backward_{dev}")(means, center, sh, ctx.degree, grad_colors.contiguous(),
+                                                          torch.get_num_threads())
         return (gm if ctx.needs_input_grad[0] else None), (gs if ctx.needs_input_grad[1] else None), None, None
 
 
 def view_color(means: torch.Tensor, sh: torch.Tensor, center: torch.Tensor, degree: int) -> torch.Tensor:
     """[N, 3] = sh_to_color(sh, view_dirs(means, center), degree): differentiable w.r.t. means and sh (not the
-    centre). On the CPU one compiled pass each way instead of ~150 small PyTorch ops per training step; the
-    same values to float rounding (tests/render/test_sh.py)."""
-    from ctgs.fused import fusable
+    centre). On the CPU and on a GPU one compiled pass each way instead of ~150 small PyTorch ops per training
+    step; the same values to float rounding (tests/render/test_sh.py, tests/render/test_cuda_backend.py)."""
+    from ctgs.render.preprocess import fusable_here
 
     if (not center.requires_grad and 0 <= degree <= 3 and sh.ndim == 3 and sh.shape[2] == 3
             and sh.shape[1] >= num_sh_coeffs(degree) and means.ndim == 2 and means.shape[1] == 3
-            and sh.dtype == means.dtype):
-        m, s, c = means.contiguous(), sh.contiguous(), center.detach().to(means.dtype).contiguous()
-        if fusable(m, s, c):
+            and sh.dtype == means.dtype and sh.device == means.device):
+        m, s, c = means.contiguous(), sh.contiguous(), center.detach().to(means.device, means.dtype).contiguous()
+        if fusable_here(m, s, c):
             return _ShColor.apply(m, s, c, int(degree))
     return sh_to_color(sh, view_dirs(means, center), degree)

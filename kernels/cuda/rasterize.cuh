@@ -67,5 +67,20 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
               const Allocators& alloc, cudaStream_t stream);
 
+// Per-primitive preprocessing (kernels/cuda/dense.cu; the math: kernels/include/ctgs/preprocess.h), one
+// thread per primitive, asynchronous on `stream`; the same functions as the CPU backend's camera_space /
+// sh_color (kernels/cpu/dense.h). view: [4, 4] row-major world-to-camera, center: [3] camera centre, sh:
+// [N, K, 3] with K >= (deg + 1)^2; all device pointers.
+template <typename S>
+void camera_space(const S* means, const S* quats, const S* view, int64_t n, S* mu_c, S* Rc, cudaStream_t stream);
+template <typename S>
+void camera_space_backward(const S* quats, const S* view, int64_t n, const S* grad_mu_c, const S* grad_Rc,
+                           S* grad_means, S* grad_quats, cudaStream_t stream);
+template <typename S>
+void sh_color(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, S* colors, cudaStream_t stream);
+template <typename S>
+void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, const S* grad_colors,
+                       S* grad_means, S* grad_sh, cudaStream_t stream);
+
 }  // namespace gpu
 }  // namespace ctgs
