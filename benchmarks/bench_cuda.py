@@ -10,7 +10,8 @@ between rounds. Per scene size N (default 200k and 1M at 1920x1080):
            means, quats, scales, opacities, SH (and textures);
   memory   peak CUDA memory allocated during one fwd+bwd above what the inputs hold.
 
-Renderers: `ours` (ctgs backend "cuda", tex_res 0: no textures), `ours_tex` (the same surfels with textures
+Renderers: `ours` (ctgs backend "cuda", tex_res 0: no textures), `ours_torchpre` (--torch-preprocess-too: the same
+with the per-primitive preprocessing in PyTorch ops, as before kernels/cuda/dense.cu), `ours_tex` (the same surfels with textures
 of the paper's size distribution, 30-450 texels per primitive, log-uniform), `gsplat` (gsplat
 rasterization_2dgs, render_mode "RGB+D" so that it also returns alpha and accumulated depth, as ours does;
 its 2DGS kernel also renders normals and distortion, which it always does).
@@ -136,9 +137,27 @@ def with_grad(s: SurfelInputs, textured: bool) -> SurfelInputs:
     return SurfelInputs(**d)
 
 
+class _TorchPreprocess:
+    """Inside: the per-primitive preprocessing (camera space, SH colour) in PyTorch ops instead of the CUDA
+    kernels of kernels/cuda/dense.cu: the backend as it was before those kernels (the `ours_torchpre` rows)."""
+
+    def __enter__(self):
+        import ctgs.render._ext_cuda as ec
+
+        self._saved, ec.cuda_fusable = getattr(ec, "cuda_fusable", None), lambda *t: False
+        return self
+
+    def __exit__(self, *exc):
+        import ctgs.render._ext_cuda as ec
+
+        if self._saved is not None:
+            ec.cuda_fusable = self._saved
+
+
 class Ours:
-    def __init__(self, s, cam, textured, device):
+    def __init__(self, s, cam, textured, device, torch_preprocess: bool = False):
         self.s, self.cam, self.textured = s, cam, textured
+        self.torch_preprocess = torch_preprocess
         self.backend = "cuda" if device.type == "cuda" else "cpu"
         self.sg = with_grad(s, textured)
         g = torch.Generator().manual_seed(123)
@@ -146,13 +165,19 @@ class Ours:
         self.grad_inputs = [getattr(self.sg, k) for k in ("means", "quats", "scales", "opacities", "sh")] + (
             [self.sg.textures] if textured else [])
 
+    def _ctx(self):
+        import contextlib
+
+        return _TorchPreprocess() if self.torch_preprocess else contextlib.nullcontext()
+
     def fwd(self):
-        with torch.no_grad():
+        with torch.no_grad(), self._ctx():
             return render(self.s, self.cam, backend=self.backend, sh_degree=3)
 
     def fwd_bwd(self):
-        out = render(self.sg, self.cam, backend=self.backend, sh_degree=3)
-        return torch.autograd.grad((out.rgb * self.cot).sum(), self.grad_inputs)
+        with self._ctx():
+            out = render(self.sg, self.cam, backend=self.backend, sh_degree=3)
+            return torch.autograd.grad((out.rgb * self.cot).sum(), self.grad_inputs)
 
 
 class Gsplat:
@@ -304,6 +329,9 @@ def main() -> int:
     ap.add_argument("--no-gsplat", action="store_true")
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--tag", default="")
+    ap.add_argument("--torch-preprocess-too", action="store_true",
+                    help="also time `ours_torchpre`: the per-primitive preprocessing in PyTorch ops (before the "
+                         "CUDA kernels of kernels/cuda/dense.cu)")
     args = ap.parse_args()
     device = torch.device(args.device)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -322,6 +350,8 @@ def main() -> int:
         desc["pairs"] = tile_pairs(s0, cam, device)
         desc["pairs_per_pixel"] = desc["pairs"] / (args.width * args.height) if desc["pairs"] > 0 else None
         runners = {"ours": Ours(s0, cam, False, device), "ours_tex": Ours(st, cam, True, device)}
+        if args.torch_preprocess_too:
+            runners["ours_torchpre"] = Ours(s0, cam, False, device, torch_preprocess=True)
         if gs_fn is not None:
             runners["gsplat"] = Gsplat(gs_fn, s0, cam, device)
         times: dict[str, dict[str, list[list[float]]]] = {k: {"fwd": [], "fwd_bwd": []} for k in runners}
@@ -355,12 +385,14 @@ def main() -> int:
                 ratios[f"ours/gsplat {w}"] = best["ours"][w] / best["gsplat"][w]
             if best["ours"][w] and best["ours_tex"][w]:
                 ratios[f"ours_tex/ours {w}"] = best["ours_tex"][w] / best["ours"][w]
+            if "ours_torchpre" in best and best["ours_torchpre"][w] and best["ours"][w]:
+                ratios[f"ours_torchpre/ours {w}"] = best["ours_torchpre"][w] / best["ours"][w]
         entry["best_median_ms"] = best
         entry["ratios"] = ratios
         print(f"N={n}: {json.dumps(ratios)}", flush=True)
         if args.profile and n == max(int(x) for x in args.sizes.split(",")) and device.type == "cuda":
             entry["profile"] = {}
-            for name in ("ours", "ours_tex"):
+            for name in [k for k in ("ours", "ours_tex", "ours_torchpre") if k in runners]:
                 try:
                     entry["profile"][name] = profile_table(runners[name].fwd_bwd, device, f"{name}_{n}{args.tag}",
                                                            args.out)

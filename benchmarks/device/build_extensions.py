@@ -9,6 +9,7 @@ when the key (sources, flags, torch, Python) matches.
         venv312/bin/python benchmarks/device/build_extensions.py
 """
 
+import json
 import os
 import sys
 import time
@@ -20,10 +21,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from ctgs.render import _ext, _ext_cuda  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sitecustomize import prebuilt_manifest  # noqa: E402
+
 for name, sources, flags in (
         ("ctgs_cpu", _ext.CPU_SOURCES, dict(extra_cflags=_ext.CPU_CFLAGS, extra_ldflags=_ext.CPU_LDFLAGS)),
         ("ctgs_cuda", _ext_cuda.CUDA_SOURCES, dict(extra_cflags=_ext_cuda.CUDA_CFLAGS,
                                                    extra_cuda_cflags=_ext_cuda.CUDA_NVCC_FLAGS))):
     t = time.time()
+    manifest = prebuilt_manifest(name, flags)
     m = _ext.jit_build(name, sources, what=name, fallback="cpu", verbose=False, first_use="minutes", **flags)
-    print(f"{name}: {m.__file__} ({time.time() - t:.0f} s)", flush=True)
+    (Path(m.__file__).parent / "prebuilt.json").write_text(json.dumps(manifest) + "\n")
+    print(f"{name}: {m.__file__} ({time.time() - t:.0f} s) {manifest}", flush=True)

@@ -26,7 +26,7 @@ fi
 export CUDA_HOME=${CUDA_HOME:-/usr/local/cuda} TORCH_CUDA_ARCH_LIST=9.0
 # 2. ctgs's extensions, into the cache folder the device hook reads.
 CTGS_CACHE_DIR="$G/ctgs_cache" MAX_JOBS=2 "$WORK/venv312/bin/python" "$ROOT/benchmarks/device/build_extensions.py"
-find "$G/ctgs_cache" -type f ! -name "*.so" ! -name ".ctgs-built" -delete
+find "$G/ctgs_cache" -type f ! -name "*.so" ! -name ".ctgs-built" ! -name "prebuilt.json" -delete
 # 3. gsplat: its own JIT build (every kernel, ~30 min on 2 cores), then only the package and the .so travel.
 if [ ! -f "$G/gsplat_cuda.so" ]; then
   ls "$WORK"/wheels/gsplat-1.5.3-*.whl >/dev/null 2>&1 || dl "$WORK/wheels" gsplat==1.5.3

@@ -67,7 +67,7 @@ fi
 
 if [[ $PHASES == *bench* ]]; then
   stamp "bench"
-  timeout "${BENCH_S:-180}" python3 benchmarks/bench_cuda.py --out "$R" --profile 2>&1 | tee "$R/bench.log" | tail -40
+  timeout "${BENCH_S:-180}" python3 benchmarks/bench_cuda.py --out "$R" --profile ${BENCH_ARGS:-} 2>&1 | tee "$R/bench.log" | tail -40
 pack
 fi
 
