@@ -6,9 +6,10 @@ per gradient input and dtype, the worst error observed over every test case (the
 and the extremes sweep), the case where it occurred, the tolerance the test applies, and the tolerance
 that the observed worst case times a margin gives (rounded up to 1, 2 or 5 x 10^k).
 
-Errors: images and statistics absolute; gradients relative to the largest |CPU gradient| of that input in
-that case (as the test compares them); tile lists 0 (identical) or 1 (not); count: summed |difference| of
-per-primitive pixel counts.
+Errors as the test compares them: images max |cuda - cpu| / max(1, |cpu|) (absolute before commit aad8882:
+the first H200 run); statistics absolute; gradients relative to the largest |CPU gradient| of that input in
+that case; tile lists 0 (identical) or 1 (not); count: summed |difference| of per-primitive pixel counts;
+preprocess: the kernels of kernels/cuda/dense.cu against their PyTorch definitions, relative as above.
 
     python benchmarks/cuda_agreement.py LOG.jsonl --machine machine.json -o benchmarks/results/cuda_agreement_X
 """
@@ -60,15 +61,19 @@ def summarise(records: list[dict]) -> list[dict]:
     return rows
 
 
-def to_markdown(rows: list[dict], machine: dict, log_name: str) -> str:
+def to_markdown(rows: list[dict], machine: dict, log_name: str, note: str = "") -> str:
     lines = ["# CUDA backend vs CPU backend: observed worst errors", ""]
     if machine:
         lines += [f"Machine: {machine.get('gpu', '?')} (driver {machine.get('driver', '?')}), torch "
                   f"{machine.get('torch', '?')}, CUDA {machine.get('cuda', '?')}, Python {machine.get('python', '?')}; "
                   f"command: `{machine.get('command', '?')}`; commit {machine.get('commit', '?')}.", ""]
-    lines += [f"From `{log_name}` (tests/render/test_cuda_backend.py with CTGS_AGREEMENT_LOG). Errors: images and "
-              "statistics absolute; gradients relative to the largest |CPU gradient| of that input in that case; "
-              "tile lists 0 = identical; count = summed |difference| of per-primitive pixel counts. "
+    if note:
+        lines += [note, ""]
+    lines += [f"From `{log_name}` (tests/render/test_cuda_backend.py with CTGS_AGREEMENT_LOG). Errors as the test "
+              "compares them: images max |cuda - cpu| / max(1, |cpu|) (absolute in the first H200 run, before commit "
+              "aad8882), statistics absolute, gradients relative to the largest |CPU gradient| of that input in that "
+              "case, tile lists 0 = identical, count = summed |difference| of per-primitive pixel counts, preprocess "
+              "= the kernels of kernels/cuda/dense.cu against their PyTorch definitions (relative as images). "
               f"'from observed' = worst x {MARGIN:g}, rounded up to 1/2/5 x 10^k.", "",
               "| dtype | kind | output / input | cases | worst observed | in case | tolerance in the test | "
               "cases over it | from observed |",
@@ -88,14 +93,16 @@ def main() -> int:
     ap.add_argument("log", type=Path)
     ap.add_argument("--machine", type=Path, help="JSON with gpu, driver, torch, cuda, python, command, commit")
     ap.add_argument("-o", "--output", type=Path, required=True, help="output path without suffix (.md and .json)")
+    ap.add_argument("--note", default="", help="a paragraph for the top of the table")
     args = ap.parse_args()
     records = [json.loads(line) for line in args.log.read_text().splitlines() if line.strip()]
     machine = json.loads(args.machine.read_text()) if args.machine and args.machine.is_file() else {}
     rows = summarise(records)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.with_suffix(".json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=1) + "\n")
-    args.output.with_suffix(".md").write_text(to_markdown(rows, machine, args.log.name))
-    print(to_markdown(rows, machine, args.log.name))
+    md = to_markdown(rows, machine, args.log.name, args.note)
+    args.output.with_suffix(".md").write_text(md)
+    print(md)
     return 0
 
 

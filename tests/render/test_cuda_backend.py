@@ -45,17 +45,23 @@ GPU = "cpu" if DRY_RUN else "cuda"  # device and backend name of the side under 
 needs_cuda = pytest.mark.skipif(not (HAS_CUDA or DRY_RUN),
                                 reason="no CUDA device (torch.cuda.is_available() is False)")
 
-# Observed worst cases (H200, session 32; benchmarks/results/cuda_agreement_h200.md) in brackets.
+# Observed worst cases in brackets: the larger of session 32's two runs on an H200 (the rasterizer kernels
+# were the same in both; the second had the preprocessing kernels of kernels/cuda/dense.cu on the GPU side,
+# where the first used PyTorch ops, which is why its means/quats gradients differed more from the CPU's).
+# benchmarks/results/cuda_agreement_h200.md (second run) and cuda_agreement_h200_first.md (first run).
 # Images: max |cuda - cpu| / max(1, |cpu|) per pixel (absolute for rgb and alpha in [0, 1], relative for
 # depths beyond 1, which reach 1e8 in the extremes sweep where float32 rounds them to 8 units).
-ATOL_F64 = 5e-14  # [5.0e-15 alpha, 3.0e-15 rgb]
-ATOL_F32 = 5e-5  # [2.7e-6 alpha, 1.6e-6 rgb]
+ATOL_F64 = 1e-13  # [5.7e-15 depth, 5.0e-15 alpha]
+ATOL_F32 = 5e-5  # [3.0e-6 depth, 2.7e-6 alpha]
 # Gradients: max |cuda - cpu| / max |cpu gradient| per input (atomics sum in arbitrary order).
-GRAD_RTOL_F64 = 1e-12  # [5.7e-14 quats]
-GRAD_RTOL_F32 = 2e-4  # [1.7e-5 quats, 1.1e-5 means; 700 surfels on 3x3 tiles]
+GRAD_RTOL_F64 = 1e-12  # [5.7e-14 quats, first run]
+GRAD_RTOL_F32 = 2e-4  # [1.7e-5 quats, 1.1e-5 means, first run; 700 surfels on 3x3 tiles]
 # Statistics contrib / err: absolute (sums of w and e w over a primitive's pixels).
 STATS_ATOL_F64 = 2e-12  # [1.1e-13 contrib]
 STATS_ATOL_F32 = 5e-4  # [4.6e-5 contrib]
+# The preprocessing kernels against their PyTorch definitions (values and gradients, relative as above).
+PRE_TOL_F64 = 2e-14  # [1.6e-15 SH degree 3 colour]
+PRE_TOL_F32 = 1e-5  # [6.5e-7 SH degree 3 colour]
 # float32 statistics: a pixel whose alpha lies within an ulp of MIN_ALPHA (or whose T of T_EPS) can be
 # blended by one backend and not the other; a handful of such pixels in a whole scene is tolerated
 # (observed: 0).
@@ -272,7 +278,7 @@ def test_preprocess_kernels_match_pytorch(dtype):
     view[:3, 3] = torch.tensor([0.2, -0.4, 1.5], dtype=dtype)
     center = -view[:3, :3].T @ view[:3, 3]
     means[1] = center  # direction 0
-    tol = GRAD_RTOL_F64 if dtype == torch.float64 else GRAD_RTOL_F32
+    tol = PRE_TOL_F64 if dtype == torch.float64 else PRE_TOL_F32
     dev = torch.device(GPU)
     m, q, s_, v, c = (t.to(dev) for t in (means, quats, sh, view, center))
     cots = None
