@@ -183,7 +183,6 @@ class Ours:
 class Gsplat:
     def __init__(self, fn, s, cam, device):
         self.fn = fn
-        n = s.means.shape[0]
         # gsplat 2DGS scales are [N, 3]; the third (normal) axis is unused by its 2DGS kernels.
         self.args = dict(means=s.means, quats=s.quats, scales=torch.cat([s.scales, s.scales[:, :1] * 0 + 1e-6], 1),
                          opacities=s.opacities, colors=s.sh)
@@ -194,7 +193,6 @@ class Gsplat:
         self.grad_args = {k: v.detach().clone().requires_grad_(True) for k, v in self.args.items()}
         g = torch.Generator().manual_seed(123)
         self.cot = (torch.rand(cam.height, cam.width, 3, generator=g).to(device) - 0.3)
-        self.n = n
 
     def _call(self, args):
         return self.fn(**args, viewmats=self.viewmats, Ks=self.Ks, width=self.cam.width, height=self.cam.height,
@@ -249,16 +247,13 @@ def peak_mb(fn, device) -> float | None:
 
 
 def scene_stats(s, cam, device) -> dict:
-    """Pairs in the tile lists and primitives blended per pixel for this scene (ours, textures off)."""
-    from ctgs.render.rasterize import rasterize  # noqa: F401 - the backend is loaded by render()
-
+    """Primitives blended per pixel, mean alpha and primitives rasterized for this scene (ours, textures off)."""
     with torch.no_grad():
         out = render(s, cam, backend="cuda" if device.type == "cuda" else "cpu", sh_degree=3,
                      error_image=torch.zeros(cam.height, cam.width, device=device))
-    pairs = None
     blended = float(out.stats.count.double().sum()) / (cam.width * cam.height)
     return {"blended_per_pixel": blended, "alpha_mean": float(out.alpha.mean()),
-            "primitives_rasterized": int(out.rasterized.sum()), "pairs": pairs}
+            "primitives_rasterized": int(out.rasterized.sum())}
 
 
 def tile_pairs(s, cam, device) -> int:

@@ -24,10 +24,7 @@ def prebuilt_manifest(name: str, flags: dict) -> dict:
 
     import ctgs.render._ext as _ext
 
-    h = hashlib.sha256()
-    root = _ext.kernels_dir()
-    for path in sorted(p for p in root.rglob("*") if p.suffix in _ext.KEYED_SUFFIXES and p.is_file()):
-        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    h = _ext.hash_kernel_sources(hashlib.sha256())
     return {"name": name, "sources": h.hexdigest()[:16], "flags": repr(sorted((k, list(v)) for k, v in flags.items())),
             "torch": torch.__version__, "cuda": torch.version.cuda, "python": list(sys.version_info[:2])}
 

@@ -71,14 +71,19 @@ def _ensure_ninja(fallback: str) -> None:
         raise UserError(f"the build tool `ninja` was not found on PATH: pip install ninja, or pass --backend {fallback}")
 
 
+def hash_kernel_sources(h):
+    """`h` (a hashlib object) updated with every kernel source and header ctgs ships, names and contents."""
+    root = kernels_dir()
+    for path in sorted(p for p in root.rglob("*") if p.suffix in KEYED_SUFFIXES and p.is_file()):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h
+
+
 def build_key(name: str, flags: dict) -> str:
     """Hash of everything that makes one build differ from another (see the module docstring)."""
     import torch
 
-    h = hashlib.sha256()
-    root = kernels_dir()
-    for path in sorted(p for p in root.rglob("*") if p.suffix in KEYED_SUFFIXES and p.is_file()):
-        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    h = hash_kernel_sources(hashlib.sha256())
     context = [name, sorted((k, list(v)) for k, v in flags.items()), compiler(), torch.__version__,
                torch.version.cuda, sys.version_info[:2], platform.machine()]
     h.update(repr(context).encode())
