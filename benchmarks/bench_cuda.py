@@ -154,10 +154,41 @@ class _TorchPreprocess:
             ec.cuda_fusable = self._saved
 
 
+class _Variant:
+    """Inside: environment variables set (CTGS_CUDA_BWD_MIN_BLOCKS: the register-capped backward kernels) and,
+    with checks_one_by_one, the render's value checks synchronising once per check as before
+    api._values_ok_device (the `ours_syncval` rows)."""
+
+    def __init__(self, env: dict | None, checks_one_by_one: bool):
+        self.env, self.one_by_one = env or {}, checks_one_by_one
+
+    def __enter__(self):
+        import ctgs.render.api as api
+
+        self._old_env = {k: os.environ.get(k) for k in self.env}
+        os.environ.update(self.env)
+        self._saved = api._values_ok_device
+        if self.one_by_one:
+            api._values_ok_device = lambda *a: False
+        return self
+
+    def __exit__(self, *exc):
+        import ctgs.render.api as api
+
+        api._values_ok_device = self._saved
+        for k, v in self._old_env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 class Ours:
-    def __init__(self, s, cam, textured, device, torch_preprocess: bool = False):
+    def __init__(self, s, cam, textured, device, torch_preprocess: bool = False, env: dict | None = None,
+                 checks_one_by_one: bool = False):
         self.s, self.cam, self.textured = s, cam, textured
         self.torch_preprocess = torch_preprocess
+        self.env, self.one_by_one = env, checks_one_by_one
         self.backend = "cuda" if device.type == "cuda" else "cpu"
         self.sg = with_grad(s, textured)
         g = torch.Generator().manual_seed(123)
@@ -168,7 +199,12 @@ class Ours:
     def _ctx(self):
         import contextlib
 
-        return _TorchPreprocess() if self.torch_preprocess else contextlib.nullcontext()
+        stack = contextlib.ExitStack()
+        if self.torch_preprocess:
+            stack.enter_context(_TorchPreprocess())
+        if self.env or self.one_by_one:
+            stack.enter_context(_Variant(self.env, self.one_by_one))
+        return stack
 
     def fwd(self):
         with torch.no_grad(), self._ctx():
@@ -327,6 +363,12 @@ def main() -> int:
     ap.add_argument("--torch-preprocess-too", action="store_true",
                     help="also time `ours_torchpre`: the per-primitive preprocessing in PyTorch ops (before the "
                          "CUDA kernels of kernels/cuda/dense.cu)")
+    ap.add_argument("--bwd-min-blocks", default="",
+                    help="also time the backward kernel capped for these blocks per SM (3, 4; rows ours_mbK, "
+                         "ours_tex_mbK; CTGS_CUDA_BWD_MIN_BLOCKS)")
+    ap.add_argument("--checks-one-by-one-too", action="store_true",
+                    help="also time `ours_syncval`: the render's value checks one synchronisation each, as before "
+                         "ctgs.render.api._values_ok_device")
     args = ap.parse_args()
     device = torch.device(args.device)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -347,6 +389,13 @@ def main() -> int:
         runners = {"ours": Ours(s0, cam, False, device), "ours_tex": Ours(st, cam, True, device)}
         if args.torch_preprocess_too:
             runners["ours_torchpre"] = Ours(s0, cam, False, device, torch_preprocess=True)
+        if args.checks_one_by_one_too:
+            runners["ours_syncval"] = Ours(s0, cam, False, device, checks_one_by_one=True)
+            runners["ours_tex_syncval"] = Ours(st, cam, True, device, checks_one_by_one=True)
+        for k in [x for x in args.bwd_min_blocks.split(",") if x.strip()]:
+            env = {"CTGS_CUDA_BWD_MIN_BLOCKS": k.strip()}
+            runners[f"ours_mb{k.strip()}"] = Ours(s0, cam, False, device, env=env)
+            runners[f"ours_tex_mb{k.strip()}"] = Ours(st, cam, True, device, env=env)
         if gs_fn is not None:
             runners["gsplat"] = Gsplat(gs_fn, s0, cam, device)
         times: dict[str, dict[str, list[list[float]]]] = {k: {"fwd": [], "fwd_bwd": []} for k in runners}
@@ -380,8 +429,12 @@ def main() -> int:
                 ratios[f"ours/gsplat {w}"] = best["ours"][w] / best["gsplat"][w]
             if best["ours"][w] and best["ours_tex"][w]:
                 ratios[f"ours_tex/ours {w}"] = best["ours_tex"][w] / best["ours"][w]
-            if "ours_torchpre" in best and best["ours_torchpre"][w] and best["ours"][w]:
-                ratios[f"ours_torchpre/ours {w}"] = best["ours_torchpre"][w] / best["ours"][w]
+            for k in [k for k in best if k not in ("ours", "ours_tex", "gsplat")]:
+                base = "ours_tex" if k.startswith("ours_tex") else "ours"
+                if best[k][w] and best[base][w]:
+                    ratios[f"{k}/{base} {w}"] = best[k][w] / best[base][w]
+                if "gsplat" in best and best["gsplat"][w] and best[k][w] and base == "ours":
+                    ratios[f"{k}/gsplat {w}"] = best[k][w] / best["gsplat"][w]
         entry["best_median_ms"] = best
         entry["ratios"] = ratios
         print(f"N={n}: {json.dumps(ratios)}", flush=True)

@@ -177,7 +177,9 @@ def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) 
                               False)
     sizes = model.tex_res[:, 0].long() * model.tex_res[:, 1].long()
     texel_w = torch.repeat_interleave(weight, sizes)  # [T]
-    return (model.textures.abs().sum(1) * texel_w).sum()
+    # (the render's activated offsets where the caller kept them: no second activation and graph, e.g. on a GPU)
+    acts = textures if textures is not None and textures.shape == raw.shape else model.textures
+    return (acts.abs().sum(1) * texel_w).sum()
 
 
 class _PhotometricLoss(torch.autograd.Function):

@@ -227,6 +227,48 @@ std::vector<Tensor> sh_color_backward_cuda(Tensor means, Tensor center, Tensor s
   return {gm, gs};
 }
 
+// New jagged buffers [new_rows, C] (ctgs/model/jagged.py remap, which builds the arguments): buffers [T, C] (1-4,
+// one dtype and C), old_res [N, 2] int32, old_off [N] int64, src [N'] int64, shift [N', 2] int64, new_res [N', 2]
+// int32, new_off [N'] int64 packed (jagged_offsets of new_res) and new_rows = the sum of new_res' products (the
+// caller has it; finding it here would cost a synchronisation). Unlike the CPU binding, the values of the
+// layouts are not checked (that needs the host): reads past a buffer's end give 0.
+std::vector<Tensor> jagged_remap_cuda(std::vector<Tensor> buffers, Tensor old_res, Tensor old_off, Tensor src,
+                                      Tensor shift, Tensor new_res, Tensor new_off, int64_t new_rows) {
+  TORCH_CHECK(!buffers.empty() && buffers.size() <= 4, "jagged_remap: 1 to 4 buffers, got ", buffers.size());
+  const at::Device dev = buffers[0].device();
+  const auto dt = buffers[0].scalar_type();
+  TORCH_CHECK(buffers[0].is_cuda() && (dt == at::kFloat || dt == at::kDouble) && buffers[0].dim() == 2,
+              "jagged_remap: buffers must be float CUDA tensors [T, C]");
+  const int64_t C = buffers[0].size(1), N = old_res.size(0), M = src.size(0);
+  for (const Tensor& b : buffers)
+    TORCH_CHECK(b.device() == dev && b.scalar_type() == dt && b.dim() == 2 && b.size(1) == C && b.is_contiguous(),
+                "jagged_remap: buffers must be contiguous [T, ", C, "] ", dt, " tensors on ", dev, ", got ", b.sizes());
+  check_tensor(old_res, "old_res", "[N, 2] int32", {N, 2}, at::kInt, dev);
+  check_tensor(old_off, "old_off", "[N] int64", {N}, at::kLong, dev);
+  check_tensor(src, "src", "[N'] int64", {M}, at::kLong, dev);
+  check_tensor(shift, "shift", "[N', 2] int64", {M, 2}, at::kLong, dev);
+  check_tensor(new_res, "new_res", "[N', 2] int32", {M, 2}, at::kInt, dev);
+  check_tensor(new_off, "new_off", "[N'] int64", {M}, at::kLong, dev);
+  TORCH_CHECK(new_rows >= 0, "jagged_remap: new_rows must be >= 0");
+  const c10::cuda::CUDAGuard guard(dev);
+  std::vector<Tensor> out;
+  for (const Tensor& b : buffers) out.push_back(torch::empty({new_rows, C}, b.options()));
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_jagged_remap_cuda", [&] {
+    ctgs::gpu::RemapBuffers<scalar_t> rb{};
+    rb.count = int(buffers.size());
+    for (int b = 0; b < rb.count; ++b) {
+      rb.in[b] = buffers[b].data_ptr<scalar_t>();
+      rb.out[b] = out[b].data_ptr<scalar_t>();
+      rb.old_rows[b] = buffers[b].size(0);
+    }
+    ctgs::gpu::jagged_remap<scalar_t>(rb, int(C), old_res.data_ptr<int32_t>(), old_off.data_ptr<int64_t>(),
+                                      src.data_ptr<int64_t>(), shift.data_ptr<int64_t>(), new_res.data_ptr<int32_t>(),
+                                      new_off.data_ptr<int64_t>(), M, new_rows, stream);
+  });
+  return out;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -240,5 +282,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "gradient of camera_space_cuda w.r.t. means, quats");
   m.def("sh_color_cuda", &sh_color_cuda, "SH(normalize(mean - centre)) + 0.5 per primitive");
   m.def("sh_color_backward_cuda", &sh_color_backward_cuda, "gradient of sh_color_cuda w.r.t. means and SH");
+  m.def("jagged_remap_cuda", &jagged_remap_cuda, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
 }

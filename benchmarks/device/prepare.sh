@@ -3,7 +3,7 @@
 #   .gpu/ctgs_cache   ctgs_cpu / ctgs_cuda built for the device's Python 3.12 + torch 2.11.0+cu130, sm_90
 #   .gpu/py/gsplat    gsplat 1.5.3's Python package, .gpu/gsplat_cuda.so its extension built the same way
 #   .gpu/whl          wheels the device image lacks (OpenImageIO, tomli_w, pygltflib)
-#   .gpu/scenes/herzjesu25   `ctgs sfm` output (images/ at full size, sparse/0 placeholders) + colmap.pkl
+#   .gpu/scenes/herzjesu25   `ctgs sfm` output (images/ at full size, images_2/, sparse/0 placeholders) + colmap.pkl
 # The device has no network and 15 minutes; building there would cost ~4 of them (gsplat's JIT build alone).
 # Versions: the device tool's KINDS.md (python3 3.12, torch 2.11.0+cu130, nvcc 13.0); check them in the first
 # call. Usage: benchmarks/device/prepare.sh SCENE_DIR (a folder made by `ctgs sfm`); WORK=/work/gpu by default.
@@ -41,6 +41,7 @@ dl "$G/whl" OpenImageIO tomli_w pygltflib
 # 5. The scene: full-size images, the model pickled (pycolmap's wheel is 38 MB), placeholder model files.
 mkdir -p "$G/scenes/herzjesu25/sparse/0"
 cp -r "$SCENE/images" "$G/scenes/herzjesu25/"
+[ -d "$SCENE/images_2" ] && cp -r "$SCENE/images_2" "$G/scenes/herzjesu25/"  # the pipeline phase's half size
 for f in cameras images points3D; do : > "$G/scenes/herzjesu25/sparse/0/$f.bin"; done
 "$ROOT/.venv/bin/python" -c "
 import pickle, sys

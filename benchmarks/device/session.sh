@@ -8,8 +8,11 @@
 # benchmarks/device/README.md): $G/ctgs_cache (prebuilt extensions), $G/py/gsplat + $G/gsplat_cuda.so,
 # $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl).
 #
-#   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train (default: all four)
-#   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS
+#   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train,probe,pipeline
+#                                           (default: tests,bench,ncu,train)
+#   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS,
+#        PROBE_S, PROBE_IT, PROBE_BEFORE (1: also the probe with CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0),
+#        PIPE_ITERS, PIPE_IMAGES, PIPE_S (seconds of each pipeline training)
 set -u
 PHASES=${1:-tests,bench,ncu,train}
 G=${G:-.gpu}
@@ -102,6 +105,52 @@ if [[ $PHASES == *train* ]]; then
   train 2dgs "${TRAIN_B_S:-100}" --preset "${TRAIN_PRESET:-paper}" --config configs/2dgs.toml \
     ${TRAIN_ITERS:+--iterations $TRAIN_ITERS}
   nvidia-smi --query-gpu=memory.used,clocks.sm --format=csv
+fi
+
+probe() {  # label seconds extra-env...
+  local label=$1 secs=$2; shift 2
+  stamp "probe $label (${secs} s)"
+  env "$@" timeout -s TERM "$secs" python3 benchmarks/gpu_train_probe.py "$G/scenes/herzjesu25" --out "$R" \
+    --label "$label" --preset paper --backend cuda --stop-at "${PROBE_IT:-2500}" --seconds "$((secs - 25))" \
+    --profile-at 1210 --profile-steps 20 --set test_every=0 2>&1 | tail -14
+  echo "rc=${PIPESTATUS[0]}"
+}
+if [[ $PHASES == *probe* ]]; then
+  probe new "${PROBE_S:-110}" CTGS_CUDA_REMAP=1
+  pack
+  if [[ ${PROBE_BEFORE:-1} == 1 ]]; then
+    probe before "${PROBE_S:-110}" CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0
+    pack
+  fi
+fi
+
+pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: the LPIPS weights do not travel)
+  local name=$1; shift
+  local run=/tmp/runs/pipe_$name
+  stamp "pipeline $name"
+  rm -rf "$run"
+  timeout -s TERM "${PIPE_S:-150}" python3 -m ctgs train "$G/scenes/herzjesu25" -o "$run" --backend cuda -q \
+    --preset paper --iterations "${PIPE_ITERS:-6000}" --images "${PIPE_IMAGES:-images_2}" "$@" 2>&1 | tail -5
+  echo "train rc=${PIPESTATUS[0]}"
+  stamp "pipeline $name: export, compress, eval"
+  python3 -m ctgs export "$run" -o "$run/model" 2>&1 | tail -3
+  python3 -m ctgs compress "$run/model" -o "$run/model-compressed" 2>&1 | tail -3
+  python3 -m ctgs eval "$run" --model "$run/model" -o "$run/eval" --no-lpips --backend cuda 2>&1 | tail -3
+  python3 -m ctgs eval "$run" --model "$run/model-compressed" -o "$run/eval-compressed" --no-lpips \
+    --backend cuda 2>&1 | tail -3
+  mkdir -p "$R/pipe_$name"
+  for f in log.jsonl config.toml train_summary.json model/manifest.json model-compressed/manifest.json \
+      eval/metrics.json eval/per_image.csv eval-compressed/metrics.json; do
+    [ -f "$run/$f" ] && cp "$run/$f" "$R/pipe_$name/$(echo "$f" | tr / _)"
+  done
+  du -sh "$run/model" "$run/model-compressed" 2>/dev/null
+  cat "$run/eval/metrics.json" 2>/dev/null | head -c 600; echo
+}
+if [[ $PHASES == *pipeline* ]]; then
+  pipeline paper
+  pack
+  pipeline 2dgs --config configs/2dgs.toml
+  pack
 fi
 
 stamp "pack"

@@ -34,7 +34,7 @@ def remap(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: torch.Ten
     """
     new_res = new_res.to(torch.int32)
     new_off = jagged_offsets(new_res)
-    fast = _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off)
+    fast = _compiled_remap(buffers, old_res, old_off, src, shift, new_res, new_off)
     if fast is not None:
         return fast, new_off
     pid, iu, iv = texel_coords(new_res)
@@ -53,6 +53,33 @@ def remap(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: torch.Ten
             vals = buf[idx.clamp(max=buf.shape[0] - 1)] * valid[:, None].to(buf.dtype)
         out.append(vals)
     return out, new_off
+
+
+def _compiled_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
+    """remap's copies in one compiled pass (CPU or CUDA extension), or None where neither applies."""
+    out = _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off)
+    return out if out is not None else _cuda_remap(buffers, old_res, old_off, src, shift, new_res, new_off)
+
+
+def _cuda_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
+    """remap on CUDA tensors in one kernel (kernels/cuda/dense.cu jagged_remap_kernel): the PyTorch index
+    arithmetic below makes ~15 [T']-sized int64 temporaries, GBs at the paper's texel counts. CTGS_CUDA_REMAP=0
+    turns it off (to compare)."""
+    import os
+
+    if (not buffers or len(buffers) > 4 or not buffers[0].is_cuda or os.environ.get("CTGS_CUDA_REMAP") == "0"
+            or any(b.dtype != buffers[0].dtype or b.shape[1] != buffers[0].shape[1] for b in buffers)):
+        return None
+    from ctgs.render._ext_cuda import cuda_fusable, load_cuda
+
+    if not cuda_fusable(*buffers):
+        return None
+    n = new_res.shape[0]
+    new_rows = int(new_off[-1] + new_res[-1, 0].long() * new_res[-1, 1].long()) if n else 0  # packed layout
+    return load_cuda().jagged_remap_cuda([b.contiguous() for b in buffers], old_res.to(torch.int32).contiguous(),
+                                         old_off.long().contiguous(), src.long().contiguous(),
+                                         shift.long().contiguous(), new_res.to(torch.int32).contiguous(),
+                                         new_off.long().contiguous(), new_rows)
 
 
 def _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
@@ -86,7 +113,7 @@ def replace_blocks(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: 
     src = torch.arange(n, device=old_res.device)
     zero = torch.zeros(n, 2, dtype=torch.long, device=old_res.device)
     new_off = jagged_offsets(new_res)
-    out = _cpu_remap(buffers, old_res, old_off, src, zero, new_res.to(torch.int32), new_off)
+    out = _compiled_remap(buffers, old_res, old_off, src, zero, new_res.to(torch.int32), new_off)
     if out is None:
         changed = torch.zeros(n, dtype=torch.bool, device=old_res.device)
         for prims, _ in new_blocks:

@@ -54,6 +54,8 @@ class SurfelAdam:
                     self.nonfinite.append(name)
                 continue
             self.unchecked.append(name)
+            if p.is_cuda and torch_fused_step(p.detach(), g, m, v, lr, t, self.eps):
+                continue
             m.mul_(BETA1).add_(g, alpha=1 - BETA1)
             v.mul_(BETA2).addcmul_(g, g, value=1 - BETA2)
             bc1 = 1 - BETA1 ** t
@@ -82,3 +84,20 @@ class SurfelAdam:
         self.exp_avg = {k: v.to(device) for k, v in state["exp_avg"].items()}
         self.exp_avg_sq = {k: v.to(device) for k, v in state["exp_avg_sq"].items()}
         self.steps = dict(state["steps"])
+
+
+def torch_fused_step(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor, lr, t: int, eps: float) -> bool:
+    """One Adam step of p in place with torch's fused kernel (what torch.optim.Adam(fused=True) runs: one pass
+    over p, g, m, v), if it applies: a float lr, one dtype, contiguous. The same update as SurfelAdam's PyTorch
+    lines up to rounding (sqrt(v) / sqrt(1 - b2^t) for sqrt(v / (1 - b2^t))); those lines make ~10 passes and 3
+    temporaries the size of p (on a GPU at the paper's 29M texels: ~1 GB and ~2 ms per step). Returns False
+    (nothing done) where it does not apply, or when CTGS_CUDA_FUSED_ADAM=0 (to compare)."""
+    import os
+
+    if (torch.is_tensor(lr) or os.environ.get("CTGS_CUDA_FUSED_ADAM") == "0" or not all(x.is_contiguous() and x.dtype == p.dtype for x in (g, m, v))
+            or p.dtype not in (torch.float32, torch.float64) or not hasattr(torch, "_fused_adam_")):
+        return False
+    step = torch.full((), float(t), dtype=torch.float32, device=p.device)
+    torch._fused_adam_([p], [g], [m], [v], [], [step], lr=float(lr), beta1=BETA1, beta2=BETA2, weight_decay=0.0,
+                       eps=eps, amsgrad=False, maximize=False)
+    return True

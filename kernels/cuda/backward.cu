@@ -4,6 +4,8 @@
 // CPU backend); the blending backward mirrors kernels/cpu/backward.cpp line for line. Per-primitive
 // gradients are summed over each warp (all lanes walk the same batch entry in lockstep) before one set of
 // atomics per warp; texel gradients are scattered per tap with atomics.
+#include <cstdlib>
+
 #include "common.cuh"
 
 namespace ctgs {
@@ -73,8 +75,9 @@ __device__ inline void atomic_add_grad(const BackwardOut<S>& out, int i, const S
   atomicAdd(out.v_texel_size + 2 * i + 1, g.kv);
 }
 
-template <typename S>
-__global__ void __launch_bounds__(BLOCK_SIZE)
+// MIN_BLOCKS > 1 caps the registers so that that many blocks fit an SM (see backward_min_blocks).
+template <typename S, int MIN_BLOCKS>
+__global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
     backward_kernel(SceneArgs<S> a, const SurfelPrim<S>* prims, const PixelRect* rects, TileBinsView bins,
                     const S* final_T, const int32_t* n_contrib, const S* v_rgb, const S* v_alpha,
                     const S* v_depth, BackwardOut<S> out) {
@@ -170,6 +173,16 @@ __global__ void __launch_bounds__(BLOCK_SIZE)
   }
 }
 
+// Blocks per SM the float kernel is compiled for: 1 (no register cap; 91 registers and 34 KB of shared
+// memory per block allowed 2 blocks, 25% occupancy on an H200, benchmarks/results/ncu_h200_before_1M.txt),
+// or 3 / 4 from CTGS_CUDA_BWD_MIN_BLOCKS (at most 80 / 64 registers: more warps to hide latency, maybe spills).
+// Read at every launch so that one process can compare them (benchmarks/bench_cuda.py --bwd-min-blocks).
+inline int backward_min_blocks() {
+  const char* v = std::getenv("CTGS_CUDA_BWD_MIN_BLOCKS");
+  const int b = v ? std::atoi(v) : 0;
+  return b == 3 || b == 4 ? b : 1;
+}
+
 }  // namespace
 
 template <typename S>
@@ -192,8 +205,19 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   if (a.T > 0) CTGS_CUDA_CHECK(cudaMemsetAsync(out.v_textures, 0, sizeof(S) * 3 * size_t(a.T), stream));
   CTGS_CUDA_CHECK(cudaMemsetAsync(out.v_background, 0, sizeof(S) * 3, stream));
   const dim3 grid(tiles_x(a.K.width), tiles_y(a.K.height)), block(BLOCK_X, BLOCK_Y);
-  backward_kernel<S><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha, v_depth,
-                                                 out);
+  const int min_blocks = sizeof(S) == 4 ? backward_min_blocks() : 1;  // (double: never capped)
+  if constexpr (sizeof(S) == 4) {
+    if (min_blocks == 3) {
+      backward_kernel<S, 3><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
+                                                        v_depth, out);
+    } else if (min_blocks == 4) {
+      backward_kernel<S, 4><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
+                                                        v_depth, out);
+    }
+  }
+  if (min_blocks == 1)
+    backward_kernel<S, 1><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
+                                                      v_depth, out);
   CTGS_CUDA_LAUNCH_CHECK("backward_kernel");
 }
 

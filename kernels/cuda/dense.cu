@@ -51,6 +51,41 @@ __global__ void __launch_bounds__(LINEAR_BLOCK)
                          grad_sh + i * K * 3);
 }
 
+
+// Jagged texture re-layout (ctgs/model/jagged.py remap; the CPU version is kernels/cpu/dense.cpp jagged_remap):
+// one thread per texel of the new packed layout finds its primitive j by binary search over new_off (packed:
+// increasing, a primitive of 0 texels shares its successor's offset, and upper_bound skips it), then copies
+// texel (iu + du, iv + dv) of primitive src[j], or writes 0 outside the old grid. The index arithmetic in
+// PyTorch made ~15 temporaries of [T'] int64 (a few GB at the paper's 29M texels).
+template <typename S>
+__global__ void __launch_bounds__(LINEAR_BLOCK)
+    jagged_remap_kernel(RemapBuffers<S> bufs, int C, const int* old_res, const int64_t* old_off,
+                        const int64_t* src, const int64_t* shift, const int* new_res, const int64_t* new_off,
+                        int64_t n_new, int64_t new_rows) {
+  const int64_t t = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (t >= new_rows) return;
+  int64_t lo = 0, hi = n_new;  // first primitive whose offset is > t
+  while (lo < hi) {
+    const int64_t mid = (lo + hi) >> 1;
+    if (new_off[mid] <= t) lo = mid + 1; else hi = mid;
+  }
+  const int64_t j = lo - 1;
+  const int64_t s = src[j];
+  const int64_t ru = old_res[2 * s], rv = old_res[2 * s + 1];
+  const int64_t nu = new_res[2 * j], nv = new_res[2 * j + 1];
+  const int64_t local = t - new_off[j];
+  const int64_t iu = local % nu, iv = local / nu;
+  auto floor_half = [](int64_t d) { return d >= 0 ? d / 2 : -((-d + 1) / 2); };
+  const int64_t ou = iu + floor_half(ru - nu) + shift[2 * j];
+  const int64_t ov = iv + floor_half(rv - nv) + shift[2 * j + 1];
+  const bool inside = ou >= 0 && ou < ru && ov >= 0 && ov < rv && iv < nv;
+  const int64_t from = old_off[s] + ov * ru + ou;
+  for (int b = 0; b < bufs.count; ++b) {
+    const bool ok = inside && from < bufs.old_rows[b];
+    for (int c = 0; c < C; ++c) bufs.out[b][C * t + c] = ok ? bufs.in[b][C * from + c] : S(0);
+  }
+}
+
 }  // namespace
 
 template <typename S>
@@ -86,12 +121,24 @@ void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, 
   CTGS_CUDA_LAUNCH_CHECK("sh_color_backward_kernel");
 }
 
+template <typename S>
+void jagged_remap(const RemapBuffers<S>& bufs, int C, const int* old_res, const int64_t* old_off, const int64_t* src,
+                  const int64_t* shift, const int* new_res, const int64_t* new_off, int64_t n_new, int64_t new_rows,
+                  cudaStream_t stream) {
+  if (new_rows == 0 || n_new == 0) return;
+  jagged_remap_kernel<S><<<grid_1d(new_rows), LINEAR_BLOCK, 0, stream>>>(bufs, C, old_res, old_off, src, shift,
+                                                                         new_res, new_off, n_new, new_rows);
+  CTGS_CUDA_LAUNCH_CHECK("jagged_remap_kernel");
+}
+
 #define CTGS_INSTANTIATE_DENSE(S)                                                                                 \
   template void camera_space<S>(const S*, const S*, const S*, int64_t, S*, S*, cudaStream_t);                   \
   template void camera_space_backward<S>(const S*, const S*, int64_t, const S*, const S*, S*, S*, cudaStream_t); \
   template void sh_color<S>(const S*, const S*, const S*, int64_t, int, int, S*, cudaStream_t);                  \
   template void sh_color_backward<S>(const S*, const S*, const S*, int64_t, int, int, const S*, S*, S*,          \
-                                     cudaStream_t);
+                                     cudaStream_t);                                                             \
+  template void jagged_remap<S>(const RemapBuffers<S>&, int, const int*, const int64_t*, const int64_t*,          \
+                                const int64_t*, const int*, const int64_t*, int64_t, int64_t, cudaStream_t);
 CTGS_INSTANTIATE_DENSE(float)
 CTGS_INSTANTIATE_DENSE(double)
 #undef CTGS_INSTANTIATE_DENSE

@@ -82,5 +82,20 @@ template <typename S>
 void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, const S* grad_colors,
                        S* grad_means, S* grad_sh, cudaStream_t stream);
 
+// Jagged texture re-layout (ctgs/model/jagged.py remap): up to 4 buffers [rows, C] laid out alike (texel
+// values and their Adam moments) copied into the packed layout new_res/new_off [n_new] (T' = new_rows rows,
+// every one written), new primitive j taking src[j]'s texels re-centred and moved by shift[j]; 0 outside.
+template <typename S>
+struct RemapBuffers {
+  const S* in[4];
+  S* out[4];
+  int64_t old_rows[4];
+  int count;
+};
+template <typename S>
+void jagged_remap(const RemapBuffers<S>& bufs, int C, const int* old_res, const int64_t* old_off, const int64_t* src,
+                  const int64_t* shift, const int* new_res, const int64_t* new_off, int64_t n_new, int64_t new_rows,
+                  cudaStream_t stream);
+
 }  // namespace gpu
 }  // namespace ctgs

@@ -215,7 +215,9 @@ def test_zero_quaternion_is_refused():
 def test_compiled_value_check_agrees_with_pytorch(dtype):
     """validate_inputs takes the compiled one-pass check where it can (api._values_ok_fused) and the PyTorch
     checks otherwise: the compiled check passes valid inputs and flags every value problem the PyTorch
-    checks raise on (anywhere in a tensor larger than one parallel chunk), so the messages stay theirs."""
+    checks raise on (anywhere in a tensor larger than one parallel chunk), so the messages stay theirs. The same
+    for the one-transfer check of GPU inputs (api._values_ok_device: device-agnostic, run here on the CPU), which
+    also covers the camera and background."""
     from scenes import random_scene
 
     ext.load_cpu()  # the compiled check runs once the extension is loaded (never builds it by itself)
@@ -225,7 +227,12 @@ def test_compiled_value_check_agrees_with_pytorch(dtype):
     s = replace(s, textures=torch.cat([s.textures, big]))
     assert api._values_ok_fused(s)
     assert api._values_ok_fused(replace(s, sh=s.sh[:, :4]))  # a training step below the top SH degree: a slice
+    assert api._values_ok_device(s, [cam.viewmat, torch.zeros(3, dtype=dtype)])
+    assert api._values_ok_device(replace(s, sh=s.sh[:, :4]), [])
     api.validate_inputs(s, cam, None, None)
+    vm = cam.viewmat.clone()
+    vm[1, 2] = float("nan")
+    assert not api._values_ok_device(s, [vm]) and not api._values_ok_device(s, [torch.tensor([0.0, float("inf"), 0.0])])
     bad = []
     for name, index, value in [("means", 7, float("nan")), ("quats", 3, float("inf")), ("scales", 0, 0.0),
                                ("scales", 99, -1e-30), ("opacities", 5, 1.0 + 1e-6), ("opacities", 6, -0.0 - 1e-30),
@@ -246,6 +253,7 @@ def test_compiled_value_check_agrees_with_pytorch(dtype):
     bad.append(("tex_res", replace(s, tex_res=res)))
     for name, b in bad:
         assert not api._values_ok_fused(b), name
+        assert not api._values_ok_device(b, []), name
         with pytest.raises(ValueError, match=name):
             api.validate_inputs(b, cam, None, None)
 

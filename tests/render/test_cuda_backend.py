@@ -310,6 +310,59 @@ def test_preprocess_kernels_match_pytorch(dtype):
     assert cots is not None
 
 
+def _jagged_case(dtype, seed=3):
+    from ctgs.model.surfels import jagged_offsets
+
+    g = torch.Generator().manual_seed(seed)
+    n, m = 40, 57
+    sizes = torch.tensor([0, 2, 4, 8, 6])
+    old_res = sizes[torch.randint(0, 5, (n, 2), generator=g)]
+    old_res[old_res.min(1).values == 0] = 0  # a primitive has a texture on both axes or none
+    old_res = old_res.to(torch.int32)
+    old_off = jagged_offsets(old_res)
+    t_old = int((old_res.long()[:, 0] * old_res.long()[:, 1]).sum())
+    bufs = [torch.randn(t_old, 3, generator=g, dtype=torch.float64).to(dtype) for _ in range(3)]
+    src = torch.randint(0, n, (m,), generator=g)  # repeats: duplicated primitives (splits)
+    shift = torch.randint(-2, 3, (m, 2), generator=g)
+    new_res = sizes[torch.randint(0, 5, (m, 2), generator=g)]
+    new_res[new_res.min(1).values == 0] = 0
+    new_res[-1] = 0  # a layout that ends in an empty texture
+    return bufs, old_res, old_off, src, shift, new_res.to(torch.int32)
+
+
+@needs_cuda
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_jagged_remap_kernel_matches_cpu(dtype, monkeypatch):
+    """The CUDA re-layout of textures and their Adam moments (kernels/cuda/dense.cu jagged_remap_kernel) copies
+    exactly what the CPU kernel and the PyTorch definition copy: crops, pads, shifts, repeats, empty textures;
+    and jagged.replace_blocks (upscale/downscale) through it."""
+    from ctgs.model import jagged
+
+    bufs, old_res, old_off, src, shift, new_res = _jagged_case(dtype)
+    want, off_cpu = jagged.remap(bufs, old_res, old_off, src, shift, new_res)
+    dev = torch.device(GPU)
+    moved = [x.to(dev) for x in (old_res, old_off, src, shift, new_res)]
+    got, off = jagged.remap([b.to(dev) for b in bufs], *moved)
+    assert torch.equal(off.cpu(), off_cpu)
+    for a, b in zip(got, want):
+        assert a.shape == b.shape and a.dtype == b.dtype and a.device == dev and torch.equal(a.cpu(), b)
+    monkeypatch.setenv("CTGS_CUDA_REMAP", "0")  # the PyTorch index arithmetic on the same device
+    plain, _ = jagged.remap([b.to(dev) for b in bufs], *moved)
+    for a, b in zip(plain, want):
+        assert torch.equal(a.cpu(), b)
+    monkeypatch.delenv("CTGS_CUDA_REMAP")
+    # replace_blocks: primitives 1 and 5 get new 4x2 blocks, the rest keep theirs.
+    res2 = old_res.clone()
+    prims = torch.tensor([1, 5])
+    res2[prims] = torch.tensor([4, 2], dtype=torch.int32)
+    vals = [torch.full((2, 2, 4, 3), float(k + 1), dtype=dtype) for k in range(3)]
+    want2, _ = jagged.replace_blocks(bufs, old_res, old_off, res2, [(prims, vals)])
+    got2, _ = jagged.replace_blocks([b.to(dev) for b in bufs], old_res.to(dev), old_off.to(dev), res2.to(dev),
+                                    [(prims.to(dev), [v.to(dev) for v in vals])])
+    for a, b in zip(got2, want2):
+        assert torch.equal(a.cpu(), b)
+
+
 @needs_cuda
 def test_auto_uses_cuda_for_gpu_tensors_and_rejects_cpu_tensors():
     s, cam = _case(0, torch.float32)

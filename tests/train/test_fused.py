@@ -44,6 +44,28 @@ def test_adam_step_matches_pytorch(dtype, per_element_lr):
             torch.testing.assert_close(x, y, atol=ADAM_ATOL[dtype], rtol=0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_torch_fused_adam_step_matches_pytorch(dtype):
+    """The GPU's Adam step (ctgs.train.adam.torch_fused_step: torch's fused kernel, run here on CPU tensors) is
+    the same update as the PyTorch lines; a tensor lr (SH bands) is left to them."""
+    from ctgs.train.adam import torch_fused_step
+
+    gen = torch.Generator().manual_seed(2)
+    shape = (2049, 3)
+    p, g = torch.randn(shape, generator=gen, dtype=dtype), torch.randn(shape, generator=gen, dtype=dtype)
+    m = torch.randn(shape, generator=gen, dtype=dtype) * 0.1
+    v = torch.rand(shape, generator=gen, dtype=dtype) * 0.01
+    ref = [x.clone() for x in (p, m, v)]
+    for t in (1, 7, 3000):
+        _torch_adam(*ref[:1], g, *ref[1:], 7e-4, t, 1e-15)
+        assert torch_fused_step(p, g, m, v, 7e-4, t, 1e-15)
+        for x, y in zip((p, m, v), ref):
+            torch.testing.assert_close(x, y, atol=ADAM_ATOL[dtype], rtol=0)
+    assert not torch_fused_step(p, g, m, v, torch.tensor(1e-3, dtype=dtype), 1, 1e-15)
+    assert not torch_fused_step(p, g.to(torch.float64 if dtype == torch.float32 else torch.float32), m, v, 1e-3, 1,
+                                1e-15)
+
+
 def test_adam_counts_non_finite_results():
     p = torch.zeros(100)
     g = torch.ones(100)
