@@ -366,6 +366,8 @@ def main() -> int:
     ap.add_argument("--bwd-min-blocks", default="",
                     help="also time the backward kernel capped for these blocks per SM (3, 4; rows ours_mbK, "
                          "ours_tex_mbK; CTGS_CUDA_BWD_MIN_BLOCKS)")
+    ap.add_argument("--tex-agg-off-too", action="store_true",
+                    help="also time `ours_tex_noagg`: texel gradients with one atomic per lane (CTGS_CUDA_TEX_AGG=0)")
     ap.add_argument("--checks-one-by-one-too", action="store_true",
                     help="also time `ours_syncval`: the render's value checks one synchronisation each, as before "
                          "ctgs.render.api._values_ok_device")
@@ -392,6 +394,8 @@ def main() -> int:
         if args.checks_one_by_one_too:
             runners["ours_syncval"] = Ours(s0, cam, False, device, checks_one_by_one=True)
             runners["ours_tex_syncval"] = Ours(st, cam, True, device, checks_one_by_one=True)
+        if args.tex_agg_off_too:
+            runners["ours_tex_noagg"] = Ours(st, cam, True, device, env={"CTGS_CUDA_TEX_AGG": "0"})
         for k in [x for x in args.bwd_min_blocks.split(",") if x.strip()]:
             env = {"CTGS_CUDA_BWD_MIN_BLOCKS": k.strip()}
             runners[f"ours_mb{k.strip()}"] = Ours(s0, cam, False, device, env=env)

@@ -100,6 +100,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--profile-at", type=int, default=None)
     ap.add_argument("--profile-steps", type=int, default=20)
     ap.add_argument("--set", dest="sets", action="append", default=[])
+    ap.add_argument("--ab", action="append", default=[], metavar="KEY=VALUE",
+                    help="side by side in one run: from the texture start + 100 on, blocks of --ab-block iterations "
+                         "rotate between the plain run and each of these environment settings (read by the CUDA "
+                         "backend at every launch), and the phase table splits the textured steps by variant")
+    ap.add_argument("--ab-block", type=int, default=50)
+    ap.add_argument("--no-history", action="store_true", help="no allocator history (timing runs)")
     args = ap.parse_args(argv)
 
     import torch
@@ -119,6 +125,21 @@ def main(argv=None) -> dict:
     cuda = dev.type == "cuda"
     ts = schedule.texture_start(cfg) if cfg.method == "content_aware" else None
     hist_after = args.history_after if args.history_after is not None else max(1, (ts or 1) - 1)
+    if args.no_history:
+        hist_after = 1 << 62
+    variants = [("plain", None)] + [(kv, kv.split("=", 1)) for kv in args.ab]
+    ab_from = (ts or 0) + 100
+
+    def set_variant(it: int) -> str:
+        if len(variants) == 1 or it < ab_from:
+            return "plain"
+        name, kv = variants[((it - ab_from) // args.ab_block) % len(variants)]
+        for _, other in variants[1:]:
+            os.environ.pop(other[0], None)
+        if kv is not None:
+            os.environ[kv[0]] = kv[1]
+        return name
+    variant = set_variant(1)
     rows: list[dict] = []
     routines: dict[int, list[str]] = defaultdict(list)
     evals: list[dict] = []
@@ -133,7 +154,9 @@ def main(argv=None) -> dict:
     for ev in trainer.run():
         if isinstance(ev, Step):
             now = time.perf_counter()
-            row = {"it": ev.it, "wall_s": round(now - last, 5), "n": ev.num_primitives, "texels": ev.num_texels}
+            row = {"it": ev.it, "wall_s": round(now - last, 5), "n": ev.num_primitives, "texels": ev.num_texels,
+                   "variant": variant}
+            variant = set_variant(ev.it + 1)  # for the next iteration (its launches happen before its Step)
             last = now
             if cuda:
                 peak = torch.cuda.max_memory_allocated(dev) / MB
@@ -191,6 +214,9 @@ def main(argv=None) -> dict:
     after = [r for r in rows if ts is not None and r["it"] > ts]
     plain = [r for r in after if not r["routines"]]
     with_routine = [r for r in after if r["routines"]]
+    by_variant = {name: phase_stats([r for r in plain if r["variant"] == name and r["it"] >= ab_from])
+                  for name, _ in variants} \
+        if len(variants) > 1 else {}
     result = {
         "label": args.label, "device": str(dev), "gpu": torch.cuda.get_device_name(dev) if cuda else None,
         "torch": torch.__version__, "preset": args.preset, "method": cfg.method, "iterations_planned": cfg.iterations,
@@ -198,7 +224,8 @@ def main(argv=None) -> dict:
         "env": {k: v for k, v in os.environ.items() if k.startswith("CTGS_CUDA")},
         "final": {"n": rows[-1]["n"], "texels": rows[-1]["texels"]} if rows else {},
         "phases": {"before_texture_start": phase_stats(before), "textured_steps": phase_stats(plain),
-                   "textured_with_routine": phase_stats(with_routine)},
+                   "textured_with_routine": phase_stats(with_routine),
+                   **{f"textured_steps [{k}]": v for k, v in by_variant.items()}},
         "peak_iterations": sorted(rows, key=lambda r: -r.get("peak_mb", 0))[:8] if cuda else [],
         "snapshots": snapshots, "evals": evals, "profile_window": prof_window,
         "wall_s": round(time.perf_counter() - t_start, 1), "rows": rows,

@@ -11,7 +11,8 @@
 #   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train,probe,pipeline
 #                                           (default: tests,bench,ncu,train)
 #   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS,
-#        PROBE_S, PROBE_IT, PROBE_BEFORE (1: also the probe with CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0),
+#        PROBE_S, PROBE_IT, PROBE_ARGS (more gpu_train_probe.py options), PROBE_BEFORE (1: also the probe
+#        with CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0),
 #        PIPE_ITERS, PIPE_IMAGES, PIPE_S (seconds of each pipeline training)
 set -u
 PHASES=${1:-tests,bench,ncu,train}
@@ -65,6 +66,9 @@ if [[ $PHASES == *tests* ]]; then
       > /dev/null
   fi
   python3 benchmarks/cuda_agreement.py "$R/agreement.jsonl" --machine "$R/machine.json" -o "$R/cuda_agreement" | tail -45
+  # A new kernel that failed its agreement test stays off for the rest of the call (its switch).
+  if grep -q "FAILED.*aggregated" "$R/pytest_cuda.log"; then export CTGS_CUDA_TEX_AGG=0; echo "CTGS_CUDA_TEX_AGG=0 from here"; fi
+  if grep -q "FAILED.*jagged" "$R/pytest_cuda.log"; then export CTGS_CUDA_REMAP=0; echo "CTGS_CUDA_REMAP=0 from here"; fi
 pack
 fi
 
@@ -112,7 +116,7 @@ probe() {  # label seconds extra-env...
   stamp "probe $label (${secs} s)"
   env "$@" timeout -s TERM "$secs" python3 benchmarks/gpu_train_probe.py "$G/scenes/herzjesu25" --out "$R" \
     --label "$label" --preset paper --backend cuda --stop-at "${PROBE_IT:-2500}" --seconds "$((secs - 25))" \
-    --profile-at 1210 --profile-steps 20 --set test_every=0 2>&1 | tail -14
+    --profile-at 1210 --profile-steps 20 --set test_every=0 ${PROBE_ARGS:-} 2>&1 | tail -16
   echo "rc=${PIPESTATUS[0]}"
 }
 if [[ $PHASES == *probe* ]]; then

@@ -75,12 +75,48 @@ __device__ inline void atomic_add_grad(const BackwardOut<S>& out, int i, const S
   atomicAdd(out.v_texel_size + 2 * i + 1, g.kv);
 }
 
+// Adds val[0..2] to the texel row `row` (-1: nothing) of every lane, with one atomic per run of consecutive
+// lanes that share a row instead of one per lane. A warp is 2 rows of 16 pixels; where texels span several
+// pixels, neighbouring lanes read the same taps and their atomics on one address serialise (the backward
+// kernel spent ~11 ms of a ~26 ms training step on herzjesu25 at 1.5 Mpx, benchmarks/results/
+// gpu_probe_h200_s33.md). Segmented suffix sum over each run (Hillis-Steele with shuffles, bounded by the
+// run's last lane from a ballot); the run's first lane adds the run's total. Lanes equal but not adjacent form
+// separate runs: more atomics, never a wrong sum. All 32 lanes must call it (warp-uniform control flow).
+template <typename S>
+__device__ inline void scatter_texel_grad(S* v_textures, long long row, const S val[3], int lane) {
+  const long long next = __shfl_down_sync(FULL_MASK, row, 1);
+  const long long prev = __shfl_up_sync(FULL_MASK, row, 1);
+  const bool last = lane == 31 || next != row;
+  const unsigned ends = __ballot_sync(FULL_MASK, last);
+  const int end = __ffs(ends & (~0u << lane)) - 1;  // the last lane of this lane's run
+  S sum[3] = {val[0], val[1], val[2]};
+  for (int sft = 1; sft < 32; sft <<= 1) {
+    for (int c = 0; c < 3; ++c) {
+      const S o = __shfl_down_sync(FULL_MASK, sum[c], sft);
+      if (lane + sft <= end) sum[c] += o;
+    }
+  }
+  if (row >= 0 && (lane == 0 || prev != row)) {
+    S* dst = v_textures + 3 * row;
+    atomicAdd(dst, sum[0]);
+    atomicAdd(dst + 1, sum[1]);
+    atomicAdd(dst + 2, sum[2]);
+  }
+}
+
+// Whether the texel gradients go through scatter_texel_grad (default) or one atomic per lane and tap as before
+// (CTGS_CUDA_TEX_AGG=0, to compare; read at every launch).
+inline bool texel_aggregation() {
+  const char* v = std::getenv("CTGS_CUDA_TEX_AGG");
+  return !(v && v[0] == '0');
+}
+
 // MIN_BLOCKS > 1 caps the registers so that that many blocks fit an SM (see backward_min_blocks).
 template <typename S, int MIN_BLOCKS>
 __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
     backward_kernel(SceneArgs<S> a, const SurfelPrim<S>* prims, const PixelRect* rects, TileBinsView bins,
                     const S* final_T, const int32_t* n_contrib, const S* v_rgb, const S* v_alpha,
-                    const S* v_depth, BackwardOut<S> out) {
+                    const S* v_depth, BackwardOut<S> out, bool aggregate_texels) {
   constexpr int B = Batch<S>::SIZE;
   __shared__ SurfelPrim<S> s_prim[B];
   __shared__ PixelRect s_rect[B];
@@ -136,6 +172,8 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
       const int32_t jj = hi - 1 - k;  // position in the tile list
       SurfelGrad<S> g;
       bool contributes = false;
+      bool textured = false;  // this lane's pair reads texels (aggregated scatter below)
+      TexTaps<S> taps{};
       const PixelRect& r = s_rect[k];
       // jj >= ncon: behind where this pixel stopped. Same pairs as the forward (same rect test, same math).
       if (jj < ncon && x >= r.x0 && x <= r.x1 && y >= r.y0 && y <= r.y1) {
@@ -151,7 +189,10 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
           const S v_a = T_i * f - acc / one_minus;
           const S v_c[3] = {w * gC[0], w * gC[1], w * gC[2]};
           surfel_backward(P, ray, a.K, h, a.textures, v_a, v_c, w * gD, g);
-          if (h.taps.active) {
+          if (h.taps.active && aggregate_texels) {
+            textured = true;
+            taps = h.taps;
+          } else if (h.taps.active) {
             for (int t = 0; t < 4; ++t) {
               if (h.taps.row[t] < 0) continue;
               S* dst = out.v_textures + 3 * h.taps.row[t];
@@ -162,6 +203,15 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
           }
           acc += w * f;
           T = T_i;
+        }
+      }
+      if (aggregate_texels && __any_sync(FULL_MASK, textured)) {
+        for (int t = 0; t < 4; ++t) {
+          const long long row = textured ? taps.row[t] : -1;
+          const S wt = textured ? taps.w[t] : S(0);
+          const S val[3] = {textured ? wt * g.tex[0] : S(0), textured ? wt * g.tex[1] : S(0),
+                            textured ? wt * g.tex[2] : S(0)};
+          scatter_texel_grad(out.v_textures, row, val, lane);
         }
       }
       if (__any_sync(FULL_MASK, contributes)) {
@@ -206,18 +256,19 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   CTGS_CUDA_CHECK(cudaMemsetAsync(out.v_background, 0, sizeof(S) * 3, stream));
   const dim3 grid(tiles_x(a.K.width), tiles_y(a.K.height)), block(BLOCK_X, BLOCK_Y);
   const int min_blocks = sizeof(S) == 4 ? backward_min_blocks() : 1;  // (double: never capped)
+  const bool aggregate = texel_aggregation();
   if constexpr (sizeof(S) == 4) {
     if (min_blocks == 3) {
       backward_kernel<S, 3><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
-                                                        v_depth, out);
+                                                        v_depth, out, aggregate);
     } else if (min_blocks == 4) {
       backward_kernel<S, 4><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
-                                                        v_depth, out);
+                                                        v_depth, out, aggregate);
     }
   }
   if (min_blocks == 1)
     backward_kernel<S, 1><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
-                                                      v_depth, out);
+                                                      v_depth, out, aggregate);
   CTGS_CUDA_LAUNCH_CHECK("backward_kernel");
 }
 
