@@ -14,7 +14,10 @@ Renderers: `ours` (ctgs backend "cuda", tex_res 0: no textures), `ours_torchpre`
 with the per-primitive preprocessing in PyTorch ops, as before kernels/cuda/dense.cu), `ours_tex` (the same surfels with textures
 of the paper's size distribution, 30-450 texels per primitive, log-uniform), `gsplat` (gsplat
 rasterization_2dgs, render_mode "RGB+D" so that it also returns alpha and accumulated depth, as ours does;
-its 2DGS kernel also renders normals and distortion, which it always does).
+its 2DGS kernel also renders normals and distortion, which it always does). Variants, each against its default
+in the same run: `ours_mbK` / `ours_tex_mbK` (--bwd-min-blocks K: the backward kernel register-capped for K blocks
+per SM), `ours_tex_noagg` (--tex-agg-off-too: texel gradients with one atomic per lane), `ours_syncval` /
+`ours_tex_syncval` (--checks-one-by-one-too: the input checks with one synchronisation each, as before).
 
 The surfels look like a trained scene, not a uniform cloud: depths log-uniform in [2, 20] over a frustum
 slightly wider than the view, random orientations, projected standard deviations log-normal (median set

@@ -116,6 +116,7 @@ def main(argv=None) -> dict:
     from ctgs.train.trainer import Trainer
 
     os.makedirs(args.out, exist_ok=True)
+    env_at_start = {k: v for k, v in os.environ.items() if k.startswith("CTGS_CUDA")}  # (--ab changes it later)
     run_dir = tempfile.mkdtemp(prefix="ctgs_probe_")
     cfg = resolve_config(args.scene, run_dir, args.config, args.iterations, args.sets, args.images, False,
                          args.backend, None, args.preset)
@@ -221,7 +222,7 @@ def main(argv=None) -> dict:
         "label": args.label, "device": str(dev), "gpu": torch.cuda.get_device_name(dev) if cuda else None,
         "torch": torch.__version__, "preset": args.preset, "method": cfg.method, "iterations_planned": cfg.iterations,
         "iterations_run": rows[-1]["it"] if rows else 0, "texture_start": ts, "image_pixels": trainer.pixels,
-        "env": {k: v for k, v in os.environ.items() if k.startswith("CTGS_CUDA")},
+        "env": env_at_start, "ab_variants": [name for name, _ in variants],
         "final": {"n": rows[-1]["n"], "texels": rows[-1]["texels"]} if rows else {},
         "phases": {"before_texture_start": phase_stats(before), "textured_steps": phase_stats(plain),
                    "textured_with_routine": phase_stats(with_routine),

@@ -77,9 +77,9 @@ __device__ inline void atomic_add_grad(const BackwardOut<S>& out, int i, const S
 
 // Adds val[0..2] to the texel row `row` (-1: nothing) of every lane, with one atomic per run of consecutive
 // lanes that share a row instead of one per lane. A warp is 2 rows of 16 pixels; where texels span several
-// pixels, neighbouring lanes read the same taps and their atomics on one address serialise (the backward
-// kernel spent ~11 ms of a ~26 ms training step on herzjesu25 at 1.5 Mpx, benchmarks/results/
-// gpu_probe_h200_s33.md). Segmented suffix sum over each run (Hillis-Steele with shuffles, bounded by the
+// pixels, neighbouring lanes read the same taps and their atomics on one address serialise: on herzjesu25 at
+// 1.5 Mpx the backward kernel took 11.3 ms of a 26 ms training step with one atomic per lane and tap, 3.0 ms
+// with this (benchmarks/results/gpu_probe_h200_s33_memory_after.md, _texagg.md; docs/gpu.md). Segmented suffix sum over each run (Hillis-Steele with shuffles, bounded by the
 // run's last lane from a ballot); the run's first lane adds the run's total. Lanes equal but not adjacent form
 // separate runs: more atomics, never a wrong sum. All 32 lanes must call it (warp-uniform control flow).
 template <typename S>
