@@ -8,11 +8,12 @@ from ctgs.render.camera import Camera
 
 
 @torch.no_grad()
-def compute_k_min(means: torch.Tensor, cameras: list[Camera], chunk: int = 16) -> torch.Tensor:
+def compute_k_min(means: torch.Tensor, cameras: list[Camera], chunk: int = 16, return_seen: bool = False):
     """k_min [N] world units per pixel: min over cameras whose frustum holds the centre of depth/focal.
 
     "depth/focal" is the footprint of one pixel on a fronto-parallel plane at the centre's depth (focal
     = geometric mean of fx, fy). Primitives no camera sees get the largest k_min of the seen ones.
+    return_seen: return (k_min, seen [N] bool) instead.
     """
     n = means.shape[0]
     dev, dt = means.device, means.dtype
@@ -38,4 +39,5 @@ def compute_k_min(means: torch.Tensor, cameras: list[Camera], chunk: int = 16) -
         best = torch.minimum(best, k.min(0).values)
     seen = torch.isfinite(best)
     fallback = best[seen].max() if bool(seen.any()) else torch.tensor(1.0, device=dev, dtype=dt)
-    return torch.where(seen, best, fallback)
+    k_min = torch.where(seen, best, fallback)
+    return (k_min, seen) if return_seen else k_min

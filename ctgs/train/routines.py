@@ -11,12 +11,14 @@ from ctgs.train.split import prune, split
 
 
 @torch.no_grad()
-def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None) -> dict:
+def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None, lean: bool = True) -> dict:
     """E over all training views; split (tau_tr), upscale top E (t2p_exp > min), downscale the others
     (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
 
     background: optional function model -> [N] bool of primitives the ranking leaves out (never split or upscaled;
     the top fraction is taken among the others).
+    lean=False: upscale first, to 2x, then downscale, and let realloc crop (the paper's order; the same final state
+    with up to ~2x the texels in between: tests/train/test_routines_image.py, benchmarks/lean_routine.py).
     """
     support = None
     if cfg.max_params > 0:
@@ -35,8 +37,17 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     else:
         n_split, top, support = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E,
                                       carry=support)
-    up = texels.upscale(model, opt, top, cfg.min_t2p_exp)
-    down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
+    if lean:
+        # The same result as upscaling first (the two touch disjoint primitives, each texture alone), with the
+        # textures at their smallest in between: downscale the others first, then upscale cropped as made to what
+        # realloc below gives it, so that 4x the upscaled texels never exist at once.
+        up = texels.upscale_selection(model, top, cfg.min_t2p_exp)
+        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
+        texels.upscale(model, opt, up, cfg.min_t2p_exp,
+                       crop=(cameras, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma))
+    else:
+        up = texels.upscale(model, opt, top, cfg.min_t2p_exp)
+        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
     kept = model.opacities.detach() >= cfg.prune_opacity  # what prune keeps (support and up follow it)
     n_pruned = prune(model, opt, cfg.prune_opacity)
     model.k_min = compute_k_min(model.means.detach(), cameras)

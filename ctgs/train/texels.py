@@ -39,16 +39,19 @@ def active_resolution(model) -> torch.Tensor:
 ALLOC_MODES = ("pow2", "mult4")
 
 
-def needed_res(model, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA) -> torch.Tensor:
+def needed_res(model, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA,
+               tsize: torch.Tensor | None = None) -> torch.Tensor:
     """[N, 2] int32 allocation: the active extent (at most +-sigma standard deviations) + 1 texel of bilinear
     padding, rounded up, in [2, cap] (cap is a power of two).
 
     mode "pow2" rounds up to a power of two (the authors' code); "mult4" to a multiple of 4 (2 below 3), which
     keeps every size even after a x2 downscale - so texel centres never move by half a texel when a
     texture is re-centred - with at most 3 padding texels per axis instead of up to 2x the needed size.
+    tsize [N]: world units per texel to size for (default: the model's, texel_size).
     """
     half = torch.minimum(active_half_extent(model), sigma * model.scales.detach())
-    n = torch.ceil(2 * half / texel_size(model)[:, None] + 1).clamp(min=2, max=cap)
+    ts = texel_size(model) if tsize is None else tsize
+    n = torch.ceil(2 * half / ts[:, None] + 1).clamp(min=2, max=cap)
     if mode == "pow2":
         p = torch.pow(2.0, torch.ceil(torch.log2(n)))
     elif mode == "mult4":
@@ -90,23 +93,56 @@ def _groups(res: torch.Tensor, mask: torch.Tensor):
         yield int(key // 100000), int(key % 100000), prims
 
 
+def upscale_selection(model, mask: torch.Tensor, min_exp: int) -> torch.Tensor:
+    """[N] bool: the masked primitives upscale would upscale (t2p_exp > min_exp, a texture)."""
+    return mask & (model.t2p_exp > min_exp) & (model.tex_res.min(1).values > 0)
+
+
 @torch.no_grad()
-def upscale(model, opt, mask: torch.Tensor, min_exp: int) -> torch.Tensor:
+def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = None) -> torch.Tensor:
     """Halve the texel size (t2p_exp - 1) of masked primitives with t2p_exp > min_exp; each texel becomes
-    2x2 (nearest neighbour), Adam moments too. Returns the [N] bool mask actually upscaled."""
-    sel = mask & (model.t2p_exp > min_exp) & (model.tex_res.min(1).values > 0)
+    2x2 (nearest neighbour), Adam moments too. Returns the [N] bool mask actually upscaled.
+
+    crop (cameras, cap, mode, sigma): each upscaled texture is cropped, centred, to what the routine's next
+    reallocation (realloc with those arguments, after compute_k_min(cameras)) gives it, as it is made, instead
+    of allocating all of 2x its resolution and letting realloc drop the padding: the same final textures and
+    moments (realloc finds them at their size), without 4x the upscaled texels at once (on a GPU at the paper's
+    scale, 2.4 GB of blocks and most of 6.4 GB of re-laid-out buffers at a routine's peak:
+    benchmarks/results/gpu_probe_h200_s33_memory_after.md). Primitives whose centre no camera sees are not
+    cropped (their k_min follows the other primitives', which the routine's pruning may change)."""
+    sel = upscale_selection(model, mask, min_exp)
     if not bool(sel.any()):
         return sel
     new_res = model.tex_res.clone()
     new_res[sel] = model.tex_res[sel] * 2
+    if crop is not None:
+        from ctgs.train.kmin import compute_k_min
+
+        cameras, cap, mode, sigma = crop
+        k_min, seen = compute_k_min(model.means.detach(), cameras, return_seen=True)
+        exp = model.t2p_exp.to(k_min.dtype) - sel.to(k_min.dtype)
+        target = needed_res(model, cap, mode, sigma, tsize=k_min * torch.pow(2.0, exp))
+        use = sel & seen
+        new_res[use] = torch.minimum(new_res[use], target[use])
     bufs = [model.textures_raw.detach(), opt.exp_avg["textures_raw"], opt.exp_avg_sq["textures_raw"]]
     from ctgs.model import jagged
 
     blocks = []
     for ru, rv, prims in _groups(model.tex_res, sel):
         vals = [jagged.blocks(b, model.tex_offset, prims, ru, rv).repeat_interleave(2, 1).repeat_interleave(2, 2)
-                for b in bufs]
-        blocks.append((prims, vals))
+                for b in bufs]  # [G, 2rv, 2ru, C]
+        if crop is None:
+            blocks.append((prims, vals))
+            continue
+        # Sub-groups by target size, cropped as jagged.remap would: new (iu, iv) <- old (iu + (2ru - nu) // 2, ...)
+        tgt = new_res[prims].long()
+        keys = tgt[:, 0] * 100000 + tgt[:, 1]
+        for key in torch.unique(keys).tolist():
+            nu, nv = int(key // 100000), int(key % 100000)
+            rows = torch.nonzero(keys == key).flatten()
+            du, dv = (2 * ru - nu) // 2, (2 * rv - nv) // 2
+            blocks.append((prims[rows], [v[rows, dv:dv + nv, du:du + nu].contiguous() for v in vals]))
+        del vals
     edit.replace_blocks(model, opt, new_res, blocks)
     model.t2p_exp[sel] -= 1
     return sel

@@ -109,3 +109,65 @@ def test_split_children_geometry_texture_and_image():
     # keeps its overall coverage. Observed mean abs change ~0.02; 0.06 fails if children are misplaced.
     diff = torch.abs(image(m) - before).mean()
     assert diff < 0.06, float(diff)
+
+
+def test_lean_routine_gives_the_same_result(monkeypatch):
+    """full_routine as it runs (lean: downscale first, then the upscale cropped as made) ends with exactly the
+    textures, Adam moments and resolutions of the paper's order (upscale to 2x, downscale, and the reallocation
+    crops): over both allocation modes, with
+    textures whose padding is large, small and none, some primitives pruned in between and one whose centre no camera
+    sees (left uncropped: its k_min may change with the pruning), downscales accepted, and fewer texels alive in
+    between."""
+    from dataclasses import replace
+
+    from ctgs.train import routines
+    from ctgs.train.adam import SurfelAdam
+    from ctgs.train.config import TrainConfig
+    from train_helpers import camera
+
+    n = 24
+    g = torch.Generator().manual_seed(5)
+    xs = torch.linspace(-0.9, 0.9, n)
+    means = torch.stack([xs, 0.3 * torch.sin(3 * xs), 3.0 + torch.rand(n, generator=g)], 1)
+    means[7] = torch.tensor([9.0, 0.0, 3.0])  # outside the view: fallback k_min
+    scales = (0.05 + 0.25 * torch.rand(n, 2, generator=g)).tolist()
+    opac = (0.3 + 0.69 * torch.rand(n, generator=g)).tolist()
+    opac[3] = opac[11] = 0.001  # pruned by the routine
+    res = [[r, r] for r in torch.tensor([4, 8, 16, 32])[torch.randint(0, 4, (n,), generator=g)].tolist()]
+    E = torch.rand(n, generator=g) + 0.1
+    E[7] = 50.0  # the unseen one is upscaled too
+    monkeypatch.setattr(routines, "compute_E", lambda *a, **k: E.clone())
+    for mode in ("pow2", "mult4"):
+        cfg = replace(TrainConfig(), top_fraction=0.5, tau_tr_start=1e9, tau_tr_end=1e9, tau_ds=0.02,
+                      prune_opacity=0.005, max_texture_res=64, texture_alloc=mode)
+        out = []
+        peak = []
+        t = sum(r[0] * r[1] for r in res)
+        m1, m2 = torch.randn(t, 3, generator=g), torch.rand(t, 3, generator=g)
+        tex = torch.randn(t, 3, generator=g)
+        off = 0
+        for i, r in enumerate(res):  # every third texture flat: downscales pass there, fail on the random ones
+            if i % 3 == 0:
+                tex[off:off + r[0] * r[1]] = 0.0
+            off += r[0] * r[1]
+        for lean in (False, True):
+            m = model(means=means, scales=scales, opacities=opac, tex_res=res, k_min=[0.004] * n, t2p_exp=[3] * n,
+                      textures=tex)
+            opt = SurfelAdam(m)
+            opt.exp_avg["textures_raw"], opt.exp_avg_sq["textures_raw"] = m1.clone(), m2.clone()
+            seen = []
+            real = edit.replace_blocks
+            monkeypatch.setattr(edit, "replace_blocks",
+                                lambda mm, o, r, b: (seen.append(int(r.long().prod(1).sum())), real(mm, o, r, b))[1])
+            stats = routines.full_routine(m, opt, cfg, 1, [], None, [camera()], lean=lean)
+            monkeypatch.setattr(edit, "replace_blocks", real)
+            out.append((m, opt))
+            peak.append(max(seen))
+        (a, oa), (b, ob) = out
+        assert int((a.t2p_exp < 3).sum()) >= n // 3 and 0 < stats["downscaled"] < n // 2, stats  # both happened
+        assert torch.equal(a.tex_res, b.tex_res) and torch.equal(a.tex_offset, b.tex_offset), mode
+        assert torch.equal(a.t2p_exp, b.t2p_exp) and torch.equal(a.k_min, b.k_min)
+        assert torch.equal(a.textures_raw, b.textures_raw), mode
+        for name in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(getattr(oa, name)["textures_raw"], getattr(ob, name)["textures_raw"]), (mode, name)
+        assert peak[1] < peak[0], (mode, peak)  # the upscale's layout held fewer texels
