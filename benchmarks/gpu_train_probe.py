@@ -204,7 +204,8 @@ def main(argv=None) -> dict:
         sel = list(sel)
         if not sel:
             return None
-        out = {"iterations": len(sel), "ms_per_it_median": round(1000 * sorted(r["wall_s"] for r in sel)[len(sel) // 2], 2)}
+        ms = sorted(r["wall_s"] for r in sel)[len(sel) // 2]
+        out = {"iterations": len(sel), "ms_per_it_median": round(1000 * ms, 2)}
         if cuda:
             out["peak_mb_max"] = max(r["peak_mb"] for r in sel)
             out["peak_mb_median"] = sorted(r["peak_mb"] for r in sel)[len(sel) // 2]

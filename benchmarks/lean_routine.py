@@ -95,23 +95,25 @@ def main(argv=None) -> dict:
               "machine": f"{platform.node()} ({os.cpu_count()} cpus)", "torch": torch.__version__,
               "identical_final_state": bool(same), "runs": rows}
     os.makedirs(args.out, exist_ok=True)
-    base = os.path.join(args.out, f"lean_routine_{os.path.basename(os.path.normpath(args.scene))}_{args.images}_{args.at}")
+    name = os.path.basename(os.path.normpath(args.scene))
+    base = os.path.join(args.out, f"lean_routine_{name}_{args.images}_{args.at}")
     with open(base + ".json", "w") as f:
         json.dump(result, f, indent=1)
     med = {k: sorted(v["seconds"])[len(v["seconds"]) // 2] for k, v in rows.items()}
     peak = {k: max(v["layouts_texels"]) for k, v in rows.items()}
-    lines = [f"# The lean routine (downscale first, upscale cropped as made) vs the paper's order: {args.scene} ({args.images}), preset "
-             f"{args.preset}, full routine at iteration {args.at}", "",
+    lines = [f"# The lean routine (downscale first, upscale cropped as made) vs the paper's order: {args.scene} "
+             f"({args.images}), preset {args.preset}, full routine at iteration {args.at}", "",
              f"{result['machine']}, torch {result['torch']}, device {result['device']}; model before the routine: "
              f"{model.num_primitives:,} primitives, {model.num_texels:,} texels; after: {a.num_texels:,} texels; "
              f"{rows['True']['upscaled']:,} upscaled. Final states identical: **{same}**.", "",
-             "| routine | routine seconds (median of %d) | largest texture layout in the routine (texels) | every layout |"
-             % args.reps, "| --- | --- | --- | --- |"]
+             f"| routine | routine seconds (median of {args.reps}) | largest texture layout in the routine (texels) | "
+             "every layout |", "| --- | --- | --- | --- |"]
     for k, name in (("False", "paper's order: upscale 2x, downscale, realloc crops (before)"),
                     ("True", "lean: downscale, upscale cropped as made (now)")):
         lines.append(f"| {name} | {med[k]:.3f} ({', '.join(str(x) for x in rows[k]['seconds'])}) | {peak[k]:,} | "
                      f"{', '.join(f'{x:,}' for x in rows[k]['layouts_texels'])} |")
-    lines += ["", f"Largest layout ratio (now / before): {peak['True'] / max(peak['False'], 1):.3f}; routine time ratio: "
+    ratio = peak["True"] / max(peak["False"], 1)
+    lines += ["", f"Largest layout ratio (now / before): {ratio:.3f}; routine time ratio: "
               f"{med['True'] / max(med['False'], 1e-9):.3f}."]
     with open(base + ".md", "w") as f:
         f.write("\n".join(lines) + "\n")

@@ -86,7 +86,8 @@ class SurfelAdam:
         self.steps = dict(state["steps"])
 
 
-def torch_fused_step(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor, lr, t: int, eps: float) -> bool:
+def torch_fused_step(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor, lr, t: int,
+                     eps: float) -> bool:
     """One Adam step of p in place with torch's fused kernel (what torch.optim.Adam(fused=True) runs: one pass
     over p, g, m, v), if it applies: a float lr, one dtype, contiguous. The same update as SurfelAdam's PyTorch
     lines up to rounding (sqrt(v) / sqrt(1 - b2^t) for sqrt(v / (1 - b2^t))); those lines make ~10 passes and 3
@@ -94,7 +95,8 @@ def torch_fused_step(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch
     (nothing done) where it does not apply, or when CTGS_CUDA_FUSED_ADAM=0 (to compare)."""
     import os
 
-    if (torch.is_tensor(lr) or os.environ.get("CTGS_CUDA_FUSED_ADAM") == "0" or not all(x.is_contiguous() and x.dtype == p.dtype for x in (g, m, v))
+    if (torch.is_tensor(lr) or os.environ.get("CTGS_CUDA_FUSED_ADAM") == "0"
+            or not all(x.is_contiguous() and x.dtype == p.dtype for x in (g, m, v))
             or p.dtype not in (torch.float32, torch.float64) or not hasattr(torch, "_fused_adam_")):
         return False
     step = torch.full((), float(t), dtype=torch.float32, device=p.device)
