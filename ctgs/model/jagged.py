@@ -6,6 +6,8 @@ Adam moments), so resizing a texture moves its optimiser state with it.
 
 from __future__ import annotations
 
+import os
+
 import torch
 
 from ctgs.model.surfels import jagged_offsets
@@ -65,8 +67,6 @@ def _cuda_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list
     """remap on CUDA tensors in one kernel (kernels/cuda/dense.cu jagged_remap_kernel): the PyTorch index
     arithmetic below makes ~15 [T']-sized int64 temporaries, GBs at the paper's texel counts. CTGS_CUDA_REMAP=0
     turns it off (to compare)."""
-    import os
-
     if (not buffers or len(buffers) > 4 or not buffers[0].is_cuda or os.environ.get("CTGS_CUDA_REMAP") == "0"
             or any(b.dtype != buffers[0].dtype or b.shape[1] != buffers[0].shape[1] for b in buffers)):
         return None

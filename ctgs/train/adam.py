@@ -7,6 +7,8 @@ out exactly like the parameters, so the editing code (ctgs/train/edit.py) moves 
 
 from __future__ import annotations
 
+import os
+
 import torch
 
 from ctgs import fused
@@ -93,8 +95,6 @@ def torch_fused_step(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch
     lines up to rounding (sqrt(v) / sqrt(1 - b2^t) for sqrt(v / (1 - b2^t))); those lines make ~10 passes and 3
     temporaries the size of p (on a GPU at the paper's 29M texels: ~1 GB and ~2 ms per step). Returns False
     (nothing done) where it does not apply, or when CTGS_CUDA_FUSED_ADAM=0 (to compare)."""
-    import os
-
     if (torch.is_tensor(lr) or os.environ.get("CTGS_CUDA_FUSED_ADAM") == "0"
             or not all(x.is_contiguous() and x.dtype == p.dtype for x in (g, m, v))
             or p.dtype not in (torch.float32, torch.float64) or not hasattr(torch, "_fused_adam_")):
