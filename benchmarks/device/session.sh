@@ -13,7 +13,8 @@
 #   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS,
 #        PROBE_S, PROBE_IT, PROBE_ARGS (more gpu_train_probe.py options), PROBE_BEFORE (1: also the probe
 #        with CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0),
-#        PIPE_ITERS, PIPE_IMAGES, PIPE_S (seconds of each pipeline training)
+#        PIPE_ITERS, PIPE_IMAGES, PIPE_S (seconds of each pipeline training), PIPE_METHODS (paper,2dgs: which
+#        pipelines), PIPE_ARGS (more `ctgs train` options for each)
 set -u
 PHASES=${1:-tests,bench,ncu,train}
 G=${G:-.gpu}
@@ -139,7 +140,8 @@ pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: th
   stamp "pipeline $name"
   rm -rf "$run"
   timeout -s TERM "${PIPE_S:-150}" python3 -m ctgs train "$G/scenes/herzjesu25" -o "$run" --backend cuda -q \
-    --preset paper --iterations "${PIPE_ITERS:-6000}" --images "${PIPE_IMAGES:-images_2}" "$@" 2>&1 | tail -5
+    --preset paper --iterations "${PIPE_ITERS:-6000}" --images "${PIPE_IMAGES:-images_2}" ${PIPE_ARGS:-} "$@" 2>&1 \
+    | tail -5
   echo "train rc=${PIPESTATUS[0]}"
   stamp "pipeline $name: export, compress, eval"
   python3 -m ctgs export "$run" -o "$run/model" 2>&1 | tail -3
@@ -156,10 +158,8 @@ pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: th
   cat "$run/eval/metrics.json" 2>/dev/null | head -c 600; echo
 }
 if [[ $PHASES == *pipeline* ]]; then
-  pipeline paper
-  pack
-  pipeline 2dgs --config configs/2dgs.toml
-  pack
+  if [[ ${PIPE_METHODS:-paper,2dgs} == *paper* ]]; then pipeline paper; pack; fi
+  if [[ ${PIPE_METHODS:-paper,2dgs} == *2dgs* ]]; then pipeline 2dgs --config configs/2dgs.toml; pack; fi
 fi
 
 stamp "pack"
