@@ -15,8 +15,8 @@ with the per-primitive preprocessing in PyTorch ops, as before kernels/cuda/dens
 of the paper's size distribution, 30-450 texels per primitive, log-uniform), `gsplat` (gsplat
 rasterization_2dgs, render_mode "RGB+D" so that it also returns alpha and accumulated depth, as ours does;
 its 2DGS kernel also renders normals and distortion, which it always does). Variants, each against its default
-in the same run: `ours_mbK` / `ours_tex_mbK` (--bwd-min-blocks K: the backward kernel register-capped for K blocks
-per SM), `ours_tex_noagg` (--tex-agg-off-too: texel gradients with one atomic per lane), `ours_syncval` /
+in the same run: `ours_mbK` / `ours_tex_mbK` (--bwd-min-blocks K: the backward kernel compiled for K blocks per
+SM; the default is 3, at most 80 registers since session 34; 1 is the uncapped kernel), `ours_tex_noagg` (--tex-agg-off-too: texel gradients with one atomic per lane), `ours_syncval` /
 `ours_tex_syncval` (--checks-one-by-one-too: the input checks with one synchronisation each, as before).
 
 The surfels look like a trained scene, not a uniform cloud: depths log-uniform in [2, 20] over a frustum
@@ -367,8 +367,8 @@ def main() -> int:
                     help="also time `ours_torchpre`: the per-primitive preprocessing in PyTorch ops (before the "
                          "CUDA kernels of kernels/cuda/dense.cu)")
     ap.add_argument("--bwd-min-blocks", default="",
-                    help="also time the backward kernel capped for these blocks per SM (3, 4; rows ours_mbK, "
-                         "ours_tex_mbK; CTGS_CUDA_BWD_MIN_BLOCKS)")
+                    help="also time the backward kernel compiled for these blocks per SM (1: uncapped, 4; the default "
+                         "is 3; rows ours_mbK, ours_tex_mbK; CTGS_CUDA_BWD_MIN_BLOCKS)")
     ap.add_argument("--tex-agg-off-too", action="store_true",
                     help="also time `ours_tex_noagg`: texel gradients with one atomic per lane (CTGS_CUDA_TEX_AGG=0)")
     ap.add_argument("--checks-one-by-one-too", action="store_true",

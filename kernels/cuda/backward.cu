@@ -223,14 +223,16 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
   }
 }
 
-// Blocks per SM the float kernel is compiled for: 1 (no register cap; 91 registers and 34 KB of shared
-// memory per block allowed 2 blocks, 25% occupancy on an H200, benchmarks/results/ncu_h200_before_1M.txt),
-// or 3 / 4 from CTGS_CUDA_BWD_MIN_BLOCKS (at most 80 / 64 registers: more warps to hide latency, maybe spills).
+// Blocks per SM the float kernel is compiled for: 3 by default (at most 80 registers: more warps to hide latency;
+// 0.91-1.00x the uncapped kernel's time in benchmarks/results/cuda_bench_h200_s33_call1.md, 0.96x in training in
+// gpu_probe_h200_s33_texagg.md; the GPU agreement tests pass with it, gpu_session_h200_s34_pytest_mb3.log), or from
+// CTGS_CUDA_BWD_MIN_BLOCKS: 1 (no register cap; 91 registers and 34 KB of shared memory per block allowed 2
+// blocks, 25% occupancy on an H200, benchmarks/results/ncu_h200_before_1M.txt), 3, or 4 (at most 64 registers).
 // Read at every launch so that one process can compare them (benchmarks/bench_cuda.py --bwd-min-blocks).
 inline int backward_min_blocks() {
   const char* v = std::getenv("CTGS_CUDA_BWD_MIN_BLOCKS");
-  const int b = v ? std::atoi(v) : 0;
-  return b == 3 || b == 4 ? b : 1;
+  const int b = v ? std::atoi(v) : 3;
+  return b == 1 || b == 4 ? b : 3;
 }
 
 }  // namespace
