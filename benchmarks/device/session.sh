@@ -145,7 +145,7 @@ pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: th
   echo "train rc=${PIPESTATUS[0]}"
   stamp "pipeline $name: export, compress, eval"
   python3 -m ctgs export "$run" -o "$run/model" 2>&1 | tail -3
-  python3 -m ctgs compress "$run/model" -o "$run/model-compressed" 2>&1 | tail -3
+  python3 -m ctgs compress "$run/model" -o "$run/model-compressed" --jobs 8 2>&1 | tail -3
   python3 -m ctgs eval "$run" --model "$run/model" -o "$run/eval" --no-lpips --backend cuda 2>&1 | tail -3
   python3 -m ctgs eval "$run" --model "$run/model-compressed" -o "$run/eval-compressed" --no-lpips \
     --backend cuda 2>&1 | tail -3

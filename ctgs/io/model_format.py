@@ -158,8 +158,9 @@ def read_manifest(model_dir: str) -> dict:
     return manifest
 
 
-def write_packed_model(packed, out_dir: str, *, extra: dict | None = None) -> dict:
-    """Write a `ctgs.io.compress.Packed` as a version-2 folder (replaced atomically). Returns the manifest."""
+def write_packed_model(packed, out_dir: str, *, extra: dict | None = None, jobs: int = 1) -> dict:
+    """Write a `ctgs.io.compress.Packed` as a version-2 folder (replaced atomically). Returns the manifest.
+    jobs > 1: large xz sections coded as independent streams on that many threads (ctgs.io.packed)."""
     from ctgs.io.packed import encode_section
 
     spec = packed.header["spec"]
@@ -168,7 +169,7 @@ def write_packed_model(packed, out_dir: str, *, extra: dict | None = None) -> di
         entries, offset = [], 0
         with open(os.path.join(tmp, PACKED), "wb") as f:
             for section in packed.sections:
-                coded, entry = encode_section(section, spec["coder"], offset)
+                coded, entry = encode_section(section, spec["coder"], offset, jobs=jobs)
                 f.write(coded)
                 offset += len(coded)
                 entries.append(entry)

@@ -11,12 +11,20 @@ Coder: LZMA (Python's `lzma`, the .xz format) at preset 9e. Measured on a demo m
 256-level scalar indices): xz 1.05 MB, zstd level 19/22 1.18 MB (zstandard 0.25), zlib 9 1.46 MB;
 on float16 SH and positions xz was also the smallest. zstd is faster but not smaller, so no new
 dependency: xz is in the standard library and every platform has a reader.
+
+One xz stream codes at about 1-2 MB/s (one core), so a paper-scale model's texel indices (75 MB for 25M texels)
+take a minute or more. With jobs > 1 (`ctgs compress --jobs N`) a section above XZ_STREAM_BYTES is cut into
+independent xz streams of that size, coded on N threads (lzma releases the GIL) and concatenated: still one valid
+.xz file (a reader that ignores the entry's `streams` decodes it whole), about 2% larger, since each stream starts
+with an empty dictionary and fresh probabilities (benchmarks/results/xz_streams_vm34.md).
 """
 
 from __future__ import annotations
 
 import lzma
+import os
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +40,9 @@ ZLIB_LEVEL = 9
 # Sections larger than this (bytes) only try their natural layout (row-major, no shuffle for 1-byte
 # types): each extra trial is one more full LZMA pass over the biggest payloads.
 TRY_LAYOUTS_BELOW = 1 << 22
+# With jobs > 1: uncoded bytes per xz stream of a larger section (larger streams lose less to each stream's cold
+# start, smaller ones give more threads work).
+XZ_STREAM_BYTES = 16 << 20
 
 
 @dataclass
@@ -83,8 +94,17 @@ def unlayout_bytes(data: bytes, dtype: np.dtype, shape: list[int], order: str, s
     return a.reshape(shape).copy()
 
 
-def encode_section(section: Section, coder: str, offset: int) -> tuple[bytes, dict]:
-    """(coded bytes, manifest entry) for one section starting at byte `offset` of model.bin."""
+def _code_streams(data: bytes, jobs: int) -> list[bytes]:
+    """data cut into XZ_STREAM_BYTES pieces, each its own xz stream, coded on `jobs` threads."""
+    pieces = [data[i:i + XZ_STREAM_BYTES] for i in range(0, len(data), XZ_STREAM_BYTES)]
+    with ThreadPoolExecutor(min(jobs, len(pieces))) as pool:
+        return list(pool.map(lambda piece: _code(piece, "xz"), pieces))
+
+
+def encode_section(section: Section, coder: str, offset: int, jobs: int = 1) -> tuple[bytes, dict]:
+    """(coded bytes, manifest entry) for one section starting at byte `offset` of model.bin. jobs > 1: an xz
+    section above XZ_STREAM_BYTES is coded as independent streams on that many threads (entry `streams`: their
+    coded sizes)."""
     a = section.array
     dt = a.dtype.newbyteorder("<") if a.dtype.itemsize > 1 else a.dtype
     if dt.str not in DTYPES and dt.str.lstrip("|") not in DTYPES:
@@ -97,14 +117,31 @@ def encode_section(section: Section, coder: str, offset: int) -> tuple[bytes, di
     for order in orders:
         for shuffle in shuffles:
             raw = layout_bytes(a, order, shuffle)
-            coded = _code(raw, coder)
+            streams = None
+            if coder == "xz" and jobs > 1 and len(raw) > XZ_STREAM_BYTES:
+                parts = _code_streams(raw, jobs)
+                coded, streams = b"".join(parts), [len(p) for p in parts]
+            else:
+                coded = _code(raw, coder)
             if best is None or len(coded) < len(best[0]):
-                best = (coded, order, shuffle, zlib.crc32(raw))
-    coded, order, shuffle, crc = best
+                best = (coded, order, shuffle, zlib.crc32(raw), streams)
+    coded, order, shuffle, crc, streams = best
     entry = {"name": section.name, "dtype": dt.str.lstrip("|"), "shape": list(a.shape), "order": order,
              "shuffle": shuffle, "coder": coder, "offset": offset, "bytes": len(coded), "crc32": crc,
-             "encoding": section.encoding}
+             **({"streams": streams} if streams else {}), "encoding": section.encoding}
     return coded, entry
+
+
+def _decode_streams(data: bytes, streams, where: str) -> bytes:
+    """The concatenated xz streams of one section decoded on threads (their coded sizes: `streams`)."""
+    if not isinstance(streams, list) or not all(isinstance(n, int) and n > 0 for n in streams) \
+            or sum(streams) != len(data):
+        raise UserError(f"{where}: the stream sizes do not add up to the section's bytes (corrupt manifest); "
+                        "re-compress the model")
+    starts = [sum(streams[:i]) for i in range(len(streams))]
+    pieces = [data[s:s + n] for s, n in zip(starts, streams)]
+    with ThreadPoolExecutor(min(len(pieces), os.cpu_count() or 1)) as pool:
+        return b"".join(pool.map(lambda piece: _decode(piece, "xz", where), pieces))
 
 
 def decode_section(blob: bytes, entry: dict, path: str) -> np.ndarray:
@@ -124,7 +161,10 @@ def decode_section(blob: bytes, entry: dict, path: str) -> np.ndarray:
     if start < 0 or start + size > len(blob):
         raise UserError(f"{where}: bytes {start}..{start + size} lie outside the {len(blob)}-byte file; "
                         "the file is truncated, re-compress the model")
-    raw = _decode(blob[start:start + size], coder, where)
+    if "streams" in entry and coder == "xz":
+        raw = _decode_streams(blob[start:start + size], entry["streams"], where)
+    else:
+        raw = _decode(blob[start:start + size], coder, where)
     if len(raw) != int(np.prod(shape)) * dtype.itemsize or zlib.crc32(raw) != entry.get("crc32"):
         raise UserError(f"{where}: decoded size or checksum mismatch (corrupt file); re-compress the model")
     return unlayout_bytes(raw, dtype, shape, order, shuffle)

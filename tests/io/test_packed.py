@@ -58,3 +58,28 @@ def test_corrupt_section_is_user_error():
     coded, entry = encode_section(Section("s", a, {"kind": "float"}), "xz", 0)
     with pytest.raises(UserError, match="corrupt xz"):
         decode_section(coded[:20] + bytes(len(coded) - 20), entry, "x/model.bin")
+
+
+def test_large_sections_coded_as_parallel_streams(monkeypatch):
+    """jobs > 1: a section above XZ_STREAM_BYTES becomes independent xz streams, concatenated: the same decoded
+    bytes, one valid .xz file for readers that ignore `streams`, and a bad stream list is a UserError."""
+    import lzma
+
+    from ctgs.io import packed
+
+    monkeypatch.setattr(packed, "XZ_STREAM_BYTES", 5000)
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 16, (12_001,)).astype("u1")  # 3 streams of 5000, 5000, 2001 bytes
+    single, e1 = encode_section(Section("s", a, {"kind": "codebook"}), "xz", 0)
+    coded, entry = encode_section(Section("s", a, {"kind": "codebook"}), "xz", 0, jobs=2)
+    assert "streams" not in e1 and len(entry["streams"]) == 3 and sum(entry["streams"]) == len(coded)
+    assert entry["crc32"] == e1["crc32"]
+    assert np.array_equal(decode_section(coded, entry, "model.bin"), a)
+    assert lzma.decompress(coded, format=lzma.FORMAT_XZ) == a.tobytes()  # concatenated streams: one .xz file
+    no_streams = {k: v for k, v in entry.items() if k != "streams"}
+    assert np.array_equal(decode_section(coded, no_streams, "model.bin"), a)
+    small, e_small = encode_section(Section("t", a[:4000], {"kind": "codebook"}), "xz", 0, jobs=2)
+    assert "streams" not in e_small  # below the stream size: one stream as before
+    for bad in ([entry["streams"][0], entry["streams"][1]], [0] + entry["streams"], "x"):
+        with pytest.raises(UserError, match="stream sizes"):
+            decode_section(coded, {**entry, "streams": bad}, "x/model.bin")
