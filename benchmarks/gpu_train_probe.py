@@ -103,7 +103,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--ab", action="append", default=[], metavar="KEY=VALUE",
                     help="side by side in one run: from the texture start + 100 on, blocks of --ab-block iterations "
                          "rotate between the plain run and each of these environment settings (read by the CUDA "
-                         "backend at every launch), and the phase table splits the textured steps by variant")
+                         "backend at every launch; CTGS_LEAN_ROUTINE at every full routine), and the phase table "
+                         "splits the textured steps, and those with a routine, by variant (routines alternate between two "
+                         "variants when their spacing / --ab-block is odd: 250 / 50 at the paper's scale)")
     ap.add_argument("--ab-block", type=int, default=50)
     ap.add_argument("--no-history", action="store_true", help="no allocator history (timing runs)")
     args = ap.parse_args(argv)
@@ -116,7 +118,8 @@ def main(argv=None) -> dict:
     from ctgs.train.trainer import Trainer
 
     os.makedirs(args.out, exist_ok=True)
-    env_at_start = {k: v for k, v in os.environ.items() if k.startswith("CTGS_CUDA")}  # (--ab changes it later)
+    env_at_start = {k: v for k, v in os.environ.items()  # (--ab changes it later)
+                    if k.startswith("CTGS_CUDA") or k == "CTGS_LEAN_ROUTINE"}
     run_dir = tempfile.mkdtemp(prefix="ctgs_probe_")
     cfg = resolve_config(args.scene, run_dir, args.config, args.iterations, args.sets, args.images, False,
                          args.backend, None, args.preset)
@@ -219,6 +222,8 @@ def main(argv=None) -> dict:
     by_variant = {name: phase_stats([r for r in plain if r["variant"] == name and r["it"] >= ab_from])
                   for name, _ in variants} \
         if len(variants) > 1 else {}
+    routine_by_variant = {name: phase_stats([r for r in with_routine if r["variant"] == name and r["it"] >= ab_from])
+                          for name, _ in variants} if len(variants) > 1 else {}
     result = {
         "label": args.label, "device": str(dev), "gpu": torch.cuda.get_device_name(dev) if cuda else None,
         "torch": torch.__version__, "preset": args.preset, "method": cfg.method, "iterations_planned": cfg.iterations,
@@ -227,7 +232,8 @@ def main(argv=None) -> dict:
         "final": {"n": rows[-1]["n"], "texels": rows[-1]["texels"]} if rows else {},
         "phases": {"before_texture_start": phase_stats(before), "textured_steps": phase_stats(plain),
                    "textured_with_routine": phase_stats(with_routine),
-                   **{f"textured_steps [{k}]": v for k, v in by_variant.items()}},
+                   **{f"textured_steps [{k}]": v for k, v in by_variant.items()},
+                   **{f"textured_with_routine [{k}]": v for k, v in routine_by_variant.items()}},
         "peak_iterations": sorted(rows, key=lambda r: -r.get("peak_mb", 0))[:8] if cuda else [],
         "snapshots": snapshots, "evals": evals, "profile_window": prof_window,
         "wall_s": round(time.perf_counter() - t_start, 1), "rows": rows,

@@ -6,7 +6,10 @@ Trains a run the way `ctgs train` does (Trainer.run's events) up to just before 
 routine (ctgs.train.routines.full_routine) on two deep copies of the model and optimiser, lean False and True,
 and records for each: seconds, the texel count of every texture layout the routine builds (edit.relayout /
 edit.replace_blocks; the largest is the routine's transient texture memory: x 3 buffers x 3 channels x 4 bytes in
-float32), and whether the two final states are identical (textures, Adam moments, resolutions, exponents).
+float32), and whether the two final states are identical (textures, Adam moments, resolutions, exponents). --count-ops adds one
+more run of each, untimed, under a dispatch counter: every ATen op (on a GPU, about one kernel launch each) and the
+ops that make a CUDA host wait for the device (item/bool/int of a tensor, nonzero, unique, boolean-mask indexing,
+repeat_interleave without an output size): what a GPU's routine time follows when each op is short.
 
     python benchmarks/lean_routine.py SCENE --out DIR [--preset paper] [--images images_4] [--at 1000] [--reps 3]
 """
@@ -22,6 +25,45 @@ import tempfile
 import time
 
 
+def _op_counter():
+    import collections
+
+    import torch
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    always = {"_local_scalar_dense", "nonzero", "_unique2", "unique_dim", "unique_consecutive", "masked_select",
+              "equal", "nonzero_static"}
+
+    class Counter(TorchDispatchMode):
+        """Counts ATen ops; and those that synchronise a CUDA host with the device (by name; boolean indexing and
+        repeat_interleave without output_size too)."""
+
+        def __init__(self):
+            super().__init__()
+            self.total = 0
+            self.syncs = collections.Counter()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.total += 1
+            name = func.overloadpacket.__name__
+            sync = name in always
+            if name in ("index", "index_put", "index_put_"):
+                idx = args[1] if len(args) > 1 else []
+                sync = any(isinstance(t, torch.Tensor) and t.dtype == torch.bool for t in (idx or []))
+                name = f"{name} (bool mask)"
+            elif name == "repeat_interleave":
+                sync = (kwargs or {}).get("output_size") is None
+            if sync:
+                self.syncs[name] += 1
+            return func(*args, **(kwargs or {}))
+
+    return Counter
+
+
+def OpCounter():  # noqa: N802 (a class, built on first use: torch imports lazily here)
+    return _op_counter()()
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene")
@@ -32,6 +74,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--backend", default=None)
     ap.add_argument("--set", dest="sets", action="append", default=[])
+    ap.add_argument("--count-ops", action="store_true", help="also count ATen ops and host syncs of each routine")
     args = ap.parse_args(argv)
 
     import torch
@@ -84,6 +127,16 @@ def main(argv=None) -> dict:
                 finals[crop] = (m, o)
     finally:
         edit.relayout, edit.replace_blocks = real_relayout, real_replace
+    if args.count_ops:
+        for crop in (False, True):
+            m, o = copy.deepcopy(model), copy.deepcopy(opt)
+            torch.manual_seed(0)
+            with OpCounter() as counter:
+                routines.full_routine(m, o, cfg, args.at, trainer.train_views, trainer.render_fn, trainer.cameras,
+                                      trainer._background_mask(), lean=crop)
+            rows[str(crop)]["ops"] = counter.total
+            rows[str(crop)]["syncs"] = sum(counter.syncs.values())
+            rows[str(crop)]["syncs_by_op"] = dict(counter.syncs.most_common())
     (a, oa), (b, ob) = finals[False], finals[True]
     same = (torch.equal(a.tex_res, b.tex_res) and torch.equal(a.t2p_exp, b.t2p_exp)
             and torch.equal(a.textures_raw, b.textures_raw)
@@ -112,6 +165,11 @@ def main(argv=None) -> dict:
                     ("True", "lean: downscale, upscale cropped as made (now)")):
         lines.append(f"| {name} | {med[k]:.3f} ({', '.join(str(x) for x in rows[k]['seconds'])}) | {peak[k]:,} | "
                      f"{', '.join(f'{x:,}' for x in rows[k]['layouts_texels'])} |")
+    if args.count_ops:
+        lines += ["", "| routine | ATen ops | host syncs (on a GPU) | most frequent syncs |", "| --- | --- | --- | --- |"]
+        for k, name in (("False", "paper's order"), ("True", "lean")):
+            top = ", ".join(f"{op} {n}" for op, n in list(rows[k]["syncs_by_op"].items())[:4])
+            lines.append(f"| {name} | {rows[k]['ops']:,} | {rows[k]['syncs']:,} | {top} |")
     ratio = peak["True"] / max(peak["False"], 1)
     lines += ["", f"Largest layout ratio (now / before): {ratio:.3f}; routine time ratio: "
               f"{med['True'] / max(med['False'], 1e-9):.3f}."]

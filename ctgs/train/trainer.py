@@ -518,8 +518,11 @@ class Trainer:
                                                     **(budget or {})})
             kind = schedule.routine_kind(cfg, it, self._shift)
             if kind == "full":
+                # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops:
+                # the lean order's GPU time is not yet measured against it, docs/gpu.md)
+                lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
-                                                       self.cameras, self._background_mask()))
+                                                       self.cameras, self._background_mask(), lean=lean))
                 if schedule.content_opacity_reset(cfg, it, self._shift):
                     value = max(2.0 * cfg.prune_opacity, RESET_OPACITY)  # prune_opacity = 0 would give 0
                     reset_opacity(model, opt, value)

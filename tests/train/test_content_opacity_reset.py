@@ -60,3 +60,20 @@ def test_prune_opacity_zero_resets_to_3dgs_value_and_stays_finite(scene, tmp_pat
     _, seen = _run(scene, str(tmp_path / "zero"), ("content_opacity_reset=true", "prune_opacity=0.0"))
     reset = [s for s in seen if s[1] == "opacity_reset"]
     assert len(reset) == 1 and reset[0][4]["value"] == 0.01 and reset[0][2] <= 0.01 * (1 + 1e-5)
+
+
+@pytest.mark.parametrize("env, lean", [(None, True), ("0", False)])
+def test_full_routines_run_lean_unless_switched_off(scene, tmp_path, monkeypatch, env, lean):
+    """CTGS_LEAN_ROUTINE=0 gives the trainer's full routines the paper's order (lean=False; the same final state,
+    tests/train/test_routines_image.py); unset, the lean order."""
+    from ctgs.train import trainer as trainer_mod
+
+    calls = []
+    real = trainer_mod.full_routine
+    monkeypatch.setattr(trainer_mod, "full_routine", lambda *a, **k: (calls.append(k.get("lean")), real(*a, **k))[1])
+    if env is None:
+        monkeypatch.delenv("CTGS_LEAN_ROUTINE", raising=False)
+    else:
+        monkeypatch.setenv("CTGS_LEAN_ROUTINE", env)
+    _run(scene, str(tmp_path / "run"), ())
+    assert calls == [lean, lean]
