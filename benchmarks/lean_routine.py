@@ -42,6 +42,7 @@ def _op_counter():
             super().__init__()
             self.total = 0
             self.syncs = collections.Counter()
+            self.sites = collections.Counter()  # the innermost ctgs/ frame of each sync
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
             self.total += 1
@@ -55,9 +56,20 @@ def _op_counter():
                 sync = (kwargs or {}).get("output_size") is None
             if sync:
                 self.syncs[name] += 1
+                self.sites[_ctgs_site()] += 1
             return func(*args, **(kwargs or {}))
 
     return Counter
+
+
+def _ctgs_site() -> str:
+    import traceback
+
+    for fr in reversed(traceback.extract_stack()):
+        f = fr.filename.replace(os.sep, "/")
+        if "/ctgs/" in f and "/benchmarks/" not in f:
+            return f"{f[f.rindex('/ctgs/') + 1:]}:{fr.lineno} {fr.name}"
+    return "(outside ctgs)"
 
 
 def OpCounter():  # noqa: N802 (a class, built on first use: torch imports lazily here)
@@ -137,6 +149,7 @@ def main(argv=None) -> dict:
             rows[str(crop)]["ops"] = counter.total
             rows[str(crop)]["syncs"] = sum(counter.syncs.values())
             rows[str(crop)]["syncs_by_op"] = dict(counter.syncs.most_common())
+            rows[str(crop)]["syncs_by_site"] = dict(counter.sites.most_common())
     (a, oa), (b, ob) = finals[False], finals[True]
     same = (torch.equal(a.tex_res, b.tex_res) and torch.equal(a.t2p_exp, b.t2p_exp)
             and torch.equal(a.textures_raw, b.textures_raw)
@@ -170,6 +183,9 @@ def main(argv=None) -> dict:
         for k, name in (("False", "paper's order"), ("True", "lean")):
             top = ", ".join(f"{op} {n}" for op, n in list(rows[k]["syncs_by_op"].items())[:4])
             lines.append(f"| {name} | {rows[k]['ops']:,} | {rows[k]['syncs']:,} | {top} |")
+        lines += ["", "Where the lean routine's host syncs are (innermost ctgs frame):", "", "| syncs | site |",
+                  "| ---: | --- |"]
+        lines += [f"| {n} | `{site}` |" for site, n in list(rows["True"]["syncs_by_site"].items())[:12]]
     ratio = peak["True"] / max(peak["False"], 1)
     lines += ["", f"Largest layout ratio (now / before): {ratio:.3f}; routine time ratio: "
               f"{med['True'] / max(med['False'], 1e-9):.3f}."]

@@ -82,15 +82,23 @@ def realloc(model, opt, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGM
     return model.num_texels
 
 
+def _split_by_key(keys: torch.Tensor):
+    """[(key, rows)] for each distinct key in increasing order, rows ascending: one stable sort and one transfer of
+    the keys and counts, instead of a boolean mask (a host synchronisation on a GPU) per key."""
+    sorted_keys, order = torch.sort(keys, stable=True)
+    uniq, counts = torch.unique_consecutive(sorted_keys, return_counts=True)
+    return list(zip(uniq.tolist(), torch.split(order, counts.tolist())))
+
+
 def _groups(res: torch.Tensor, mask: torch.Tensor):
-    """Yield (ru, rv, prims) for the masked primitives grouped by resolution."""
+    """Yield (ru, rv, prims) for the masked primitives grouped by resolution (groups by increasing (ru, rv),
+    primitives ascending)."""
     idx = torch.nonzero(mask).flatten()
     if idx.numel() == 0:
         return
     keys = res[idx, 0].long() * 100000 + res[idx, 1].long()
-    for key in torch.unique(keys).tolist():
-        prims = idx[keys == key]
-        yield int(key // 100000), int(key % 100000), prims
+    for key, rows in _split_by_key(keys):
+        yield int(key // 100000), int(key % 100000), idx[rows]
 
 
 def upscale_selection(model, mask: torch.Tensor, min_exp: int) -> torch.Tensor:
@@ -137,9 +145,8 @@ def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = N
         # Sub-groups by target size, cropped as jagged.remap would: new (iu, iv) <- old (iu + (2ru - nu) // 2, ...)
         tgt = new_res[prims].long()
         keys = tgt[:, 0] * 100000 + tgt[:, 1]
-        for key in torch.unique(keys).tolist():
+        for key, rows in _split_by_key(keys):
             nu, nv = int(key // 100000), int(key % 100000)
-            rows = torch.nonzero(keys == key).flatten()
             du, dv = (2 * ru - nu) // 2, (2 * rv - nv) // 2
             blocks.append((prims[rows], [v[rows, dv:dv + nv, du:du + nu].contiguous() for v in vals]))
         del vals
