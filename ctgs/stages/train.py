@@ -102,6 +102,10 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         raise
 
 
+# `ctgs train` says so when the last evaluation ends this far below the run's best one.
+OVERFIT_NOTE_DB = 0.5
+
+
 def list_keys() -> str:
     from ctgs.train.config import describe_keys
 
@@ -156,6 +160,14 @@ def command(scene_dir, run_dir, preset, time_budget, max_params, config, iterati
         at = summary["estimated_at_it"]
         click.echo(f"wall {summary['wall_seconds'] / 60:.2f} min (estimated {est[0] / 60:.2f} at the start"
                    + (f", {est[1] / 60:.2f} at iteration {at[1]}" if len(est) > 1 else "") + ")")
+    peak = summary.get("eval_peak")
+    if (peak and peak["views"] != "training" and peak["psnr"] - summary["final_test_psnr"] > OVERFIT_NOTE_DB
+            and peak["it"] < summary["iterations"]):
+        click.echo(f"{peak['views']} PSNR peaked at {peak['psnr']:.2f} dB at iteration {peak['it']} "
+                   f"({peak['psnr'] - summary['final_test_psnr']:.2f} dB above the end): the run fits its training "
+                   f"photos past what carries to new views"
+                   + ("; to choose a length, compare runs on validation views (--set validation_holdout=8), "
+                      "not on these test views" if peak["views"] == "test" else ""))
     if summary.get("max_params"):
         over = summary["num_params"] - summary["max_params"]
         per = summary.get("max_params_per_value")

@@ -7,7 +7,8 @@ RUN_DIR/model.pt            {"model": SurfelModel.state_dict(), "scene_dir", "im
 RUN_DIR/train_summary.json  {"iterations", "train_seconds", "backend", "device", "machine", "num_primitives",
                             "num_texels", "num_params", "final_test_psnr", "final_test_ssim", "method", ...};
                             a --time-budget run adds its plan (time_budget_s, planned_iterations_initial, ...), a
-                            fresh run of fixed length its wall-time estimates (estimated_wall_s, estimated_at_it)
+                            fresh run of fixed length its wall-time estimates (estimated_wall_s, estimated_at_it);
+                            eval_peak: the periodic evaluation with the highest PSNR ({"it", "psnr", "ssim", "views"})
 RUN_DIR/checkpoints/        resume state;  RUN_DIR/log.jsonl  per-step / per-routine records
 
 Reading a finished run is ctgs.io.run_model.load_run (weights only: model.pt holds no pickled objects).
@@ -15,6 +16,7 @@ Reading a finished run is ctgs.io.run_model.load_run (weights only: model.pt hol
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 
@@ -30,6 +32,23 @@ def machine_name() -> str:
 def write_config(run_dir: str, cfg_dict: dict) -> None:
     os.makedirs(run_dir, exist_ok=True)
     atomic.write_text(os.path.join(run_dir, "config.toml"), tomli_w.dumps(cfg_dict))
+
+
+def eval_peak(log_path: str) -> dict | None:
+    """{"it", "psnr", "ssim"} of the periodic evaluation with the highest PSNR in a run's log (the earliest on a
+    tie), None without evaluations. Read, for the record: a length chosen from test views would be tuned on them."""
+    best = None
+    try:
+        with open(log_path) as fh:
+            for line in fh:
+                if '"test"' not in line:
+                    continue
+                d = json.loads(line)
+                if d.get("type") == "test" and d.get("psnr") is not None and (best is None or d["psnr"] > best["psnr"]):
+                    best = {"it": int(d["it"]), "psnr": float(d["psnr"]), "ssim": float(d.get("ssim") or 0.0)}
+    except (OSError, ValueError):
+        return None
+    return best
 
 
 def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
@@ -53,6 +72,10 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
         summary["max_params"] = cfg.max_params
         if trainer.user_cfg.max_params == 0 and trainer.user_cfg.max_params_per_value > 0:
             summary["max_params_per_value"] = trainer.user_cfg.max_params_per_value  # where the budget came from
+    peak = eval_peak(os.path.join(trainer.run_dir, "log.jsonl"))
+    if peak is not None:
+        views = ("validation" if cfg.validation_holdout > 0 else "test") if trainer.test_views else "training"
+        summary["eval_peak"] = {**peak, "views": views}
     if trainer.planner is not None:
         summary.update(trainer.planner.summary())
     elif trainer.estimator is not None:

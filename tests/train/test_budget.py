@@ -275,6 +275,10 @@ def test_a_fixed_run_says_its_wall_time_and_trains_as_it_would_without(tmp_path,
     assert f"(re-estimated at iteration {at[1]} from measured steps)" in result.output
     assert f"(estimated {est[0] / 60:.2f} at the start, {est[1] / 60:.2f} at iteration {at[1]})" in result.output
     assert "time_budget_s" not in summary and "planned_iterations_initial" not in summary
+    tests = [json.loads(line) for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines()
+             if '"test"' in line]
+    best = max(tests, key=lambda r: (r["psnr"], -r["it"]))  # the run's own evaluations, the earliest of a tie
+    assert summary["eval_peak"] == {"it": best["it"], "psnr": best["psnr"], "ssim": best["ssim"], "views": "test"}
 
     monkeypatch.setattr(Trainer, "_calibrate", lambda self: (0.01, 0.005, 0.02))
     result = CliRunner().invoke(main, ["train", scene_dir, "-o", str(tmp_path / "b"), "-q", *args])
