@@ -6,7 +6,8 @@
 #
 # What travels with it (an ignored folder named in `carry`, built on the dev machine; see
 # benchmarks/device/README.md): $G/ctgs_cache (prebuilt extensions), $G/py/gsplat + $G/gsplat_cuda.so,
-# $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl).
+# $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl). A training longer than a
+# call: bg.sh. Both source lib.sh (the environment; a run's export, compress and eval).
 #
 #   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train,probe,pipeline
 #                                           (default: tests,bench,ncu,train)
@@ -27,12 +28,8 @@ stamp() { echo "== $(($(date +%s) - t_start)) s: $*"; }
 pack() { tar czf "$OUT/results.tgz" -C "$R" . 2>/dev/null; }  # after every phase: a killed call still returns
 
 stamp "setup"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site "$G"/whl/*.whl \
-  || echo "wheel install failed"
-export PYTHONPATH="$PWD/benchmarks/device:$PWD:/tmp/site:$PWD/$G/py"
-export CTGS_PREBUILT=1 CTGS_CACHE_DIR="$PWD/$G/ctgs_cache" PYTHONUNBUFFERED=1 MAX_JOBS=16
-export GSPLAT_PREBUILT="$PWD/$G/gsplat_cuda.so" TORCH_CUDA_ARCH_LIST=9.0
-export CTGS_COLMAP_PICKLE="$PWD/$G/scenes/herzjesu25/colmap.pkl"
+source benchmarks/device/lib.sh
+device_env
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.max.sm --format=csv
 python3 - <<'EOF' > "$R/machine.json"
 import json, platform, subprocess, torch
@@ -144,18 +141,7 @@ pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: th
     | tail -5
   echo "train rc=${PIPESTATUS[0]}"
   stamp "pipeline $name: export, compress, eval"
-  python3 -m ctgs export "$run" -o "$run/model" 2>&1 | tail -3
-  python3 -m ctgs compress "$run/model" -o "$run/model-compressed" --jobs 8 2>&1 | tail -3
-  python3 -m ctgs eval "$run" --model "$run/model" -o "$run/eval" --no-lpips --backend cuda 2>&1 | tail -3
-  python3 -m ctgs eval "$run" --model "$run/model-compressed" -o "$run/eval-compressed" --no-lpips \
-    --backend cuda 2>&1 | tail -3
-  mkdir -p "$R/pipe_$name"
-  for f in log.jsonl config.toml train_summary.json model/manifest.json model-compressed/manifest.json \
-      eval/metrics.json eval/per_image.csv eval-compressed/metrics.json; do
-    [ -f "$run/$f" ] && cp "$run/$f" "$R/pipe_$name/$(echo "$f" | tr / _)"
-  done
-  du -sh "$run/model" "$run/model-compressed" 2>/dev/null
-  cat "$run/eval/metrics.json" 2>/dev/null | head -c 600; echo
+  finish_run "$run" "$name" "$R"
 }
 if [[ $PHASES == *pipeline* ]]; then
   if [[ ${PIPE_METHODS:-paper,2dgs} == *paper* ]]; then pipeline paper; pack; fi
