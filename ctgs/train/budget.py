@@ -60,7 +60,8 @@ def short_plan_warning(iterations: int, budget_s: float, step_s: float, pixels: 
         return None
     budget = f"{budget_s / 60:.1f} min" if budget_s >= 60 else f"{budget_s:.0f} s"
     return (f"ctgs train: warning: {budget} buys about {iterations} iteration{'s' if iterations != 1 else ''} here "
-            f"({step_s:.2f} s per step at {pixels / 1e3:.0f}k pixels per view), fewer than `preview`'s "
+            f"by the first plan ({step_s:.2f} s per step at {pixels / 1e3:.0f}k pixels per view, timed on a copy of "
+            f"the model: a busy machine makes it low; the run re-plans every 1%), fewer than `preview`'s "
             f"{SHORTEST_MEASURED}, the shortest run measured: expect a model far from trained. Give more minutes, "
             f"or train a smaller --images folder (a step costs about in proportion to the pixels; `ctgs sfm` "
             f"writes images_2, images_4 and images_8)")
