@@ -210,11 +210,11 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torc
     blocks = []
     for ru, rv, prims, down, ed in _roundtrips(model, sel):
         e_d[prims] = ed
-        ok = ed < tau_ds
-        if not bool(ok.any()):
+        rows = torch.nonzero(ed < tau_ds).flatten()  # (one host sync per group on a GPU, not three)
+        if rows.numel() == 0:
             continue
-        p = prims[ok]
-        d = down[ok].clamp(-1 + LOGIT_EPS, 1 - LOGIT_EPS)
+        p = prims[rows]
+        d = down[rows].clamp(-1 + LOGIT_EPS, 1 - LOGIT_EPS)
         new_raw = torch.logit((d + 1) / 2).permute(0, 2, 3, 1)  # [G', rv/2, ru/2, 3]
         moms = []
         for name in ("exp_avg", "exp_avg_sq"):
