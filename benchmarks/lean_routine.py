@@ -25,7 +25,9 @@ import tempfile
 import time
 
 
-def _op_counter():
+def op_counter():
+    """A TorchDispatchMode (a context manager) that counts ATen ops and host syncs; defined here, on first use, since
+    torch is imported lazily."""
     import collections
 
     import torch
@@ -59,7 +61,7 @@ def _op_counter():
                 self.sites[_ctgs_site()] += 1
             return func(*args, **(kwargs or {}))
 
-    return Counter
+    return Counter()
 
 
 def _ctgs_site() -> str:
@@ -70,10 +72,6 @@ def _ctgs_site() -> str:
         if "/ctgs/" in f and "/benchmarks/" not in f:
             return f"{f[f.rindex('/ctgs/') + 1:]}:{fr.lineno} {fr.name}"
     return "(outside ctgs)"
-
-
-def OpCounter():  # noqa: N802 (a class, built on first use: torch imports lazily here)
-    return _op_counter()()
 
 
 def main(argv=None) -> dict:
@@ -143,7 +141,7 @@ def main(argv=None) -> dict:
         for crop in (False, True):
             m, o = copy.deepcopy(model), copy.deepcopy(opt)
             torch.manual_seed(0)
-            with OpCounter() as counter:
+            with op_counter() as counter:
                 routines.full_routine(m, o, cfg, args.at, trainer.train_views, trainer.render_fn, trainer.cameras,
                                       trainer._background_mask(), lean=crop)
             rows[str(crop)]["ops"] = counter.total
