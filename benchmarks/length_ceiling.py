@@ -7,7 +7,7 @@ their final values and the peak of each curve (the best length chosen with hinds
 Each RUN is a training folder of a tuning-mode run (`--set validation_holdout=K`), named RECIPE_sSEED; its
 log.jsonl's periodic evaluations are on validation views (the test views were left out of training). Runs that were
 stopped before their last iteration count with the curve they logged, and the table says where they stopped.
-Writes benchmarks/results/length_ceiling_NAME.md and .json: per recipe the final validation PSNR of each seed (for
+Writes benchmarks/results/length_ceiling_NAME.md and .json (or under --out-dir): per recipe the final validation PSNR of each seed (for
 finished runs), the seed-mean curve, and its peak against the reference recipe's final mean + margin. --cpu adds
 the same recipe's final validation PSNR per seed trained elsewhere (another backend), for a cross-check of the means.
 """
@@ -49,7 +49,7 @@ def read_run(run: str) -> dict:
     return {"evals": evals, "planned": planned, "last_it": last_it, "done": done, "final": final}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> str:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+")
     ap.add_argument("--name", required=True)
@@ -60,7 +60,8 @@ def main() -> None:
     ap.add_argument("--cpu", action="append", default=[], help="RECIPE=P0,P1,...: final PSNR per seed elsewhere")
     ap.add_argument("--cpu-source", default="", help="the record the --cpu values come from")
     ap.add_argument("--note", default="")
-    args = ap.parse_args()
+    ap.add_argument("--out-dir", default=os.path.join(ROOT, "benchmarks", "results"))
+    args = ap.parse_args(argv)
 
     recipes: dict[str, dict[int, dict]] = {}
     for r in args.runs:
@@ -81,7 +82,7 @@ def main() -> None:
     out = {"name": args.name, "reference": args.reference, "reference_final_mean": ref_mean, "margin": args.margin,
            "machine": machine, "recipes": {}}
     lines = [f"# How far run length takes each recipe on validation views: {args.name}", "",
-             f"Command: `{' '.join(sys.argv)}`." + (f" Device: {machine.get('gpu')}, torch {machine.get('torch')}, "
+             f"Command: `benchmarks/length_ceiling.py {' '.join(sys.argv[1:] if argv is None else argv)}`." + (f" Device: {machine.get('gpu')}, torch {machine.get('torch')}, "
                                                     f"CUDA {machine.get('cuda')}." if machine else ""),
              "Each run's periodic evaluations on its validation views (tuning mode: the test views were left out of "
              "training and are not used here). Peak = the highest seed-mean value along the curve, at the length "
@@ -150,12 +151,13 @@ def main() -> None:
             out["cross_check"][name] = {"here": here, "there": there, "difference": d}
             lines.append(f"| {name} | {', '.join(f'{v:.2f}' for v in here)} | "
                          f"{', '.join(f'{v:.2f}' for v in there)} | {d:+.2f} |")
-    base = os.path.join(ROOT, "benchmarks", "results", f"length_ceiling_{args.name}")
+    base = os.path.join(args.out_dir, f"length_ceiling_{args.name}")
     for ext, text in ((".md", "\n".join(lines) + "\n"), (".json", json.dumps(out, indent=1) + "\n")):
         with open(base + ext + ".tmp", "w") as fh:
             fh.write(text)
         os.replace(base + ext + ".tmp", base + ext)
     print(base + ".md")
+    return base
 
 
 if __name__ == "__main__":
