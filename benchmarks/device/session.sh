@@ -5,7 +5,7 @@
 # $OUT/session.log (the device returns at most 8 files).
 #
 # What travels with it (an ignored folder named in `carry`, built on the dev machine; see
-# benchmarks/device/README.md): $G/ctgs_cache (prebuilt extensions), $G/py/gsplat + $G/gsplat_cuda.so,
+# docs/gpu.md, "Running the device checks again"): $G/ctgs_cache (prebuilt extensions), $G/py/gsplat + $G/gsplat_cuda.so,
 # $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl). A training longer than a
 # call: bg.sh. Both source lib.sh (the environment; a run's export, compress and eval).
 #
