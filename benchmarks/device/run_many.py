@@ -84,10 +84,10 @@ def main() -> None:
         while not stopping and queue and len(running) < args.slots:
             name, a = queue.pop(0)
             run = os.path.join(args.root, name)
-            log = open(os.path.join(args.root, name + ".log"), "w")
             cmd = [sys.executable, "-m", "ctgs", "train", *a, "-o", run, "-q"]
-            running[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                              stdin=subprocess.DEVNULL), time.time())
+            with open(os.path.join(args.root, name + ".log"), "w") as log:  # the child keeps its own copy
+                running[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                                  stdin=subprocess.DEVNULL), time.time())
             status["jobs"][name].update(state="running", start_s=round(time.time() - t0, 1))
             write_status(args.root, status)
         time.sleep(1.0)
