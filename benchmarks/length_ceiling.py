@@ -39,14 +39,15 @@ def read_run(run: str) -> dict:
         planned = int(m.group(1)) if m else None
     summary = os.path.join(run, "train_summary.json")
     done = os.path.exists(summary)
-    final = None
+    final, train_s = None, None
     if done:
         s = json.load(open(summary))
         final = (float(s["final_test_psnr"]), float(s["final_test_ssim"]))
+        train_s = s.get("train_seconds")
     if not evals:
         raise SystemExit(f"length_ceiling.py: {run}/log.jsonl has no evaluations; train with --set test_every=N")
     last_it = max(last_it, max(evals))  # a thinned log keeps every evaluation but not every step
-    return {"evals": evals, "planned": planned, "last_it": last_it, "done": done, "final": final}
+    return {"evals": evals, "planned": planned, "last_it": last_it, "done": done, "final": final, "train_s": train_s}
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -98,7 +99,8 @@ def main(argv: list[str] | None = None) -> str:
             state = "finished" if r["done"] else "stopped"
             pk = max(r["evals"], key=lambda i: r["evals"][i][0])
             fin = f"{r['final'][0]:.2f} / {r['final'][1]:.3f}" if r["done"] else "-"
-            lines.append(f"| {name} | {s} | {r['last_it']} / {r['planned']} | {state} | {st.get('wall_s', '-')} | "
+            wall = st.get("wall_s", f"{r['train_s']:.0f} (training)" if r["train_s"] is not None else "-")
+            lines.append(f"| {name} | {s} | {r['last_it']} / {r['planned']} | {state} | {wall} | "
                          f"{fin} | {r['evals'][pk][0]:.2f} ({pk}) |")
     lines += ["", "## Seed-mean validation curves", "",
               "At the evaluations every run of the recipe reached (PSNR / SSIM, mean over its seeds).", ""]
