@@ -41,7 +41,9 @@ dl "$G/whl" OpenImageIO tomli_w pygltflib
 # 5. The scene: full-size images, the model pickled (pycolmap's wheel is 38 MB), placeholder model files.
 mkdir -p "$G/scenes/herzjesu25/sparse/0"
 cp -r "$SCENE/images" "$G/scenes/herzjesu25/"
-[ -d "$SCENE/images_2" ] && cp -r "$SCENE/images_2" "$G/scenes/herzjesu25/"  # the pipeline phase's half size
+for d in images_2 images_4 images_8; do  # images_2: the pipeline phase; images_4/8: small runs (many.sh)
+  if [ -d "$SCENE/$d" ]; then cp -r "$SCENE/$d" "$G/scenes/herzjesu25/"; fi
+done
 for f in cameras images points3D; do : > "$G/scenes/herzjesu25/sparse/0/$f.bin"; done
 "$ROOT/.venv/bin/python" -c "
 import pickle, sys
