@@ -518,8 +518,8 @@ class Trainer:
                                                     **(budget or {})})
             kind = schedule.routine_kind(cfg, it, self._shift)
             if kind == "full":
-                # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops:
-                # the lean order's GPU time is not yet measured against it, docs/gpu.md)
+                # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops;
+                # on a GPU about the lean order's time, 1.5x its peak memory: docs/gpu.md, session 35)
                 lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
                                                        self.cameras, self._background_mask(), lean=lean))
