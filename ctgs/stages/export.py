@@ -2,7 +2,7 @@
 
 Formats (docs/model_format.md): `ctgs` (default, lossless: primitives.ply + textures.bin + manifest.json,
 plus plain_3dgs.ply), `ply` (3DGS PLY for Gaussian viewers), `splat` (32 bytes per splat, web viewers),
-`spz` (Niantic's compressed Gaussians), `glb` (textured quads for Blender and three.js), `web` (the ctgs
+`spz` (Niantic's compressed Gaussians), `compressed-ply` and `sog` (PlayCanvas's), `glb` (textured quads for Blender and three.js), `web` (the ctgs
 folder plus the bundle `ctgs view` serves, in its web/ subfolder). Adding a format is one entry in FORMATS.
 """
 
@@ -82,6 +82,23 @@ def _spz(e: Export) -> str:
             f"{info['fractional_bits']} fractional position bits, {info['bytes'] / 1e6:.3f} MB{notes}")
 
 
+def _compressed_ply(e: Export) -> str:
+    from ctgs.io.playcanvas import write_compressed_ply
+
+    info = write_compressed_ply(e.model, e.out, origin=e.source.get("world_origin"))
+    return (f"{info['splats']} splats ({_textures(e)}), SH degree {info['sh_degree']}, tagged 2dgs, "
+            f"{info['bytes'] / 1e6:.3f} MB")
+
+
+def _sog(e: Export) -> str:
+    from ctgs.io.playcanvas import write_sog
+
+    info = write_sog(e.model, e.out)
+    palette = f", SH palette of {info['palette']}" if info["palette"] else ""
+    return (f"{info['splats']} splats ({_textures(e)}), SH degree {info['sh_degree']}{palette}, tagged 2dgs, "
+            f"{info['bytes'] / 1e6:.3f} MB{_origin_note(e, 'SOG')}")
+
+
 def _glb(e: Export) -> str:
     from ctgs.io.gltf import write_glb
 
@@ -115,11 +132,16 @@ FORMATS: dict[str, Format] = {
                                       "and rotation)"),
     "spz": Format(_spz, ".spz", "Niantic .spz v3, gzip of quantised Gaussians (about a tenth of the PLY; what the PLY "
                                 "keeps, quantised)"),
+    "compressed-ply": Format(_compressed_ply, ".compressed.ply",
+                             "PlayCanvas compressed PLY (SuperSplat, PlayCanvas): 16 bytes per splat + 1 per SH "
+                             "coefficient, quantised per 256 splats"),
+    "sog": Format(_sog, ".sog", "PlayCanvas SOG bundle (SuperSplat, PlayCanvas): lossless WebP images of codebook "
+                                "indices, the smallest of these formats"),
     "glb": Format(_glb, ".glb", "glTF binary, one textured quad per surfel (Blender, three.js)"),
     "web": Format(_web, "", "the ctgs folder plus web/, the bundle `ctgs view` serves (WebGL2, textures kept)"),
 }
 
-BAKED_FORMATS = ("ply", "splat", "spz")  # the Gaussian formats, which otherwise fold each texture into one colour
+BAKED_FORMATS = ("ply", "splat", "spz", "compressed-ply", "sog")  # the Gaussian formats, which otherwise fold each texture into one colour
 
 
 def load_source(path: str):
@@ -159,7 +181,7 @@ def default_out(source: str, fmt: str) -> str:
 @click.option("--texel-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
               help="With --format web: bits per texel channel in the atlas (8: signed bytes, 16: half floats).")
 @click.option("--bake-textures", is_flag=True,
-              help="With --format ply, splat or spz: one small splat per texel instead of one per surfel, so Gaussian "
+              help="With --format ply, splat, spz, compressed-ply or sog: one small splat per texel instead of one per surfel, so Gaussian "
                    "viewers show the texture detail (many times the splats and bytes; docs/model_format.md).")
 @click.option("--bake-max-splats", type=click.IntRange(min=1), default=None,
               help="With --bake-textures: at most this many splats; past it, textures are baked on coarser texels "

@@ -103,7 +103,7 @@ def test_split_opacity_composites_to_the_target_over_a_cell(target):
         assert a == pytest.approx(0.99) and 0.89 < float(alpha.mean()) < 0.91
 
 
-def test_export_bakes_ply_splat_spz_and_refuses_other_formats(tmp_path):
+def test_export_bakes_the_gaussian_formats_and_refuses_other_formats(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     m = random_model(n=20, sh_degree=1, seed=4)
@@ -111,12 +111,12 @@ def test_export_bakes_ply_splat_spz_and_refuses_other_formats(tmp_path):
                 "iteration": 7, "config": {}}, run / "model.pt")
     n = bake_texels(m).num_primitives
     assert n > 20
-    for fmt in ("ply", "splat", "spz"):
+    for fmt in ("ply", "splat", "spz", "compressed-ply", "sog"):
         res = CliRunner().invoke(main, ["export", str(run), "--format", fmt, "--bake-textures"])
         assert res.exit_code == 0, res.output
         assert f"{n} " in res.output and "textures baked" in res.output
     res = CliRunner().invoke(main, ["export", str(run), "--format", "glb", "--bake-textures"])
-    assert res.exit_code != 0 and "--bake-textures applies to --format ply, splat, spz" in res.output
+    assert res.exit_code != 0 and "--bake-textures applies to --format ply, splat, spz, compressed-ply, sog" in res.output
     assert not (run / "model.glb").exists()
 
 

@@ -41,7 +41,9 @@ def _export(*args: str) -> str:
 
 
 @pytest.mark.parametrize("fmt,name,what", [("ply", "model.ply", "50 Gaussians"), ("splat", "model.splat", "50 splats"),
-                                           ("spz", "model.spz", "50 splats"), ("glb", "model.glb", "50 textured quads")])
+                                           ("spz", "model.spz", "50 splats"), ("glb", "model.glb", "50 textured quads"),
+                                           ("compressed-ply", "model.compressed.ply", "50 splats"),
+                                           ("sog", "model.sog", "50 splats")])
 def test_default_output_names(tmp_path, fmt, name, what):
     run = _run_dir(tmp_path)
     out = _export(run, "--format", fmt)
@@ -102,12 +104,12 @@ def test_the_validator_catches_a_broken_glb(tmp_path, gltf_validator):
     assert validate(gltf_validator, path)["issues"]["numErrors"] > 0
 
 
-@pytest.mark.parametrize("fmt", ["splat", "spz"])
+@pytest.mark.parametrize("fmt", ["splat", "spz", "SOG"])
 def test_formats_without_an_origin_field_say_where_it_lies(tmp_path, fmt):
     """A run on a recentred (far) scene: .splat and .spz cannot hold its origin, so the export line says it."""
     run = _run_dir(tmp_path)
     ckpt = torch.load(os.path.join(run, "model.pt"), weights_only=False)
     ckpt["world_origin"] = [120000.0, 0.0, -5.0]
     torch.save(ckpt, os.path.join(run, "model.pt"))
-    out = _export(run, "--format", fmt)
+    out = _export(run, "--format", {"SOG": "sog"}.get(fmt, fmt))
     assert f"{fmt} has no field for its origin, [120000.0, 0.0, -5.0] in the COLMAP frame" in out
