@@ -1,11 +1,12 @@
 """What each export format keeps: bytes on disk and test-view PSNR of a trained run, rendered from the file.
 
-Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|spz|glb` (and `ctgs compress` of the ctgs folder),
+Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|spz|compressed-ply|sog|glb` (and `ctgs compress` of the
+ctgs folder),
 reads every file back and renders the run's test views from it:
 - ctgs, ctgs K-means: ctgs.io.model_format.read_model, our CPU renderer (exact model);
-- ply (3DGS PLY), splat, spz, and ply / spz with --bake-textures (a splat per texel: ctgs.io.bake): read back as
-  untextured surfels (ctgs.io.plain_ply / splat / spz), our CPU renderer (so the figure is what the file holds,
-  not what some viewer's EWA splatting makes of it);
+- ply (3DGS PLY), splat, spz, compressed-ply, sog, and ply / spz / sog with --bake-textures (a splat per texel:
+  ctgs.io.bake): read back as untextured surfels (ctgs.io.plain_ply / splat / spz / playcanvas), our CPU renderer
+  (so the figure is what the file holds, not what some viewer's EWA splatting makes of it);
 - glb: read with pygltflib (ctgs.io.gltf.read_glb), drawn by a headless OpenGL renderer
   (benchmarks/glb_render.py: moderngl + EGL, Mesa llvmpipe here), quads sorted back to front per view,
   in two colour pipelines (blending in image space as our renderer does, and sRGB-correct linear blending
@@ -133,15 +134,17 @@ def main() -> None:
     files = {"ctgs": os.path.join(work, "model"), "ctgs_k": os.path.join(work, f"model-k{CODEBOOK}"),
              "ply": os.path.join(work, "model.ply"), "splat": os.path.join(work, "model.splat"),
              "spz": os.path.join(work, "model.spz"), "glb": os.path.join(work, "model.glb"),
-             "ply_baked": os.path.join(work, "model-baked.ply"), "spz_baked": os.path.join(work, "model-baked.spz")}
+             "ply_baked": os.path.join(work, "model-baked.ply"), "spz_baked": os.path.join(work, "model-baked.spz"),
+             "compressed-ply": os.path.join(work, "model.compressed.ply"), "sog": os.path.join(work, "model.sog"),
+             "sog_baked": os.path.join(work, "model-baked.sog")}
     ctgs_cli("export", args.run_dir, "-o", files["ctgs"], "--no-plain-ply")
     ctgs_cli("compress", files["ctgs"], "-o", files["ctgs_k"], "--codebook-size", str(CODEBOOK))
     export_s = {}
-    for fmt in ("ply", "splat", "spz", "glb"):
+    for fmt in ("ply", "splat", "spz", "compressed-ply", "sog", "glb"):
         t = time.time()
         ctgs_cli("export", args.run_dir, "--format", fmt, "-o", files[fmt])
         export_s[fmt] = time.time() - t
-    for fmt in ("ply", "spz"):
+    for fmt in ("ply", "spz", "sog"):
         t = time.time()
         ctgs_cli("export", args.run_dir, "--format", fmt, "--bake-textures", "-o", files[f"{fmt}_baked"])
         export_s[f"{fmt}_baked"] = time.time() - t
@@ -150,6 +153,7 @@ def main() -> None:
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
     views = scene.test
     from ctgs.io.plain_ply import read_plain_ply
+    from ctgs.io.playcanvas import read_compressed_ply, read_sog
     from ctgs.io.splat import read_splat
     from ctgs.io.spz import read_spz
 
@@ -166,10 +170,19 @@ def main() -> None:
              "read_splat -> untextured surfels, CPU renderer"),
             ("spz (v3)", read_spz(files["spz"]), os.path.getsize(files["spz"]),
              "read_spz (matches Niantic's reader: tests/io/test_spz.py) -> untextured surfels, CPU renderer"),
+            ("compressed-ply (PlayCanvas)", read_compressed_ply(files["compressed-ply"]),
+             os.path.getsize(files["compressed-ply"]),
+             "read_compressed_ply (matches splat-transform's reader: tests/io/test_playcanvas.py) -> untextured "
+             "surfels, CPU renderer"),
+            ("sog (PlayCanvas)", read_sog(files["sog"]), os.path.getsize(files["sog"]),
+             "read_sog (matches splat-transform's reader: tests/io/test_playcanvas.py) -> untextured surfels, "
+             "CPU renderer"),
             ("ply (3DGS), --bake-textures", read_plain_ply(files["ply_baked"]), os.path.getsize(files["ply_baked"]),
              "read_plain_ply -> untextured surfels (a splat per texel), CPU renderer"),
             ("spz (v3), --bake-textures", read_spz(files["spz_baked"]), os.path.getsize(files["spz_baked"]),
-             "read_spz -> untextured surfels (a splat per texel), CPU renderer")):
+             "read_spz -> untextured surfels (a splat per texel), CPU renderer"),
+            ("sog (PlayCanvas), --bake-textures", read_sog(files["sog_baked"]), os.path.getsize(files["sog_baked"]),
+             "read_sog -> untextured surfels (a splat per texel), CPU renderer")):
         images = exact_images if model is exact else render_views(model, views)
         rows.append({"format": name, "bytes": nbytes, "splats": model.num_primitives,
                      **scores(images, views, exact_images), "renderer": how})

@@ -1,4 +1,4 @@
-"""Our .spz / PLY / .splat exports in a third-party Gaussian viewer: Spark (sparkjs.dev, three.js) in headless Chromium.
+"""Our .spz / PLY / .splat / compressed PLY / SOG exports in a third-party Gaussian viewer: Spark (sparkjs.dev, three.js) in headless Chromium.
 
 ctgs's own checks read an exported file back with our reader and draw it with our renderer (export_formats.py);
 Niantic's reader agrees with ours on every array (tests/io/test_spz.py). What neither shows is what a user sees in
@@ -9,7 +9,7 @@ turn of the mesh about x; the projection from the view's intrinsics), draws with
 Spark's defaults in headless Chromium (SwiftShader WebGL2, no GPU), and scores the screenshot against the test photo
 and against our renderer's image of the same file (read back by ctgs's reader; black background as in the page).
 
-Usage: .venv/bin/python benchmarks/spark_view.py RUN_DIR FILE.spz|.ply|.splat [FILE ...] [--tag NAME] [--work DIR]
+Usage: .venv/bin/python benchmarks/spark_view.py RUN_DIR FILE.spz|.ply|.splat|.compressed.ply|.sog [FILE ...] [--tag NAME] [--work DIR]
 Writes benchmarks/results/spark_view_<tag>.{json,md,jpg} (the jpg: photo and Spark's image of each file, per view). Needs node, npm (the registry) and Chromium.
 """
 
@@ -37,6 +37,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 from ctgs.io.run_model import load_run  # noqa: E402
 from record import write_record  # noqa: E402 (benchmarks/record.py)
 from ctgs.io.plain_ply import read_plain_ply  # noqa: E402
+from ctgs.io.playcanvas import read_compressed_ply, read_sog  # noqa: E402
 from ctgs.io.splat import read_splat  # noqa: E402
 from ctgs.io.spz import read_spz  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
@@ -104,7 +105,12 @@ window.ready = true;
 """
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # COLMAP's right-down-front <-> three.js's / spz's right-up-back
-READERS = {".spz": read_spz, ".ply": read_plain_ply, ".splat": read_splat}  # each file read back for our renderer
+READERS = {".spz": read_spz, ".compressed.ply": read_compressed_ply, ".ply": read_plain_ply, ".splat": read_splat,
+           ".sog": read_sog}  # each file read back for our renderer (the longest matching ending wins)
+
+
+def reader(path: str):
+    return next(READERS[end] for end in sorted(READERS, key=len, reverse=True) if path.endswith(end))
 
 
 def install() -> str:
@@ -159,8 +165,8 @@ def png_rgb(data: bytes) -> torch.Tensor:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run_dir")
-    ap.add_argument("files", nargs="+", help=".spz, .ply or .splat files exported from RUN_DIR (ctgs export --format "
-                    "spz|ply|splat ...)")
+    ap.add_argument("files", nargs="+", help=".spz, .ply, .splat, .compressed.ply or .sog files exported from "
+                    "RUN_DIR (ctgs export --format spz|ply|splat|compressed-ply|sog ...)")
     ap.add_argument("--tag", required=True)
     ap.add_argument("--work", default=None, help="Folder served to the browser (default RUN_DIR/spark_view).")
     ap.add_argument("--frames", type=int, default=FRAMES, help="Most renders per view before the screenshot.")
@@ -197,7 +203,7 @@ def main() -> None:
             while not browser.evaluate("window.ready === true") and time.time() < deadline:
                 time.sleep(0.2)
             for name, path in zip(names, args.files):
-                ours_model = READERS[os.path.splitext(path)[1]](path)
+                ours_model = reader(path)(path)
                 inputs = ours_model.render_inputs()
                 per_view = []
                 for view in views:

@@ -6,7 +6,8 @@ the Gaussian-weighted mean of its activated texels, folded into the DC coefficie
 (dc += mean / C0, because colour = C0 * dc + 0.5 + texture). What is lost: all texture detail inside a
 surfel, the max(colour, 0) clamp applied after adding the texture, and the exact surfel shape: the flat
 axis gets a tiny third scale (FLAT_SCALE_RATIO of the smaller tangent scale), so 3DGS viewers splat a
-thin 3D Gaussian (EWA projection) instead of intersecting the surfel plane.
+thin 3D Gaussian (EWA projection) instead of intersecting the surfel plane. The header carries Brush's tag
+`SplatRenderMode: 2dgs`, with which viewers that know 2DGS (Brush; PlayCanvas's tools read it) draw surfels.
 
 `read_plain_ply` reads any 3DGS-layout PLY back as untextured surfels (`surfels_from_gaussians`: the two
 largest scales become the tangent axes, the smallest is dropped), so our renderer can show what a 3DGS
@@ -90,7 +91,9 @@ def write_plain_ply(model: SurfelModel, path: str, origin=None) -> None:
         out["scale_2"] = f32(log_s.min(1).values + np.log(FLAT_SCALE_RATIO))
         for i in range(4):
             out[f"rot_{i}"] = f32(model.quats[rows, i])
-    comments = ["ctgs plain 3DGS approximation: texture means folded into f_dc"]
+    # The model is 2DGS surfels: Brush's tag (read by Brush and PlayCanvas's splat-transform / SuperSplat) tells a
+    # viewer that knows 2DGS to draw surfels and ignore scale_2; viewers that do not know it skip the comment.
+    comments = ["ctgs plain 3DGS approximation: texture means folded into f_dc", "SplatRenderMode: 2dgs"]
     if origin is not None and any(origin):
         comments.append("world_origin " + " ".join(repr(float(x)) for x in origin))
     write_ply_records(path, data, comments=comments)

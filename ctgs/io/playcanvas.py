@@ -46,7 +46,12 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.io import atomic
-from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
+from ctgs.io.plain_ply import (
+    FLAT_SCALE_RATIO,
+    SH_C0,
+    surfels_from_gaussians,
+    texture_means,
+)
 from ctgs.io.splat import ALPHA_EPS
 from ctgs.model.surfels import SurfelModel
 
@@ -74,7 +79,7 @@ def gaussian_table(model: SurfelModel) -> dict[str, np.ndarray]:
     n = model.num_primitives
     if n == 0:
         raise UserError("the model has no primitives: nothing to export (check the run trained)")
-    degree = min(int(model.sh_degree), 3, int(round(model.sh.shape[1] ** 0.5)) - 1)
+    degree = min(int(model.sh_degree), 3, round(model.sh.shape[1] ** 0.5) - 1)
     k = (degree + 1) ** 2
     means = model.means.detach().cpu().double().numpy()
     log_s = model.log_scales.detach().cpu().double().numpy()
@@ -122,7 +127,7 @@ def _from_smallest_three(largest: np.ndarray, three: np.ndarray) -> np.ndarray:
 
 
 def _surfels(means, log_scales, quats, opacity, dc, rest) -> SurfelModel:
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
     alpha = np.clip(opacity, ALPHA_EPS, 1 - ALPHA_EPS)
     return surfels_from_gaussians(t(means), t(log_scales), t(quats), t(np.log(alpha / (1 - alpha))),
                                   t(np.concatenate([dc[:, None], rest], 1)))
@@ -226,7 +231,8 @@ def read_compressed_ply(path: str) -> SurfelModel:
     """A PlayCanvas compressed PLY (ours or SuperSplat's) as untextured surfels; UserError naming the file when it is
     not one."""
     try:
-        raw = open(path, "rb").read()
+        with open(path, "rb") as f:
+            raw = f.read()
     except OSError as exc:
         raise UserError(f"{path}: cannot read compressed PLY ({exc.strerror}); check the path") from exc
     elements, offset, _ = _ply_elements(path, raw)
@@ -378,7 +384,7 @@ def sog_files(model: SurfelModel, seed: int = 0) -> tuple[dict[str, bytes], dict
         sh_book, sh_idx = _codebook(centres)  # [K, 3r] indices
         pix = sh_idx.reshape(k, 3, r).transpose(0, 2, 1)  # [K, r, 3]: pixel j of entry i = coefficient j's r, g, b
         cen = np.concatenate([pix.reshape(k * r, 3), np.full((k * r, 1), 255, np.uint8)], 1)
-        files["shN_centroids.webp"] = _webp(cen, 64 * r, int(math.ceil(k / 64)) if k else 1)
+        files["shN_centroids.webp"] = _webp(cen, 64 * r, math.ceil(k / 64))
         lab = book.labels.astype(np.uint32)
         files["shN_labels.webp"] = _webp(np.stack([lab & 255, lab >> 8, np.zeros(n, np.uint32),
                                                    np.full(n, 255, np.uint32)], 1).astype(np.uint8), width, height)

@@ -11,15 +11,22 @@ import zipfile
 import numpy as np
 import pytest
 import torch
-
-from ctgs.errors import UserError
-from ctgs.io.ply import read_ply
-from ctgs.io.playcanvas import (CHUNK, gaussian_table, morton_order, palette_size, read_compressed_ply, read_sog,
-                                write_compressed_ply, write_sog)
-from ctgs.io.plain_ply import SH_C0, surfels_from_gaussians, write_plain_ply
-
 from factory_io import random_model
 from npm_cache import npm_package
+
+from ctgs.errors import UserError
+from ctgs.io.plain_ply import SH_C0, surfels_from_gaussians, write_plain_ply
+from ctgs.io.playcanvas import (
+    CHUNK,
+    gaussian_table,
+    morton_order,
+    palette_size,
+    read_compressed_ply,
+    read_sog,
+    write_compressed_ply,
+    write_sog,
+)
+from ctgs.io.ply import read_ply
 
 
 def _model(n: int = 300, sh_degree: int = 3, seed: int = 4):
@@ -84,7 +91,7 @@ def test_compressed_ply_round_trip_within_its_steps(tmp_path):
     back = read_compressed_ply(str(tmp_path / "m.compressed.ply"))
     g = _table(m)
     assert back.num_primitives == 600 and back.texture_mode == "none" and back.sh.shape[1] == 9
-    span = lambda x: (x.max(0).values - x.min(0).values)  # noqa: E731  the whole model's range: chunks are tighter
+    span = lambda x: (x.max(0).values - x.min(0).values)
     assert ((back.means.double() - g["means"]).abs() <= span(g["means"]) / 1023 + 1e-6).all()
     assert ((back.log_scales.double() - g["log_scales"][:, :2]).abs() <= span(g["log_scales"])[:2] / 1023 + 1e-5).all()
     assert (_unit(back.quats) - _unit(g["quats"])).abs().max() < 2e-3
@@ -217,7 +224,7 @@ def test_playcanvas_reader_decodes_what_ours_decodes(tmp_path, splat_transform, 
     cols, comments = _ply_columns(tmp_path / "st.ply")
     assert "SplatRenderMode: 2dgs" in comments and "scale_2" not in cols
     n = 700
-    f = lambda *names: torch.stack([cols[c] for c in names], 1)  # noqa: E731
+    f = lambda *names: torch.stack([cols[c] for c in names], 1)
     torch.testing.assert_close(f("x", "y", "z"), ours.means.double(), atol=1e-6, rtol=1e-6)
     torch.testing.assert_close(f("scale_0", "scale_1"), ours.log_scales.double(), atol=1e-5, rtol=0)
     torch.testing.assert_close(_unit(f("rot_0", "rot_1", "rot_2", "rot_3")), _unit(ours.quats), atol=1e-5, rtol=0)
@@ -238,12 +245,11 @@ def test_our_reader_decodes_playcanvas_files(tmp_path, splat_transform, fmt):
     ours = (read_compressed_ply if fmt == "compressed-ply" else read_sog)(str(path))
     _convert(splat_transform, path, tmp_path / "back.ply")
     cols, _ = _ply_columns(tmp_path / "back.ply")
-    f = lambda *names: torch.stack([cols[c] for c in names], 1)  # noqa: E731
+    f = lambda *names: torch.stack([cols[c] for c in names], 1)
     assert ours.num_primitives == 500 and ours.sh.shape[1] == 16
     torch.testing.assert_close(f("x", "y", "z"), ours.means.double(), atol=1e-6, rtol=1e-6)
-    scales = f("scale_0", "scale_1", "scale_2")
-    torch.testing.assert_close(scales.sort(1, descending=True).values[:, :2],
-                               ours.log_scales.double().sort(1, descending=True).values, atol=1e-5, rtol=0)
+    assert "scale_2" not in cols  # the 2DGS tag of our PLY went through PlayCanvas's file and back
+    torch.testing.assert_close(f("scale_0", "scale_1"), ours.log_scales.double(), atol=1e-5, rtol=0)
     torch.testing.assert_close(torch.sigmoid(cols["opacity"]), ours.opacities.double(), atol=1e-5, rtol=0)
     torch.testing.assert_close(f("f_dc_0", "f_dc_1", "f_dc_2"), ours.sh[:, 0].double(), atol=1e-5, rtol=0)
     rest = f(*[f"f_rest_{i}" for i in range(45)]).reshape(500, 3, 15).transpose(1, 2)
@@ -258,3 +264,13 @@ def test_compressed_ply_carries_a_recentred_scenes_origin(tmp_path):
     assert "comment world_origin 120000.0 0.0 -5.0" in head.splitlines()
     write_compressed_ply(m, str(tmp_path / "n.compressed.ply"), origin=[0.0, 0.0, 0.0])
     assert b"world_origin" not in (tmp_path / "n.compressed.ply").read_bytes()[:3000]
+
+
+def test_the_3dgs_ply_is_tagged_2dgs_and_playcanvas_reads_the_tag(tmp_path, splat_transform):
+    """Our 3DGS PLY carries Brush's `SplatRenderMode: 2dgs`; splat-transform keeps the tag through a conversion to
+    SOG (meta.json `model`), so the surfels stay surfels in PlayCanvas's tools."""
+    write_plain_ply(_model(n=50), str(tmp_path / "m.ply"))
+    _, comments = read_ply(str(tmp_path / "m.ply"))
+    assert "SplatRenderMode: 2dgs" in comments
+    _convert(splat_transform, tmp_path / "m.ply", tmp_path / "m.sog", "-g", "cpu")
+    assert json.loads(zipfile.ZipFile(tmp_path / "m.sog").read("meta.json"))["model"] == "2dgs"
