@@ -1,11 +1,12 @@
 """What each export format keeps: bytes on disk and test-view PSNR of a trained run, rendered from the file.
 
-Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|spz|compressed-ply|sog|glb` (and `ctgs compress` of the
+Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|spz|compressed-ply|sog|glb-splats|glb` (and `ctgs compress` of the
 ctgs folder),
 reads every file back and renders the run's test views from it:
 - ctgs, ctgs K-means: ctgs.io.model_format.read_model, our CPU renderer (exact model);
-- ply (3DGS PLY), splat, spz, compressed-ply, sog, and ply / spz / sog with --bake-textures (a splat per texel:
-  ctgs.io.bake): read back as untextured surfels (ctgs.io.plain_ply / splat / spz / playcanvas), our CPU renderer
+- ply (3DGS PLY), splat, spz, compressed-ply, sog, glb-splats (KHR_gaussian_splatting), and ply / spz / sog with
+  --bake-textures (a splat per texel: ctgs.io.bake): read back as untextured surfels (ctgs.io.plain_ply / splat /
+  spz / playcanvas / gltf_splats), our CPU renderer
   (so the figure is what the file holds, not what some viewer's EWA splatting makes of it);
 - glb: read with pygltflib (ctgs.io.gltf.read_glb), drawn by a headless OpenGL renderer
   (benchmarks/glb_render.py: moderngl + EGL, Mesa llvmpipe here), quads sorted back to front per view,
@@ -136,11 +137,11 @@ def main() -> None:
              "spz": os.path.join(work, "model.spz"), "glb": os.path.join(work, "model.glb"),
              "ply_baked": os.path.join(work, "model-baked.ply"), "spz_baked": os.path.join(work, "model-baked.spz"),
              "compressed-ply": os.path.join(work, "model.compressed.ply"), "sog": os.path.join(work, "model.sog"),
-             "sog_baked": os.path.join(work, "model-baked.sog")}
+             "sog_baked": os.path.join(work, "model-baked.sog"), "glb-splats": os.path.join(work, "model.splats.glb")}
     ctgs_cli("export", args.run_dir, "-o", files["ctgs"], "--no-plain-ply")
     ctgs_cli("compress", files["ctgs"], "-o", files["ctgs_k"], "--codebook-size", str(CODEBOOK))
     export_s = {}
-    for fmt in ("ply", "splat", "spz", "compressed-ply", "sog", "glb"):
+    for fmt in ("ply", "splat", "spz", "compressed-ply", "sog", "glb-splats", "glb"):
         t = time.time()
         ctgs_cli("export", args.run_dir, "--format", fmt, "-o", files[fmt])
         export_s[fmt] = time.time() - t
@@ -152,6 +153,7 @@ def main() -> None:
     run = load_run(args.run_dir)
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
     views = scene.test
+    from ctgs.io.gltf_splats import read_glb_splats
     from ctgs.io.plain_ply import read_plain_ply
     from ctgs.io.playcanvas import read_compressed_ply, read_sog
     from ctgs.io.splat import read_splat
@@ -177,6 +179,10 @@ def main() -> None:
             ("sog (PlayCanvas)", read_sog(files["sog"]), os.path.getsize(files["sog"]),
              "read_sog (matches splat-transform's reader: tests/io/test_playcanvas.py) -> untextured surfels, "
              "CPU renderer"),
+            ("glb-splats (KHR_gaussian_splatting)", read_glb_splats(files["glb-splats"]),
+             os.path.getsize(files["glb-splats"]),
+             "read_glb_splats (the file splat-transform writes from our PLY: tests/io/test_gltf_splats.py) -> "
+             "untextured surfels, CPU renderer"),
             ("ply (3DGS), --bake-textures", read_plain_ply(files["ply_baked"]), os.path.getsize(files["ply_baked"]),
              "read_plain_ply -> untextured surfels (a splat per texel), CPU renderer"),
             ("spz (v3), --bake-textures", read_spz(files["spz_baked"]), os.path.getsize(files["spz_baked"]),

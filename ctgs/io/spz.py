@@ -57,15 +57,15 @@ SQRT1_2 = math.sqrt(0.5)
 ROWS = 1 << 16  # points converted at a time
 
 
-def sh_flips(degree: int) -> np.ndarray:
-    """[K - 1] sign of each SH band coefficient (1..degree) under the half turn about x: what a coefficient
-    becomes when the frame changes between RDF and RUB. Read off the renderer's own basis, not a table."""
+def sh_flips(degree: int, flip: np.ndarray = FLIP) -> np.ndarray:
+    """[K - 1] sign of each SH band coefficient (1..degree) under the frame change diag(flip), a half turn about an
+    axis (by default about x: RDF <-> RUB). Read off the renderer's own basis, not a table."""
     k = (degree + 1) ** 2
     if k == 1:
         return np.zeros(0)
     d = torch.tensor([[0.3, 0.5, 0.81]], dtype=torch.float64)
     d = d / d.norm()
-    flipped = d * torch.from_numpy(FLIP)
+    flipped = d * torch.from_numpy(np.asarray(flip, dtype=np.float64))
     basis = torch.eye(k, dtype=torch.float64)[:, :, None].expand(k, k, 3)  # one-hot coefficient per row
     a = sh_to_color(basis, d.expand(k, 3), degree)[:, 0] - 0.5
     b = sh_to_color(basis, flipped.expand(k, 3), degree)[:, 0] - 0.5

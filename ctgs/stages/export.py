@@ -2,7 +2,7 @@
 
 Formats (docs/model_format.md): `ctgs` (default, lossless: primitives.ply + textures.bin + manifest.json,
 plus plain_3dgs.ply), `ply` (3DGS PLY for Gaussian viewers), `splat` (32 bytes per splat, web viewers),
-`spz` (Niantic's compressed Gaussians), `compressed-ply` and `sog` (PlayCanvas's), `glb` (textured quads for Blender and three.js), `web` (the ctgs
+`spz` (Niantic's compressed Gaussians), `compressed-ply` and `sog` (PlayCanvas's), `glb-splats` (KHR_gaussian_splatting), `glb` (textured quads for Blender and three.js), `web` (the ctgs
 folder plus the bundle `ctgs view` serves, in its web/ subfolder). Adding a format is one entry in FORMATS.
 """
 
@@ -99,6 +99,14 @@ def _sog(e: Export) -> str:
             f"{info['bytes'] / 1e6:.3f} MB{_origin_note(e, 'SOG')}")
 
 
+def _glb_splats(e: Export) -> str:
+    from ctgs.io.gltf_splats import write_glb_splats
+
+    info = write_glb_splats(e.model, e.out, origin=e.source.get("world_origin"))
+    return (f"{info['splats']} splats ({_textures(e)}), SH degree {info['sh_degree']}, KHR_gaussian_splatting, "
+            f"{info['bytes'] / 1e6:.3f} MB")
+
+
 def _glb(e: Export) -> str:
     from ctgs.io.gltf import write_glb
 
@@ -138,10 +146,12 @@ FORMATS: dict[str, Format] = {
     "sog": Format(_sog, ".sog", "PlayCanvas SOG bundle (SuperSplat, PlayCanvas): lossless WebP images of codebook "
                                 "indices, the smallest of these formats"),
     "glb": Format(_glb, ".glb", "glTF binary, one textured quad per surfel (Blender, three.js)"),
+    "glb-splats": Format(_glb_splats, ".splats.glb", "glTF binary of Gaussians, the ratified KHR_gaussian_splatting "
+                                                     "extension (PlayCanvas, Babylon.js, CesiumJS), float32"),
     "web": Format(_web, "", "the ctgs folder plus web/, the bundle `ctgs view` serves (WebGL2, textures kept)"),
 }
 
-BAKED_FORMATS = ("ply", "splat", "spz", "compressed-ply", "sog")  # the Gaussian formats, which otherwise fold each texture into one colour
+BAKED_FORMATS = ("ply", "splat", "spz", "compressed-ply", "sog", "glb-splats")  # the Gaussian formats, which otherwise fold each texture into one colour
 
 
 def load_source(path: str):
@@ -181,7 +191,8 @@ def default_out(source: str, fmt: str) -> str:
 @click.option("--texel-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
               help="With --format web: bits per texel channel in the atlas (8: signed bytes, 16: half floats).")
 @click.option("--bake-textures", is_flag=True,
-              help="With --format ply, splat, spz, compressed-ply or sog: one small splat per texel instead of one per surfel, so Gaussian "
+              help="With --format ply, splat, spz, compressed-ply, sog or glb-splats: one small splat per texel instead "
+                   "of one per surfel, so Gaussian "
                    "viewers show the texture detail (many times the splats and bytes; docs/model_format.md).")
 @click.option("--bake-max-splats", type=click.IntRange(min=1), default=None,
               help="With --bake-textures: at most this many splats; past it, textures are baked on coarser texels "

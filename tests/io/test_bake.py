@@ -111,12 +111,13 @@ def test_export_bakes_the_gaussian_formats_and_refuses_other_formats(tmp_path):
                 "iteration": 7, "config": {}}, run / "model.pt")
     n = bake_texels(m).num_primitives
     assert n > 20
-    for fmt in ("ply", "splat", "spz", "compressed-ply", "sog"):
+    for fmt in ("ply", "splat", "spz", "compressed-ply", "sog", "glb-splats"):
         res = CliRunner().invoke(main, ["export", str(run), "--format", fmt, "--bake-textures"])
         assert res.exit_code == 0, res.output
         assert f"{n} " in res.output and "textures baked" in res.output
     res = CliRunner().invoke(main, ["export", str(run), "--format", "glb", "--bake-textures"])
-    assert res.exit_code != 0 and "--bake-textures applies to --format ply, splat, spz, compressed-ply, sog" in res.output
+    assert res.exit_code != 0
+    assert "--bake-textures applies to --format ply, splat, spz, compressed-ply, sog, glb-splats" in res.output
     assert not (run / "model.glb").exists()
 
 

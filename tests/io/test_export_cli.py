@@ -43,7 +43,8 @@ def _export(*args: str) -> str:
 @pytest.mark.parametrize("fmt,name,what", [("ply", "model.ply", "50 Gaussians"), ("splat", "model.splat", "50 splats"),
                                            ("spz", "model.spz", "50 splats"), ("glb", "model.glb", "50 textured quads"),
                                            ("compressed-ply", "model.compressed.ply", "50 splats"),
-                                           ("sog", "model.sog", "50 splats")])
+                                           ("sog", "model.sog", "50 splats"),
+                                           ("glb-splats", "model.splats.glb", "50 splats")])
 def test_default_output_names(tmp_path, fmt, name, what):
     run = _run_dir(tmp_path)
     out = _export(run, "--format", fmt)
