@@ -27,7 +27,8 @@ index in alpha; `scales` three indices into a 256-entry codebook of log scales; 
 codebook of DC coefficients and 8-bit sigmoid(opacity); with SH, `shN_labels` a 16-bit index per splat into a
 palette of SH rows (K-means, up to 64k entries), stored in `shN_centroids` as indices into a third 256-entry
 codebook. The codebooks are 1-D K-means (ctgs.io.kmeans.scalar_kmeans), the palette vector K-means
-(ctgs.io.kmeans.vector_kmeans). Lossless WebP keeps every pixel, except the colour of a splat whose 8-bit opacity
+(ctgs.io.kmeans.vector_kmeans), or the distinct SH rows themselves when they fit (a baked model's texel splats share
+their surfel's SH: no K-means, no loss). Lossless WebP keeps every pixel, except the colour of a splat whose 8-bit opacity
 is 0 (the encoder may drop colour under zero alpha): such a splat draws nothing, whatever its colour.
 
 The readers here give the model back as untextured surfels (what a viewer gets); tests/io/test_playcanvas.py
@@ -379,13 +380,17 @@ def sog_files(model: SurfelModel, seed: int = 0) -> tuple[dict[str, bytes], dict
     if r:
         rows = g["rest"].transpose(0, 2, 1).reshape(n, 3 * r)  # channel-major, as f_rest_*
         k = palette_size(n)
-        book = vector_kmeans(rows, k, seed=seed)
-        centres = book.centres  # [K, 3r]
+        distinct, inverse = np.unique(rows, axis=0, return_inverse=True)
+        if len(distinct) <= k:  # every row fits (a baked model: all texels of a surfel share its SH): no K-means
+            k, centres, labels = len(distinct), distinct, inverse.reshape(-1)
+        else:
+            book = vector_kmeans(rows, k, seed=seed)
+            centres, labels = book.centres, book.labels  # [K, 3r], [N]
         sh_book, sh_idx = _codebook(centres)  # [K, 3r] indices
         pix = sh_idx.reshape(k, 3, r).transpose(0, 2, 1)  # [K, r, 3]: pixel j of entry i = coefficient j's r, g, b
         cen = np.concatenate([pix.reshape(k * r, 3), np.full((k * r, 1), 255, np.uint8)], 1)
         files["shN_centroids.webp"] = _webp(cen, 64 * r, math.ceil(k / 64))
-        lab = book.labels.astype(np.uint32)
+        lab = labels.astype(np.uint32)
         files["shN_labels.webp"] = _webp(np.stack([lab & 255, lab >> 8, np.zeros(n, np.uint32),
                                                    np.full(n, 255, np.uint32)], 1).astype(np.uint8), width, height)
         meta["shN"] = {"count": k, "bands": degree, "codebook": sh_book, "files": SOG_FILES["shN"]}

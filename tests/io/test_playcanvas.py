@@ -274,3 +274,15 @@ def test_the_3dgs_ply_is_tagged_2dgs_and_playcanvas_reads_the_tag(tmp_path, spla
     assert "SplatRenderMode: 2dgs" in comments
     _convert(splat_transform, tmp_path / "m.ply", tmp_path / "m.sog", "-g", "cpu")
     assert json.loads(zipfile.ZipFile(tmp_path / "m.sog").read("meta.json"))["model"] == "2dgs"
+
+
+def test_sog_keeps_shared_sh_rows_exactly(tmp_path):
+    """A baked model's texel splats share their surfel's SH rows: when the distinct rows fit the palette, the palette
+    is those rows (no K-means), so only the 256-entry codebook of their values remains."""
+    m = _model(n=3000, sh_degree=1)
+    m.sh.data[:, 1:] = m.sh.data[torch.arange(3000) % 40, 1:]  # 40 distinct rows over 3000 splats
+    info = write_sog(m, str(tmp_path / "m.sog"))
+    assert info["palette"] == 40
+    back = read_sog(str(tmp_path / "m.sog"))
+    g = _table(m)
+    assert (back.sh[:, 1:].double() - g["rest"]).abs().max() < 1e-6 + 0.5 * float(g["rest"].max() - g["rest"].min()) / 255
