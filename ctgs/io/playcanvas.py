@@ -26,9 +26,9 @@ meta's mins / maxs; `quats` the smallest three of (w, x, y, z) as 8-bit (q sqrt2
 index in alpha; `scales` three indices into a 256-entry codebook of log scales; `sh0` three indices into a 256-entry
 codebook of DC coefficients and 8-bit sigmoid(opacity); with SH, `shN_labels` a 16-bit index per splat into a
 palette of SH rows (K-means, up to 64k entries), stored in `shN_centroids` as indices into a third 256-entry
-codebook. The codebooks are 1-D K-means (ctgs.io.kmeans.scalar_kmeans), the palette vector K-means
-(ctgs.io.kmeans.vector_kmeans), or the distinct SH rows themselves when they fit (a baked model's texel splats share
-their surfel's SH: no K-means, no loss). Lossless WebP keeps every pixel, except the colour of a splat whose 8-bit opacity
+codebook. The codebooks are 1-D K-means (ctgs.io.kmeans.scalar_kmeans). The palette holds the distinct SH rows
+themselves while they fit its 65,536 entries (no K-means, no loss beyond the codebook; a baked model's texel splats
+share their surfel's SH rows), else a vector K-means of them into 65,536 (ctgs.io.kmeans.vector_kmeans). Lossless WebP keeps every pixel, except the colour of a splat whose 8-bit opacity
 is 0 (the encoder may drop colour under zero alpha): such a splat draws nothing, whatever its colour.
 
 The readers here give the model back as untextured surfels (what a viewer gets); tests/io/test_playcanvas.py
@@ -340,10 +340,11 @@ def _codebook(values: np.ndarray) -> tuple[list[float], np.ndarray]:
 
 
 def palette_size(n: int) -> int:
-    """How many SH rows SOG's palette holds for n splats: PlayCanvas's rule (1k entries per 1k-2k splats, doubling
-    with n, at most 64k) but never under 1024 (PlayCanvas's shrinks below that for small models, where keeping
-    every row costs a few kB), and never more than n."""
-    return int(min(n, max(1024, min(64, 2.0 ** math.floor(math.log2(n / 1024))) * 1024)))
+    """How many SH rows SOG's palette holds for n splats: all of them up to the 65,536 its 16-bit labels address.
+    (PlayCanvas's writer uses 1024 entries per 1-2k splats, doubling with the count, to 65,536; with the distinct rows
+    kept as they are, no K-means runs below 65,536 rows, which is both exact and fast on a CPU: K-means of 20k rows
+    into 16k entries took 93 s on 2 cores for a 0.1 dB loss, benchmarks/results/export_formats_herzjesu25_384_vm36.md.)"""
+    return min(n, PALETTE_MAX)
 
 
 def sog_files(model: SurfelModel, seed: int = 0) -> tuple[dict[str, bytes], dict]:
@@ -380,9 +381,12 @@ def sog_files(model: SurfelModel, seed: int = 0) -> tuple[dict[str, bytes], dict
     if r:
         rows = g["rest"].transpose(0, 2, 1).reshape(n, 3 * r)  # channel-major, as f_rest_*
         k = palette_size(n)
-        distinct, inverse = np.unique(rows, axis=0, return_inverse=True)
-        if len(distinct) <= k:  # every row fits (a baked model: all texels of a surfel share its SH): no K-means
-            k, centres, labels = len(distinct), distinct, inverse.reshape(-1)
+        distinct, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        if len(distinct) <= k:  # every distinct row fits (baked models: a surfel's texels share its SH): no K-means
+            order = np.argsort(first)  # entries in the order splats first use them: labels mostly count up (Morton)
+            rank = np.empty_like(order)
+            rank[order] = np.arange(len(order))
+            k, centres, labels = len(distinct), distinct[order], rank[inverse.reshape(-1)]
         else:
             book = vector_kmeans(rows, k, seed=seed)
             centres, labels = book.centres, book.labels  # [K, 3r], [N]

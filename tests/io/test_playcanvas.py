@@ -112,6 +112,11 @@ def test_sog_bundle_layout_and_round_trip(tmp_path):
     assert meta["version"] == 2 and meta["count"] == 600 and meta["model"] == "2dgs"
     assert len(meta["scales"]["codebook"]) == len(meta["sh0"]["codebook"]) == len(meta["shN"]["codebook"]) == 256
     assert meta["shN"]["bands"] == 2 and meta["shN"]["count"] == info["palette"] == palette_size(600) == 600
+    from ctgs.io.playcanvas import _decode_webp
+
+    with zipfile.ZipFile(tmp_path / "m.sog") as z:  # entries in the order splats first use them: label i is splat i's
+        lab = _decode_webp("m.sog", "shN_labels.webp", z.read("shN_labels.webp")).reshape(-1, 4)[:600].astype(int)
+    assert (lab[:, 0] | (lab[:, 1] << 8)).tolist() == list(range(600))
     back = read_sog(str(tmp_path / "m.sog"))
     g = _table(m)
     lt = np.log1p(np.abs(g["means"].numpy()))
@@ -125,16 +130,18 @@ def test_sog_bundle_layout_and_round_trip(tmp_path):
         nearest = (want[..., None] - book).abs().min(-1).values
         torch.testing.assert_close((got.double() - want).abs(), nearest, atol=1e-6, rtol=0)
         assert float(((got.double() - want) ** 2).mean().sqrt()) < 0.01 * float(want.std())
-    # a palette entry per row (600 <= 1024): only the 256-entry codebook of the palette's values remains
+    # a palette entry per distinct row: only the 256-entry codebook of the palette's values remains
     rms = float(((back.sh[:, 1:].double() - g["rest"]) ** 2).mean().sqrt())
     assert rms < 0.01 * float(g["rest"].std())
 
 
-def test_sog_palette_sizes_and_a_merged_palette(tmp_path):
-    """PlayCanvas's palette rule above 1024 rows (2048 -> 2048, 5000 -> 4096, capped at 64k); a model of 3000 rows
-    gets 2048 entries, so rows are merged: the SH error is then K-means', small against the rows' spread."""
-    assert [palette_size(n) for n in (1, 200, 1024, 2047, 2048, 5000, 10**7)] == [1, 200, 1024, 1024, 2048, 4096,
-                                                                                   65536]
+def test_sog_palette_sizes_and_a_merged_palette(tmp_path, monkeypatch):
+    """Every distinct row up to the 65,536 entries SOG's 16-bit labels address; past that, K-means merges rows (shown
+    here with the cap lowered to 2048 for 3000 rows): the SH error is then K-means', small against the rows' spread."""
+    import ctgs.io.playcanvas as pc
+
+    assert [palette_size(n) for n in (1, 200, 5000, 65536, 10**7)] == [1, 200, 5000, 65536, 65536]
+    monkeypatch.setattr(pc, "PALETTE_MAX", 2048)
     m = _model(n=3000, sh_degree=1)
     info = write_sog(m, str(tmp_path / "m.sog"))
     assert info["palette"] == 2048 and info["sh_degree"] == 1
