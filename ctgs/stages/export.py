@@ -143,8 +143,8 @@ FORMATS: dict[str, Format] = {
     "compressed-ply": Format(_compressed_ply, ".compressed.ply",
                              "PlayCanvas compressed PLY (SuperSplat, PlayCanvas): 16 bytes per splat + 1 per SH "
                              "coefficient, quantised per 256 splats"),
-    "sog": Format(_sog, ".sog", "PlayCanvas SOG bundle (SuperSplat, PlayCanvas): lossless WebP images of codebook "
-                                "indices, the smallest of these formats"),
+    "sog": Format(_sog, ".sog", "PlayCanvas SOG bundle (SuperSplat, PlayCanvas): lossless WebP images of quantised "
+                                "attributes and codebook indices"),
     "glb": Format(_glb, ".glb", "glTF binary, one textured quad per surfel (Blender, three.js)"),
     "glb-splats": Format(_glb_splats, ".splats.glb", "glTF binary of Gaussians, the ratified KHR_gaussian_splatting "
                                                      "extension (PlayCanvas, Babylon.js, CesiumJS), float32"),

@@ -5,6 +5,7 @@ what our readers decode, and its files read by ours."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import zipfile
 
@@ -293,3 +294,24 @@ def test_sog_keeps_shared_sh_rows_exactly(tmp_path):
     back = read_sog(str(tmp_path / "m.sog"))
     g = _table(m)
     assert (back.sh[:, 1:].double() - g["rest"]).abs().max() < 1e-6 + 0.5 * float(g["rest"].max() - g["rest"].min()) / 255
+
+
+@pytest.mark.parametrize("units", [1e-4, 1e4])
+def test_scenes_in_very_small_or_large_units(tmp_path, units):
+    """Both formats at the extremes of scene scale: positions come back within their quantisation relative to the
+    scene (compressed PLY: a chunk's extent / 2^10; SOG: 16 bits of the log transform), rotations and opacities as at
+    unit scale, nothing non-finite."""
+    m = _model(n=600)
+    m.means.data.mul_(units)
+    m.log_scales.data.add_(math.log(units))
+    g = _table(m)
+    extent = float((g["means"].max(0).values - g["means"].min(0).values).max())
+    for write, read, name in ((write_compressed_ply, read_compressed_ply, "m.compressed.ply"),
+                              (write_sog, read_sog, "m.sog")):
+        write(m, str(tmp_path / name))
+        back = read(str(tmp_path / name))
+        for t in (back.means, back.log_scales, back.quats, back.opacity_logits, back.sh):
+            assert torch.isfinite(t).all(), name
+        assert float((back.means.double() - g["means"]).abs().max()) < 2e-3 * extent, name
+        assert (_unit(back.quats) - _unit(g["quats"])).abs().max() < 8e-3, name
+        assert float((back.log_scales.double() - g["log_scales"][:, :2]).abs().max()) < 0.1, name
