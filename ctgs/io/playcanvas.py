@@ -388,9 +388,9 @@ def sog_files(model: SurfelModel, seed: int = 0) -> tuple[dict[str, bytes], dict
             rank = np.empty_like(order)
             rank[order] = np.arange(len(order))
             k, centres, labels = len(distinct), distinct[order], rank[inverse.reshape(-1)]
-        else:
-            book = vector_kmeans(rows, k, seed=seed)
-            centres, labels = book.centres, book.labels  # [K, 3r], [N]
+        else:  # K-means of the distinct rows (a baked model repeats each surfel's row per texel), labels per splat
+            book = vector_kmeans(distinct, k, seed=seed)
+            centres, labels = book.centres, book.labels[inverse.reshape(-1)]  # [K, 3r], [N]
         sh_book, sh_idx = _codebook(centres)  # [K, 3r] indices
         pix = sh_idx.reshape(k, 3, r).transpose(0, 2, 1)  # [K, r, 3]: pixel j of entry i = coefficient j's r, g, b
         cen = np.concatenate([pix.reshape(k * r, 3), np.full((k * r, 1), 255, np.uint8)], 1)

@@ -315,3 +315,24 @@ def test_scenes_in_very_small_or_large_units(tmp_path, units):
         assert float((back.means.double() - g["means"]).abs().max()) < 2e-3 * extent, name
         assert (_unit(back.quats) - _unit(g["quats"])).abs().max() < 8e-3, name
         assert float((back.log_scales.double() - g["log_scales"][:, :2]).abs().max()) < 0.1, name
+
+
+def test_sog_merges_distinct_rows_and_keeps_shared_rows_together(tmp_path, monkeypatch):
+    """Past the palette's size the K-means runs on the distinct rows (a baked model repeats its surfels' rows per
+    texel): splats that share a row share its entry."""
+    import ctgs.io.playcanvas as pc
+    from ctgs.io.playcanvas import _decode_webp
+
+    monkeypatch.setattr(pc, "PALETTE_MAX", 64)
+    m = _model(n=3000, sh_degree=1)
+    m.sh.data[:, 1:] = m.sh.data[torch.arange(3000) % 200, 1:]  # 200 distinct rows, 15 splats each
+    assert write_sog(m, str(tmp_path / "m.sog"))["palette"] == 64
+    g = _table(m)
+    with zipfile.ZipFile(tmp_path / "m.sog") as z:
+        lab = _decode_webp("m.sog", "shN_labels.webp", z.read("shN_labels.webp")).reshape(-1, 4)[:3000].astype(int)
+    label = lab[:, 0] | (lab[:, 1] << 8)
+    rows = g["rest"].reshape(3000, -1).numpy()
+    _, inverse = np.unique(rows, axis=0, return_inverse=True)
+    for r in range(200):
+        assert len(set(label[inverse.reshape(-1) == r].tolist())) == 1
+    assert len(set(label.tolist())) > 32  # the entries are used, not collapsed
