@@ -36,10 +36,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from ctgs.io.run_model import load_run  # noqa: E402
 from record import write_record  # noqa: E402 (benchmarks/record.py)
-from ctgs.io.plain_ply import read_plain_ply  # noqa: E402
-from ctgs.io.playcanvas import read_compressed_ply, read_sog  # noqa: E402
-from ctgs.io.splat import read_splat  # noqa: E402
-from ctgs.io.spz import read_spz  # noqa: E402
+from ctgs.io.readers import read_gaussian_file  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
 from ctgs.resources import cache_dir  # noqa: E402
@@ -105,12 +102,6 @@ window.ready = true;
 """
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # COLMAP's right-down-front <-> three.js's / spz's right-up-back
-READERS = {".spz": read_spz, ".compressed.ply": read_compressed_ply, ".ply": read_plain_ply, ".splat": read_splat,
-           ".sog": read_sog}  # each file read back for our renderer (the longest matching ending wins)
-
-
-def reader(path: str):
-    return next(READERS[end] for end in sorted(READERS, key=len, reverse=True) if path.endswith(end))
 
 
 def install() -> str:
@@ -203,7 +194,7 @@ def main() -> None:
             while not browser.evaluate("window.ready === true") and time.time() < deadline:
                 time.sleep(0.2)
             for name, path in zip(names, args.files):
-                ours_model = reader(path)(path)
+                ours_model = read_gaussian_file(path)  # each file read back for our renderer
                 inputs = ours_model.render_inputs()
                 per_view = []
                 for view in views:

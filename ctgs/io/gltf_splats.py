@@ -29,13 +29,19 @@ glTF frame), so glTF tools place the model where it lies in the COLMAP frame.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import torch
 
 from ctgs.errors import UserError
 from ctgs.io import atomic
-from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
+from ctgs.io.plain_ply import (
+    FLAT_SCALE_RATIO,
+    SH_C0,
+    surfels_from_gaussians,
+    texture_means,
+)
 from ctgs.io.splat import ALPHA_EPS
 from ctgs.io.spz import sh_flips
 from ctgs.model.surfels import SurfelModel
@@ -123,8 +129,6 @@ def write_glb_splats(model: SurfelModel, path: str, origin=None) -> dict:
     gltf = build_gltf(model, origin)
     with atomic.atomic_path(path) as tmp:
         gltf.save_binary(tmp)
-    import os
-
     return {"bytes": os.path.getsize(path), "splats": model.num_primitives,
             "sh_degree": min(int(model.sh_degree), 3, round(model.sh.shape[1] ** 0.5) - 1)}
 

@@ -30,7 +30,7 @@ NUM_STRIPS = 2  # worst and best views (by PSNR) that get a gt | render | error 
 @dataclass
 class EvalOptions:
     out_dir: str
-    model_dir: str | None = None  # exported/compressed model folder; None = the run's model.pt
+    model_dir: str | None = None  # exported/compressed model folder or exported Gaussian file; None = the run's model.pt
     backend: str | None = None  # None = the run's config backend (or "auto")
     device: str | None = None  # None = cuda if available, else cpu
     lpips: bool = True
@@ -89,8 +89,13 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     run = load_run(run_dir)
     device = torch.device(opts.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, bytes_on_disk, model_source = run.model, run.model_bytes, os.path.join(run.run_dir, "model.pt")
-    manifest = None
-    if opts.model_dir:
+    manifest, exported = None, None
+    if opts.model_dir and not os.path.isdir(opts.model_dir):  # an exported Gaussian file: what a viewer gets from it
+        from ctgs.io.readers import gaussian_file_ending, read_gaussian_file
+
+        model, exported = read_gaussian_file(opts.model_dir), gaussian_file_ending(opts.model_dir)
+        bytes_on_disk, model_source = os.path.getsize(opts.model_dir), os.path.abspath(opts.model_dir)
+    elif opts.model_dir:
         from ctgs.io.model_format import read_model
 
         model, files = read_model(opts.model_dir)
@@ -172,7 +177,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
             "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
             "model_memory_bytes": 4 * model.num_params(), "bytes_on_disk": bytes_on_disk,
-            "texture_encoding": manifest["texture_encoding"] if manifest else "raw",
+            "texture_encoding": manifest["texture_encoding"] if manifest else ("folded" if exported else "raw"),
+            "exported_file": exported,  # the ending of an exported Gaussian file (--model FILE), else None
             "codebook_size": manifest.get("codebook_size") if manifest else None,
             "compressed": bool(manifest and "compression" in manifest),
             "compression_target": ((manifest or {}).get("compression") or {}).get("target"),

@@ -102,8 +102,11 @@ def _mean(values: list):
 
 def variant(m: dict) -> str:
     """"" for an uncompressed model on its test views, else how it was compressed (e.g. "compressed balanced: scalar
-    K=256") and, evaluated on its training views (`ctgs eval --split train`), "training views"."""
+    K=256") or exported ("exported .sog") and, evaluated on its training views (`ctgs eval --split train`), "training
+    views"."""
     views = "training views" if m.get("split") == "train" else ""
+    if m.get("exported_file"):  # `ctgs eval --model FILE`: what a Gaussian viewer gets from an exported file
+        return (views + ", " if views else "") + f"exported {m['exported_file']}"
     if not (m.get("compressed") or m.get("codebook_size")):
         return views
     target = m.get("compression_target")

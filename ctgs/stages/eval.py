@@ -45,8 +45,10 @@ def _table(paths: tuple[str, ...], out: str) -> None:
 
 @click.command(name="eval")
 @click.argument("run_dirs", nargs=-1, required=True, type=click.Path())
-@click.option("--model", "model_dir", default=None, type=click.Path(file_okay=False),
-              help="Evaluate this exported/compressed model folder instead of RUN_DIR/model.pt.")
+@click.option("--model", "model_dir", default=None, type=click.Path(),
+              help="Evaluate this exported/compressed model folder instead of RUN_DIR/model.pt, or a Gaussian file "
+                   "`ctgs export` wrote from it (.ply, .splat, .spz, .compressed.ply, .sog, .splats.glb), read back as "
+                   "a Gaussian viewer reads it.")
 @click.option("-o", "--output", "out_dir", default=None, type=click.Path(file_okay=False),
               help="Output folder (default RUN_DIR/eval, or RUN_DIR/eval-<model folder name> with --model; "
                    "with --table: where table.md and table.csv go).")

@@ -229,3 +229,25 @@ def test_masked_psnr():
     assert masked_psnr(a, b, torch.zeros(4, 5, dtype=torch.bool)) is None
     with pytest.raises(ValueError):
         masked_psnr(a, b, torch.ones(5, 4, dtype=torch.bool))
+
+
+def test_eval_an_exported_gaussian_file(run_dir, tmp_path):
+    """`--model FILE`: an exported Gaussian file, read back as a viewer reads it (texture folded in), scored on the
+    same views; its own group in tables; a file of another kind is refused with the endings named."""
+    runner = CliRunner()
+    assert runner.invoke(main, ["export", run_dir, "--format", "sog", "-o", str(tmp_path / "m.sog")]).exit_code == 0
+    _eval(run_dir, "--model", str(tmp_path / "m.sog"), "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e"))
+    m = json.load(open(tmp_path / "e" / "metrics.json"))
+    assert m["exported_file"] == ".sog" and m["texture_encoding"] == "folded" and m["texels"] == 0
+    assert m["bytes_on_disk"] == (tmp_path / "m.sog").stat().st_size
+    _eval(run_dir, "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e0"))
+    base = json.load(open(tmp_path / "e0" / "metrics.json"))
+    assert m["psnr"] != base["psnr"] and base["exported_file"] is None  # textures folded: not the exact model
+    from ctgs.metrics.report import variant
+
+    assert variant(m) == "exported .sog"
+    (tmp_path / "x.txt").write_text("x")
+    res = runner.invoke(main, ["eval", run_dir, "--model", str(tmp_path / "x.txt"), "--no-lpips", "-o",
+                               str(tmp_path / "e2")])
+    assert res.exit_code != 0 and "x.txt: not a file `ctgs export` writes" in res.output
+    assert not (tmp_path / "e2").exists()
