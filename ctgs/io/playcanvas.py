@@ -237,7 +237,10 @@ def read_compressed_ply(path: str) -> SurfelModel:
     except OSError as exc:
         raise UserError(f"{path}: cannot read compressed PLY ({exc.strerror}); check the path") from exc
     elements, offset, _ = _ply_elements(path, raw)
-    want = {"chunk": ("float", CHUNK_PROPS), "vertex": ("uint", VERTEX_PROPS)}
+    chunk_props = [p for _, p in elements.get("chunk", (0, []))[1]]
+    # SuperSplat's first files had no colour bounds (12 chunk properties, colour a plain 8-bit unorm)
+    want = {"chunk": ("float", CHUNK_PROPS if len(chunk_props) >= 18 else CHUNK_PROPS[:12]),
+            "vertex": ("uint", VERTEX_PROPS)}
     for name, (kind, props) in want.items():
         got = elements.get(name, (0, []))[1]
         if [p for _, p in got][:len(props)] != props or any(t not in (kind, kind + "32") for t, _ in got):

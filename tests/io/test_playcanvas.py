@@ -19,6 +19,7 @@ from ctgs.errors import UserError
 from ctgs.io.plain_ply import SH_C0, surfels_from_gaussians, write_plain_ply
 from ctgs.io.playcanvas import (
     CHUNK,
+    CHUNK_PROPS,
     gaussian_table,
     morton_order,
     palette_size,
@@ -336,3 +337,26 @@ def test_sog_merges_distinct_rows_and_keeps_shared_rows_together(tmp_path, monke
     for r in range(200):
         assert len(set(label[inverse.reshape(-1) == r].tolist())) == 1
     assert len(set(label.tolist())) > 32  # the entries are used, not collapsed
+
+
+def test_supersplats_first_files_without_colour_bounds(tmp_path):
+    """SuperSplat's first compressed PLYs had 12 chunk properties (no colour bounds: colour a plain 8-bit unorm of
+    0.5 + C0 dc). Built here from one of ours: the header and chunk records cut to 12 properties, the colour bytes
+    re-encoded plainly; the reader gives the same splats, colours to 8 bits."""
+    m = _model(n=300, sh_degree=0)
+    write_compressed_ply(m, str(tmp_path / "m.compressed.ply"))
+    raw = (tmp_path / "m.compressed.ply").read_bytes()
+    head, body = raw.split(b"end_header\n", 1)
+    lines = [x for x in head.decode().splitlines() if not any(x == f"property float {p}" for p in CHUNK_PROPS[12:])]
+    chunks = np.frombuffer(body, "<f4", 2 * 18).reshape(2, 18)
+    words = np.frombuffer(body, "<u4", 300 * 4, 2 * 18 * 4).reshape(300, 4).copy()
+    ours = read_compressed_ply(str(tmp_path / "m.compressed.ply"))
+    colour = np.clip(0.5 + SH_C0 * ours.sh[:, 0].double().numpy(), 0, 1)
+    c8 = np.round(colour * 255).astype(np.uint32)
+    words[:, 3] = (c8[:, 0] << 24) | (c8[:, 1] << 16) | (c8[:, 2] << 8) | (words[:, 3] & 255)
+    old = "\n".join(lines).encode() + b"\nend_header\n" + np.ascontiguousarray(chunks[:, :12]).tobytes() + words.tobytes()
+    (tmp_path / "old.compressed.ply").write_bytes(old)
+    back = read_compressed_ply(str(tmp_path / "old.compressed.ply"))
+    torch.testing.assert_close(back.means, ours.means)
+    torch.testing.assert_close(back.opacities, ours.opacities)
+    assert float((0.5 + SH_C0 * back.sh[:, 0].double() - torch.from_numpy(colour)).abs().max()) <= 0.5 / 255 + 1e-6
