@@ -14,8 +14,9 @@ import pytest
 from ctgs.resources import cache_dir
 
 
-def npm_package(spec: str, name: str, why: str) -> tuple[str, str]:
-    """(node, path of package `name` installed from `spec`, e.g. "gltf-validator@2.0.0-dev.3.10")."""
+def npm_package(spec: str, name: str, why: str, ignore_scripts: bool = False) -> tuple[str, str]:
+    """(node, path of package `name` installed from `spec`, e.g. "gltf-validator@2.0.0-dev.3.10"). ignore_scripts:
+    install without running the packages' install scripts (what the tests use needs none)."""
     node, npm = shutil.which("node"), shutil.which("npm")
     if not node or not npm:
         pytest.skip(f"node or npm not found: {why} (npm package {spec}) cannot run")
@@ -24,8 +25,8 @@ def npm_package(spec: str, name: str, why: str) -> tuple[str, str]:
     if not (package / "package.json").is_file():
         prefix.parent.mkdir(parents=True, exist_ok=True)
         tmp = tempfile.mkdtemp(prefix=".install-", dir=prefix.parent)  # complete installs only, then renamed
-        subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefix", tmp, spec], check=True,
-                       capture_output=True, timeout=600)
+        subprocess.run([npm, "install", "--no-audit", "--no-fund", *(["--ignore-scripts"] if ignore_scripts else []),
+                        "--prefix", tmp, spec], check=True, capture_output=True, timeout=600)
         if (package / "package.json").is_file():  # another process finished first
             shutil.rmtree(tmp)
         else:
