@@ -276,6 +276,14 @@ def build_gltf(model: SurfelModel, origin=None):
             attributes=g.Attributes(POSITION=pos_acc, TEXCOORD_0=uv_acc), indices=idx_acc, material=p)]))
         gltf.nodes.append(g.Node(mesh=p, name=f"surfels_{p}"))
         nodes.append(p)
+    return finish(gltf, blob, nodes, origin)
+
+
+def finish(gltf, blob: _Blob, nodes: list[int], origin=None):
+    """Close a document: its scene of `nodes` (under a root node translating them to `origin`, a recentred scene's
+    origin in the file's frame, when there is one) and its binary chunk. Returns the document."""
+    import pygltflib as g
+
     if origin is not None and any(origin):
         gltf.nodes.append(g.Node(name="world_origin", translation=[float(x) for x in origin], children=nodes))
         nodes = [len(gltf.nodes) - 1]

@@ -28,7 +28,6 @@ glTF frame), so glTF tools place the model where it lies in the COLMAP frame.
 
 from __future__ import annotations
 
-import math
 import os
 
 import numpy as np
@@ -36,12 +35,7 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.io import atomic
-from ctgs.io.plain_ply import (
-    FLAT_SCALE_RATIO,
-    SH_C0,
-    surfels_from_gaussians,
-    texture_means,
-)
+from ctgs.io.plain_ply import SH_C0, gaussian_view, surfels_from_gaussians
 from ctgs.io.splat import ALPHA_EPS
 from ctgs.io.spz import sh_flips
 from ctgs.model.surfels import SurfelModel
@@ -74,21 +68,15 @@ def build_gltf(model: SurfelModel, origin=None):
     """The pygltflib.GLTF2 document (binary blob set) of `model` with KHR_gaussian_splatting."""
     import pygltflib as g
 
-    from ctgs.io.gltf import _Blob
+    from ctgs.io.gltf import _Blob, finish
 
-    n = model.num_primitives
-    if n == 0:
-        raise UserError("the model has no primitives: nothing to export (check the run trained)")
-    degree = min(int(model.sh_degree), 3, round(model.sh.shape[1] ** 0.5) - 1)
-    k = (degree + 1) ** 2
-    means = model.means.detach().cpu().double().numpy() * TURN
-    log_s = model.log_scales.detach().cpu().double().numpy()
-    scales = np.exp(np.concatenate([log_s, (log_s.min(1) + math.log(FLAT_SCALE_RATIO))[:, None]], 1))
-    q = _turn_quats(torch.nn.functional.normalize(model.quats.detach().cpu().double(), dim=1).numpy())
-    opacity = torch.sigmoid(model.opacity_logits.detach().cpu().double()).numpy()
-    sh = model.sh.detach().cpu()[:, :k].double().numpy().copy()  # [N, K, 3]
-    sh[:, 0] += (texture_means(model) / SH_C0).numpy()
-    sh[:, 1:] *= sh_flips(degree, TURN)[None, :, None]
+    v = gaussian_view(model)  # what the 3DGS PLY holds, then turned into glTF's frame
+    n, degree = model.num_primitives, v["degree"]
+    means = v["means"] * TURN
+    scales = np.exp(v["log_scales"])
+    q = _turn_quats(v["quats"])
+    opacity = v["opacity"]
+    sh = np.concatenate([v["dc"][:, None], v["rest"] * sh_flips(degree, TURN)[None, :, None]], 1)  # [N, K, 3]
     colour = np.clip(np.round(np.concatenate([0.5 + SH_C0 * sh[:, 0], opacity[:, None]], 1) * 255), 0, 255)
 
     gltf = g.GLTF2(asset=g.Asset(generator=GENERATOR, version="2.0"), scene=0, extensionsUsed=[EXTENSION])
@@ -112,16 +100,7 @@ def build_gltf(model: SurfelModel, origin=None):
     gltf.meshes = [g.Mesh(name="splats", primitives=[g.Primitive(attributes=attributes, mode=POINTS,
                                                                  extensions={EXTENSION: dict(PRIMITIVE_EXTENSION)})])]
     gltf.nodes = [g.Node(mesh=0, name="splats")]
-    nodes = [0]
-    if origin is not None and any(origin):
-        gltf.nodes.append(g.Node(name="world_origin", translation=[float(x) for x in np.asarray(origin) * TURN],
-                                 children=nodes))
-        nodes = [1]
-    gltf.scenes = [g.Scene(nodes=nodes)]
-    data = blob.bytes()
-    gltf.buffers = [g.Buffer(byteLength=len(data))]
-    gltf.set_binary_blob(data)
-    return gltf
+    return finish(gltf, blob, [0], None if origin is None else np.asarray(origin, dtype=np.float64) * TURN)
 
 
 def write_glb_splats(model: SurfelModel, path: str, origin=None) -> dict:
@@ -130,7 +109,7 @@ def write_glb_splats(model: SurfelModel, path: str, origin=None) -> dict:
     with atomic.atomic_path(path) as tmp:
         gltf.save_binary(tmp)
     return {"bytes": os.path.getsize(path), "splats": model.num_primitives,
-            "sh_degree": min(int(model.sh_degree), 3, round(model.sh.shape[1] ** 0.5) - 1)}
+            "sh_degree": gltf.asset.extras["ctgs"]["sh_degree"]}
 
 
 def read_glb_splats(path: str) -> SurfelModel:

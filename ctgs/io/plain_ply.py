@@ -57,6 +57,23 @@ def texture_means(model: SurfelModel) -> torch.Tensor:
     return out / wsum.clamp_min(1e-30)[:, None]
 
 
+def gaussian_view(model: SurfelModel) -> dict:
+    """What a Gaussian format holds of `model` (the 3DGS PLY's content), float64 numpy in the model's order: means
+    [N, 3], log_scales [N, 3] (the flat axis FLAT_SCALE_RATIO x the smaller tangent scale), quats [N, 4] (w, x, y, z,
+    unit), opacity [N] (sigmoid), dc [N, 3] (SH DC with the texture mean folded in), rest [N, R, 3] (the rendered SH
+    bands past the DC), degree. UserError for a model without primitives."""
+    if model.num_primitives == 0:
+        raise UserError("the model has no primitives: nothing to export (check the run trained)")
+    degree = min(int(model.sh_degree), 3, round(model.sh.shape[1] ** 0.5) - 1)
+    log_s = model.log_scales.detach().cpu().double().numpy()
+    sh = model.sh.detach().cpu()[:, :(degree + 1) ** 2].double().numpy()
+    return {"means": model.means.detach().cpu().double().numpy(),
+            "log_scales": np.concatenate([log_s, (log_s.min(1) + np.log(FLAT_SCALE_RATIO))[:, None]], 1),
+            "quats": torch.nn.functional.normalize(model.quats.detach().cpu().double(), dim=1).numpy(),
+            "opacity": torch.sigmoid(model.opacity_logits.detach().cpu().double()).numpy(),
+            "dc": sh[:, 0] + (texture_means(model) / SH_C0).numpy(), "rest": sh[:, 1:], "degree": degree}
+
+
 def write_plain_ply(model: SurfelModel, path: str, origin=None) -> None:
     """Write the 3DGS-layout approximation of `model` to `path` (float32, atomically). origin: [3] where the model's
     frame has its origin in the scene's COLMAP frame (a recentred scene), written as a header comment

@@ -47,12 +47,7 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.io import atomic
-from ctgs.io.plain_ply import (
-    FLAT_SCALE_RATIO,
-    SH_C0,
-    surfels_from_gaussians,
-    texture_means,
-)
+from ctgs.io.plain_ply import SH_C0, gaussian_view, surfels_from_gaussians
 from ctgs.io.splat import ALPHA_EPS
 from ctgs.model.surfels import SurfelModel
 
@@ -73,27 +68,11 @@ PALETTE_MAX = 64 * 1024
 
 # ---------------------------------------------------------------- what both formats hold
 
-def gaussian_table(model: SurfelModel) -> dict[str, np.ndarray]:
-    """The 3DGS-PLY view of `model` (ctgs.io.plain_ply), float64, in Morton order: means [N, 3], log_scales [N, 3],
-    quats [N, 4] (w, x, y, z, unit), opacity [N] (sigmoid), dc [N, 3] (SH DC with the texture mean folded in),
-    rest [N, R, 3] (the rendered SH bands past the DC), degree."""
-    n = model.num_primitives
-    if n == 0:
-        raise UserError("the model has no primitives: nothing to export (check the run trained)")
-    degree = min(int(model.sh_degree), 3, round(model.sh.shape[1] ** 0.5) - 1)
-    k = (degree + 1) ** 2
-    means = model.means.detach().cpu().double().numpy()
-    log_s = model.log_scales.detach().cpu().double().numpy()
-    log_s = np.concatenate([log_s, (log_s.min(1) + math.log(FLAT_SCALE_RATIO))[:, None]], 1)
-    q = torch.nn.functional.normalize(model.quats.detach().cpu().double(), dim=1).numpy()
-    sh = model.sh.detach().cpu()[:, :k].double().numpy()
-    table = {"means": means, "log_scales": log_s, "quats": q,
-             "opacity": torch.sigmoid(model.opacity_logits.detach().cpu().double()).numpy(),
-             "dc": sh[:, 0] + (texture_means(model) / SH_C0).numpy(), "rest": sh[:, 1:]}
-    order = morton_order(means)
-    out = {key: value[order] for key, value in table.items()}
-    out["degree"] = degree
-    return out
+def gaussian_table(model: SurfelModel) -> dict:
+    """ctgs.io.plain_ply.gaussian_view of `model` (what both formats hold), in Morton order of the centres."""
+    g = gaussian_view(model)
+    order = morton_order(g["means"])
+    return {key: value if key == "degree" else value[order] for key, value in g.items()}
 
 
 def morton_order(points: np.ndarray) -> np.ndarray:
