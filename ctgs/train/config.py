@@ -98,6 +98,9 @@ class TrainConfig:
     virtual_pixels: str = _f("held", "pixels of a virtual view the coverage term covers: held (some training image "
                              "holds them at every sampled depth) | few (of those, the ones some depth of which only "
                              "one or two training images hold)")
+    lambda_normal: float = _f(0.0, "> 0: weight of 2DGS's depth-normal consistency term (ctgs.train.normal: one more "
+                              "render per step; 2DGS uses 0.05; 0 = off, the paper)")
+    normal_from: int = _f(7000, "first iteration of the depth-normal term (paper scale; 2DGS's)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
@@ -198,7 +201,8 @@ _RANGES = [
     ("lr_texture_final", _ge(0), ">= 0 (0 = constant lr_texture)"),
     ("lr_scale_final", _ge(0), ">= 0 (0 = constant lr_scale)"), ("adam_eps", _gt(0), "> 0"),
     ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
-    ("lambda_texture", _ge(0), ">= 0"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
+    ("lambda_texture", _ge(0), ">= 0"), ("lambda_normal", _ge(0), ">= 0"),
+    ("normal_from", _ge(0), ">= 0"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
     ("virtual_every", _ge(1), ">= 1"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
     ("routine_every", _gt(0), "> 0"), ("routine_until", _ge(0), ">= 0"), ("routine_margin", _ge(0), ">= 0"),
     ("late_downscale_every", _gt(0), "> 0"), ("realloc_every", _gt(0), "> 0"),

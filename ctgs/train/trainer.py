@@ -34,6 +34,7 @@ from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import full_routine, late_routine
+from ctgs.train.normal import normal_loss
 from ctgs.train.virtual import coverage_loss, virtual_views
 
 
@@ -128,6 +129,7 @@ class Trainer:
                 raise UserError(f"{scene.root}: virtual_coverage found no virtual view with {cfg.virtual_pixels} "
                                 "pixels (it needs two training cameras with SfM points in view); set "
                                 "virtual_coverage = 0")
+        self.last_normal = float("nan")  # lambda_normal: the last step's depth-normal term (logged)
         self.virtual_order = torch.randperm(len(self.virtual), generator=torch.Generator().manual_seed(cfg.seed + 1))
         # max_params_per_value: the size budget from the observed values (an explicit max_params wins)
         budgeted = rules.with_size_budget(cfg, self.observed_values())
@@ -317,6 +319,19 @@ class Trainer:
         alpha = self.render_fn(self.model.render_inputs(), vv.camera).alpha
         (self.cfg.virtual_coverage * coverage_loss(alpha, vv)).backward()
 
+    def _normal_active(self, it: int) -> bool:
+        return self.cfg.lambda_normal > 0 and it >= schedule.at_int(self.cfg, self.cfg.normal_from)
+
+    def _normal_step(self, it: int, view: TrainView) -> None:
+        """lambda_normal: from normal_from on, 2DGS's depth-normal consistency term on the step's view, rendered and
+        back-propagated on its own (its gradients add to the step's; the 2dgs gradient statistics exclude it)."""
+        if not self._normal_active(it):
+            return
+        term = normal_loss(self.model.render_inputs(), view.camera, self.cfg.backend)
+        self._check_finite(term)
+        (self.cfg.lambda_normal * term).backward()
+        self.last_normal = float(term.detach())
+
     def _calibrate(self) -> tuple[float, float, float | None]:
         """Median seconds, timed on a copy of the model and optimiser (the run's own are not touched), of a
         training step as the loop takes it (forward+backward, Adam), of a forward on a training view, and for a
@@ -360,6 +375,10 @@ class Trainer:
             self.opt.step(self.model, lrs)
 
         seconds = _median_seconds(step, device=self.device)
+        if self.cfg.lambda_normal > 0:  # its share of the run's steps (from normal_from on)
+            share = max(0.0, 1.0 - schedule.at(self.cfg, self.cfg.normal_from) / max(1, self.cfg.iterations))
+            seconds += share * _median_seconds(lambda: normal_loss(self.model.render_inputs(), view.camera,
+                                                                   self.cfg.backend).backward(), device=self.device)
         if self.virtual:
             seconds += (_median_seconds(lambda: self._virtual_step(self.cfg.virtual_every), device=self.device)
                         / self.cfg.virtual_every)
@@ -423,6 +442,7 @@ class Trainer:
             if cfg.method != "content_aware" and it <= schedule.at(cfg, cfg.densify_until):
                 self.acc.add_view(self.model.means, self.model.means.grad, view.camera)
             self._virtual_step(it)
+            self._normal_step(it, view)
             lrs = schedule.learning_rates(cfg, it, self.extent, self.model.sh.shape[1], self.device)
             self.opt.step(self.model, lrs)
             self._check_finite(loss.detach())
@@ -442,6 +462,7 @@ class Trainer:
                 self._log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                            "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
                            "sh_degree": self.model.sh_degree, "lr_pos": lrs["means"],
+                           **({"normal": self.last_normal} if self._normal_active(it) else {}),
                            "seconds": round(self.train_seconds, 3), "wall": round(self.wall_seconds(), 3),
                            **self._device_memory()})
             yield Step(it, float(loss.detach()), terms.psnr, self.model.num_primitives, self.model.num_texels,
