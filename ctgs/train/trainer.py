@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import copy
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, replace
@@ -30,11 +29,11 @@ from ctgs.train.densify import RESET_OPACITY, GradAccumulator, densify_and_prune
 from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
 from ctgs.train.fill import fill_points
 from ctgs.train.init import init_model
-from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell_points
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.loss import training_loss
-from ctgs.train.routines import full_routine, late_routine
 from ctgs.train.normal import normal_loss
+from ctgs.train.routines import full_routine, late_routine
+from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere, shell_points
 from ctgs.train.virtual import coverage_loss, virtual_views
 
 
