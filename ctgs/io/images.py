@@ -107,12 +107,12 @@ def read_rgb(path: str, background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     return to_rgb(read_image(path), background)
 
 
-def write_image(path: str, array: np.ndarray, *, bits: int | None = None) -> None:
+def write_image(path: str, array: np.ndarray, *, bits: int | None = None, half: bool = True) -> None:
     """Write [H, W, C] or [H, W] (C in 1..4) atomically.
 
     Float input is taken as [0, 1] and clipped for integer files; uint8/uint16 input is written as is.
     The file type follows the extension; `bits` (8 or 16) picks the integer depth for PNG/TIFF
-    (default: 16 for uint16 input, else 8). EXR is written as half floats, unclipped.
+    (default: 16 for uint16 input, else 8). EXR is written as half floats (`half=False`: 32-bit floats), unclipped.
     """
     arr = np.asarray(array)
     if arr.ndim == 2:
@@ -121,7 +121,7 @@ def write_image(path: str, array: np.ndarray, *, bits: int | None = None) -> Non
         raise ValueError(f"write_image: array must have shape [H, W] or [H, W, 1..4], got {arr.shape}")
     ext = os.path.splitext(path)[1].lower()
     if ext in (".exr", ".hdr"):
-        fmt = "half" if ext == ".exr" else "float"
+        fmt = "half" if ext == ".exr" and half else "float"
         data = arr.astype(np.float32)
     else:
         if bits is None:

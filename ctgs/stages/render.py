@@ -18,7 +18,11 @@ import click
               help="Which of the scene's views to render (test = every holdout-th image).")
 @click.option("--model", "model_dir", default=None, type=click.Path(file_okay=False),
               help="Render this exported/compressed model folder instead of RUN_DIR/model.pt.")
-def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str | None) -> None:
+@click.option("--maps", default="rgb", show_default=True, metavar="LIST",
+              help="Comma-separated maps per view: rgb (NAME.png), normal (NAME.normal.png: the blended surfel normal "
+                   "in camera space, x right, y down, z forward, as (n + 1) / 2, alpha in the 4th channel), depth "
+                   "(NAME.depth.exr: expected camera-space depth, depth / alpha, float32, 0 where nothing is drawn).")
+def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str | None, maps: str) -> None:
     """Render RUN_DIR/model.pt (or --model) from the cameras of the scene it was trained on."""
     import torch
 
@@ -28,8 +32,12 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     from ctgs.render import render
     from ctgs.scene.loader import load_scene
 
-    atomic.ensure_replaceable(out_dir, lambda names: all(n.endswith(".png") for n in names),
-                              "an earlier render folder (PNG files only)")
+    wanted = [m.strip() for m in maps.split(",") if m.strip()]
+    unknown = sorted(set(wanted) - set(MAPS))
+    if unknown or not wanted:
+        raise click.BadParameter(f"{maps!r}: use a comma-separated list of {', '.join(MAPS)}", param_hint="--maps")
+    atomic.ensure_replaceable(out_dir, lambda names: all(n.endswith((".png", ".exr")) for n in names),
+                              "an earlier render folder (PNG and EXR files only)")
     device = "cuda" if backend == "cuda" or (backend == "auto" and torch.cuda.is_available()) else "cpu"
     run = load_run(run_dir, device=device)
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
@@ -49,7 +57,37 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
         inputs = model.render_inputs()
         for view in chosen:
             cam = view.camera.to(device, inputs.means.dtype)
-            rgb = render(inputs, cam, backend=backend, sh_degree=model.sh_degree).rgb  # [H, W, 3]
-            name = os.path.splitext(os.path.basename(view.name))[0] + ".png"
-            write_image(os.path.join(tmp, name), rgb.clamp(0, 1).cpu().numpy())
-    click.echo(f"{out_dir}: {len(chosen)} {views} views rendered with backend {backend}")
+            stem = os.path.join(tmp, os.path.splitext(os.path.basename(view.name))[0])
+            if "rgb" in wanted:
+                rgb = render(inputs, cam, backend=backend, sh_degree=model.sh_degree).rgb  # [H, W, 3]
+                write_image(stem + ".png", rgb.clamp(0, 1).cpu().numpy())
+            if "normal" in wanted or "depth" in wanted:
+                normal, alpha, depth = geometry_maps(inputs, cam, backend)
+                if "normal" in wanted:
+                    rgba = torch.cat([(normal + 1) * 0.5, alpha[..., None]], -1)
+                    write_image(stem + ".normal.png", rgba.clamp(0, 1).cpu().numpy(), bits=16)
+                if "depth" in wanted:
+                    write_image(stem + ".depth.exr", depth.cpu().numpy(), half=False)
+    click.echo(f"{out_dir}: {len(chosen)} {views} views rendered ({', '.join(wanted)}) with backend {backend}")
+
+
+MAPS = ("rgb", "normal", "depth")
+
+
+def geometry_maps(inputs, camera, backend: str):
+    """(normal [H, W, 3] unit camera-space blended surfel normal facing the camera, 0 where nothing is drawn;
+    alpha [H, W]; expected depth [H, W] = depth / alpha, 0 where alpha <= 1e-6): one render with the surfels'
+    normals as colour (ctgs.train.normal, the maps 2DGS's normal term compares)."""
+    import torch
+
+    from ctgs.render import render
+    from ctgs.train.normal import normal_inputs
+
+    out = render(normal_inputs(inputs, camera), camera, backend=backend, sh_degree=0,
+                 background=inputs.means.new_zeros(3))
+    n = 2.0 * out.rgb - out.alpha[..., None]
+    norm = n.norm(dim=-1, keepdim=True)
+    normal = torch.where(norm > 1e-8, n / norm.clamp_min(1e-8), torch.zeros_like(n))
+    drawn = out.alpha > 1e-6
+    depth = torch.where(drawn, out.depth / out.alpha.clamp_min(1e-6), torch.zeros_like(out.depth))
+    return normal, out.alpha, depth

@@ -50,6 +50,46 @@ def test_render_writes_the_test_views_like_eval(run_dir, tmp_path):
     assert res.exit_code == 0 and len(os.listdir(tmp_path / "r")) == 9  # an earlier render folder is replaced
 
 
+def test_render_maps_normal_and_depth(run_dir, tmp_path):
+    """--maps rgb,normal,depth: the colour PNG as without it; a 16-bit RGBA normal map ((n + 1) / 2, unit normals
+    facing the camera where drawn, alpha as in a colour render); a float32 EXR of depth / alpha."""
+    import numpy as np
+    import torch
+
+    from ctgs.io.run_model import load_run
+    from ctgs.render import render
+    from ctgs.scene.loader import load_scene
+
+    res = _invoke("render", run_dir, "-o", str(tmp_path / "m"), "--backend", "cpu", "--maps", "rgb,normal,depth")
+    assert res.exit_code == 0, res.output
+    assert sorted(os.listdir(tmp_path / "m")) == ["000.depth.exr", "000.normal.png", "000.png", "008.depth.exr",
+                                                  "008.normal.png", "008.png"]
+    assert _invoke("render", run_dir, "-o", str(tmp_path / "c"), "--backend", "cpu").exit_code == 0
+    assert (tmp_path / "m" / "000.png").read_bytes() == (tmp_path / "c" / "000.png").read_bytes()
+    run = load_run(run_dir)
+    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
+    with torch.no_grad():
+        out = render(run.model.render_inputs(), scene.test[0].camera, backend="cpu", sh_degree=run.model.sh_degree)
+    nmap = ctgs.io.images.read_image(str(tmp_path / "m" / "000.normal.png"))
+    assert nmap.shape == (32, 40, 4)
+    assert np.allclose(nmap[..., 3], out.alpha.numpy(), atol=1e-4)  # 16-bit alpha
+    drawn = out.alpha.numpy() > 0.5
+    n = nmap[..., :3] * 2 - 1
+    assert drawn.sum() > 100
+    assert np.allclose(np.linalg.norm(n[drawn], axis=-1), 1.0, atol=2e-3)
+    cam = scene.test[0].camera  # facing the camera: n . ray <= 0 along every pixel's ray (a surfel's plane holds
+    u = (np.arange(40) + 0.5 - cam.cx) / cam.fx  # its hit points, all on one side of the camera centre)
+    v = (np.arange(32) + 0.5 - cam.cy) / cam.fy
+    ray = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((32, 40))), -1)
+    assert ((n * ray).sum(-1)[drawn] <= 2e-3).all()
+    depth = ctgs.io.images.read_image(str(tmp_path / "m" / "000.depth.exr"))
+    assert depth.dtype == np.float32 and depth.shape[:2] == (32, 40)
+    want = (out.depth / out.alpha.clamp_min(1e-6)).numpy()
+    assert np.allclose(depth.reshape(32, 40)[drawn], want[drawn], rtol=1e-6)
+    res = _invoke("render", run_dir, "-o", str(tmp_path / "x"), "--maps", "rgb,albedo")
+    assert res.exit_code == 2 and "--maps" in res.output and not (tmp_path / "x").exists()
+
+
 @pytest.mark.parametrize("after", [0, 1])
 def test_render_failure_leaves_no_folder(run_dir, tmp_path, monkeypatch, after):
     calls = _fail_on_write(monkeypatch, after)
