@@ -27,6 +27,7 @@ from ctgs.train.budget import BudgetPlanner
 from ctgs.train.config import TrainConfig
 from ctgs.train.densify import RESET_OPACITY, GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
+from ctgs.train.exposure import Exposure
 from ctgs.train.fill import fill_points
 from ctgs.train.init import init_model
 from ctgs.train.kmin import compute_k_min
@@ -145,6 +146,9 @@ class Trainer:
             raise UserError(f"{run_dir}: --resume but no checkpoint in checkpoints/; start without --resume")
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed % 2**32)
+        # exposure_comp: a per-channel gain per training image on its training renders (ctgs.train.exposure)
+        self.view_index = {v.name: i for i, v in enumerate(self.train_views)}
+        self.exposure = Exposure(len(self.train_views), self.device, cfg.lr_exposure) if cfg.exposure_comp else None
         if state is None:
             mode = {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}[cfg.method]
             # extra initial points, appended after the SfM points' cap: the far shell's, then the fill's
@@ -201,6 +205,8 @@ class Trainer:
         self.acc = GradAccumulator(self.model.num_primitives, self.device)
         self.acc.load_state_dict({k: v.to(self.device) for k, v in state["acc"].items()})
         ckpt.restore_rng(state["rng"], self.gen)
+        if self.exposure is not None and "exposure" in state:
+            self.exposure.load_state_dict(state["exposure"])
         # Drop log lines written after the checkpoint (they will be produced again).
         self.log_lines = int(state["log_lines"])
         lines = open(self.log_path).read().splitlines()[: self.log_lines] if os.path.exists(self.log_path) else []
@@ -213,7 +219,8 @@ class Trainer:
                 "acc": {k: v.cpu() for k, v in self.acc.state_dict().items()}, "rng": ckpt.rng_state(self.gen),
                 "log_lines": self.log_lines, "config": self.user_cfg.to_dict(), "planned_iterations": self.cfg.iterations,
                 "textures_started": self.textures_started, "wall_seconds": self.wall_seconds(),
-                **({"planner": self.planner.state_dict()} if self.planner else {})}
+                **({"planner": self.planner.state_dict()} if self.planner else {}),
+                **({"exposure": self.exposure.state_dict()} if self.exposure is not None else {})}
 
     def observed_values(self) -> int:
         """Values the model is fitted to: RGB of every training pixel."""
@@ -429,6 +436,8 @@ class Trainer:
             bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
             inputs = self.model.render_inputs()
             rgb, rasterized = self._training_render(inputs, view, bg)
+            if self.exposure is not None:
+                rgb = self.exposure.apply(rgb, self.view_index[view.name])
             terms = training_loss(rgb, view.image_t, self.model, view.camera, cfg, rasterized=rasterized,
                                   textures=inputs.textures)
             loss = terms.total
@@ -444,6 +453,8 @@ class Trainer:
             self._normal_step(it, view)
             lrs = schedule.learning_rates(cfg, it, self.extent, self.model.sh.shape[1], self.device)
             self.opt.step(self.model, lrs)
+            if self.exposure is not None:
+                self.exposure.step()
             self._check_finite(loss.detach())
             t1 = time.perf_counter()
             events = list(self._adapt(it))
@@ -504,6 +515,10 @@ class Trainer:
             self._log({"type": "routine", "it": self.it, "kind": "budget", **budget, "n": self.model.num_primitives,
                        "texels": self.model.num_texels})
             yield Routine(self.it, "budget", budget)
+        if self.exposure is not None:
+            gains = self.exposure.gains().detach().cpu()
+            self._log({"type": "exposure", "it": self.it, "gains": {v.name: [round(float(x), 5) for x in gains[i]]
+                                                                     for i, v in enumerate(self.train_views)}})
         p, s = self.evaluate()
         self._log({"type": "test", "it": self.it, "psnr": p, "ssim": s})
         yield Eval(self.it, p, s)
