@@ -1,0 +1,71 @@
+"""Per-training-image exposure compensation (ctgs.train.exposure, config keys exposure_comp / lr_exposure)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+from ctgs.train.exposure import Exposure
+
+
+def test_gains_are_centred_and_only_scale_the_render():
+    e = Exposure(4, "cpu", lr=0.1)
+    with torch.no_grad():
+        e.log_gain.copy_(torch.tensor([[0.1, 0.0, 0.3], [0.5, 0.2, 0.3], [0.3, 0.4, 0.3], [0.7, 0.2, 0.3]]))
+    g = e.gains()
+    assert torch.allclose(g.log().mean(0), torch.zeros(3), atol=1e-6)  # geometric mean 1 per channel
+    assert torch.allclose(g[:, 2], torch.ones(4))  # a shared offset is no gain at all
+    rgb = torch.rand(5, 6, 3)
+    assert torch.allclose(e.apply(rgb, 1), rgb * g[1])
+
+
+def test_the_gains_follow_a_brighter_image_and_round_trip():
+    """Fitting gain x a grey render to images brighter and darker than it: the gains order as the images do, and
+    their state restores exactly."""
+    e = Exposure(3, "cpu", lr=0.02)
+    render = torch.full((4, 4, 3), 0.5)
+    targets = [0.45, 0.5, 0.6]
+    for it in range(300):
+        i = it % 3
+        loss = (e.apply(render, i) - targets[i]).abs().mean()
+        loss.backward()
+        e.step()
+    g = e.gains().detach()[:, 0]
+    assert g[0] < g[1] < g[2]
+    assert float(g[2] / g[0]) == pytest.approx(0.6 / 0.45, rel=0.05)
+    f = Exposure(3, "cpu", lr=0.02)
+    f.load_state_dict(e.state_dict())
+    assert torch.equal(f.gains(), e.gains()) and f.t == e.t and torch.equal(f.v, e.v)
+
+
+def test_exposure_comp_recovers_the_gains_a_capture_was_shot_with(tmp_path):
+    """The demo scene with every other training photo darkened by 20%: a short run with exposure_comp learns gains
+    that tell the darkened photos from the others, and ends with a checkpoint that holds them."""
+    from ctgs.io.images import read_image, write_image
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.train import checkpoint as ckpt
+    from ctgs.train.trainer import Trainer
+
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=9, width=64, height=48, points=300)
+    folder = os.path.join(scene_dir, "images")
+    names = sorted(os.listdir(folder))
+    dark = set(names[1::2])
+    for name in dark:
+        path = os.path.join(folder, name)
+        write_image(path, read_image(path) * 0.8)  # float [0, 1] in, 8-bit PNG out
+    run = str(tmp_path / "run")
+    cfg = resolve_config(scene_dir, run, None, 400, ["threads=1", "seed=1", "exposure_comp=true", "lr_exposure=0.01"],
+                         None, False, None, None, preset="fast")
+    t = Trainer(cfg, _load_scene(cfg), run)
+    for _ in t.run():
+        pass
+    g = t.exposure.gains().detach().mean(1)  # [V] mean over channels
+    is_dark = torch.tensor([v.name in dark for v in t.train_views])
+    assert is_dark.any() and (~is_dark).any()
+    assert float(g[is_dark].max()) < float(g[~is_dark].min())  # every darkened photo below every other
+    assert float(g[~is_dark].mean() / g[is_dark].mean()) == pytest.approx(1 / 0.8, rel=0.08)
+    state = ckpt.load_checkpoint(run)
+    assert torch.equal(state["exposure"]["log_gain"], t.exposure.log_gain.detach().cpu())
