@@ -19,7 +19,7 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.io import atomic
-from ctgs.metrics.psnr import masked_psnr, psnr
+from ctgs.metrics.psnr import gain_matched_psnr, masked_psnr, psnr
 from ctgs.metrics.report import (METRICS_SCHEMA, METRICS_VERSION, OPEN_ALPHA, ImageMetrics, strip,
                                  write_metrics_json, write_per_image_csv)
 
@@ -172,6 +172,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             "images": run.images, "holdout": run.holdout, "split": opts.split, "num_views": len(rows),
             "num_test_views": len(rows) if opts.split == "test" else None,
             "psnr": mean("psnr"), "ssim": mean("ssim"), "open_pixels": mean("open"),
+            # exposure diagnostic (not the protocol's PSNR): PSNR after each view's least-squares gain
+            "psnr_gain_matched": mean("psnr_gain"), "gain_range": [min(r.gain for r in rows), max(r.gain for r in rows)],
             "veil_max": max(r.veil for r in rows),
             "lpips": None if net is None else mean("lpips"), "lpips_status": status,
             "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
@@ -216,7 +218,8 @@ def _write_views(out: str, views: list, renders: list, alphas: list, times: list
             lp = lpips_hwc(net, rgb.to(device), gt.to(device))
         open_px = alpha < OPEN_ALPHA
         rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3,
-                                 float(open_px.float().mean()), masked_psnr(rgb, gt, ~open_px), veil))
+                                 float(open_px.float().mean()), masked_psnr(rgb, gt, ~open_px), veil,
+                                 *gain_matched_psnr(rgb, gt)))
         write_image(os.path.join(out, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
         gts.append(gt)
 

@@ -18,6 +18,16 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return -10.0 * math.log10(max(mse, MIN_MSE))
 
 
+def gain_matched_psnr(render: torch.Tensor, gt: torch.Tensor) -> tuple[float, float]:
+    """(g, PSNR of clamp(g x render, 0, 1) against gt) with g = <render, gt> / <render, render>, the one gain that best
+    maps the render to the photo (least squares over all pixels and channels; 1 for an all-black render). A
+    diagnostic of exposure: a new view's exposure is unknown to any method, so this is not the protocol's PSNR."""
+    r, g = render.double(), gt.double()
+    den = float((r * r).sum())
+    gain = float((r * g).sum()) / den if den > 0 else 1.0
+    return gain, psnr((r * gain).clamp(0.0, 1.0), g)
+
+
 def masked_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float | None:
     """PSNR over the pixels where `mask` [H, W] is True (every channel); None when it selects none."""
     if a.shape != b.shape or tuple(mask.shape) != tuple(a.shape[:2]):

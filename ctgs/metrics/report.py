@@ -44,6 +44,10 @@ class ImageMetrics:
     # the largest share of the view's blending weight (sum of alpha T over its pixels) that one primitive whose
     # centre lies outside the view carries: a veil blended in front of the scene (docs/renderer.md, Ordering)
     veil: float = float("nan")
+    # exposure: the least-squares gain photo ~ gain x render, and PSNR after it (ctgs.metrics.psnr.gain_matched_psnr;
+    # a diagnostic, not the protocol's PSNR: a new view's exposure is unknown to any method)
+    gain: float = float("nan")
+    psnr_gain: float = float("nan")
 
 
 def _finite(x):
@@ -64,12 +68,12 @@ def write_metrics_json(path: str, metrics: dict) -> None:
 def write_per_image_csv(path: str, rows: list[ImageMetrics]) -> None:
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["name", "psnr", "ssim", "lpips", "render_ms", "open", "psnr_covered", "veil"])
+    w.writerow(["name", "psnr", "ssim", "lpips", "render_ms", "open", "psnr_covered", "veil", "gain", "psnr_gain"])
     for r in rows:
         d = asdict(r)
         w.writerow([d["name"], f"{r.psnr:.4f}", f"{r.ssim:.5f}", "" if r.lpips is None else f"{r.lpips:.5f}",
                     f"{r.render_ms:.3f}", f"{r.open:.5f}", "" if r.psnr_covered is None else f"{r.psnr_covered:.4f}",
-                    f"{r.veil:.5f}"])
+                    f"{r.veil:.5f}", f"{r.gain:.5f}", f"{r.psnr_gain:.4f}"])
     atomic.write_text(path, buf.getvalue())
 
 

@@ -15,6 +15,9 @@ OPEN_NOTE = 0.01
 # ... and when one primitive centred outside it carries at least this share of its blending weight (a veil; over
 # the training views of 24 herzjesu25 runs the largest was 12%: ctgs.metrics.evaluate.veil_share).
 VEIL_NOTE = 0.15
+# a view whose photo is this much brighter or darker than the render (least-squares gain) gets a note: the capture's
+# exposures differ, which no model of the scene can predict for a new view (ctgs.metrics.psnr.gain_matched_psnr)
+GAIN_NOTE = 0.05
 
 
 def _metrics_path(path: str) -> str:
@@ -98,5 +101,11 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
         click.echo(f"{veiled['name']}: one primitive centred outside the view carries {100 * veiled['veil']:.0f}% of "
                    f"its blending weight (a veil in front of the scene; docs/renderer.md, Ordering), PSNR "
                    f"{veiled['psnr']:.2f} dB")
+    off = max(m["per_image"], key=lambda r: abs(r["gain"] - 1) if r["gain"] is not None else 0.0)
+    if off["gain"] is not None and abs(off["gain"] - 1) >= GAIN_NOTE:
+        click.echo(f"{off['name']}: the photo is {off['gain']:.2f}x the render's brightness (least squares; the "
+                   f"views span {m['gain_range'][0]:.2f}-{m['gain_range'][1]:.2f}): exposure differs between the "
+                   f"photos; with each view's own gain PSNR would be {m['psnr_gain_matched']:.2f} dB (a diagnostic, "
+                   "not the protocol's PSNR)")
     if m["lpips"] is None:
         click.echo(f"LPIPS {m['lpips_status']}")

@@ -169,7 +169,7 @@ def test_open_pixels_and_psnr_over_the_covered_ones(run_dir, tmp_path):
     import torch
 
     from ctgs.io.run_model import load_run
-    from ctgs.metrics.psnr import masked_psnr
+    from ctgs.metrics.psnr import masked_psnr, psnr
     from ctgs.metrics.report import OPEN_ALPHA
     from ctgs.render import render
     from ctgs.scene import load_scene
@@ -187,11 +187,35 @@ def test_open_pixels_and_psnr_over_the_covered_ones(run_dir, tmp_path):
         gt = torch.as_tensor(view.image, dtype=torch.float32)
         assert row["open"] == pytest.approx(float(open_px.float().mean()), abs=1e-6)
         assert row["psnr_covered"] == pytest.approx(masked_psnr(out.rgb.clamp(0, 1), gt, ~open_px), abs=1e-4)
+        rgb = out.rgb.clamp(0, 1).double()
+        gain = float((rgb * gt).sum() / (rgb * rgb).sum())  # the least-squares exposure gain, and PSNR after it
+        assert row["gain"] == pytest.approx(gain, rel=1e-5)
+        assert row["psnr_gain"] == pytest.approx(psnr((rgb * gain).clamp(0, 1), gt), abs=1e-4)
+        assert row["psnr_gain"] >= row["psnr"] - 1e-6 or gain * float(rgb.max()) > 1  # (clipping aside, no worse)
         opens.append(row["open"])
     assert 0 < max(opens) < 1  # the fixture's sparse surfels leave some background showing
     assert m["open_pixels"] == pytest.approx(sum(opens) / len(opens))
     rows = list(csv.DictReader(open(tmp_path / "e" / "per_image.csv")))
     assert [float(r["open"]) for r in rows] == pytest.approx(opens, abs=1e-5)
+    assert [float(r["gain"]) for r in rows] == pytest.approx([r["gain"] for r in m["per_image"]], abs=1e-5)
+    assert m["psnr_gain_matched"] == pytest.approx(sum(r["psnr_gain"] for r in m["per_image"]) / len(rows))
+
+
+def test_gain_matched_psnr_undoes_an_exposure_and_nothing_else():
+    """A photo that is the render x 0.8 is matched exactly (gain 0.8, PSNR at its 100 dB cap); a render that differs
+    by more than a gain keeps that error; an all-black render gets gain 1."""
+    import torch
+
+    from ctgs.metrics.psnr import gain_matched_psnr, psnr
+
+    g = torch.Generator().manual_seed(0)
+    render = torch.rand(12, 10, 3, generator=g) * 0.9
+    gain, p = gain_matched_psnr(render, render * 0.8)
+    assert gain == pytest.approx(0.8, rel=1e-6) and p == pytest.approx(100.0)  # (float32 photo: 0.8 to 1e-7)
+    noisy = (render * 0.8 + 0.05 * torch.randn(12, 10, 3, generator=g)).clamp(0, 1)
+    gain, p = gain_matched_psnr(render, noisy)
+    assert abs(gain - 0.8) < 0.05 and psnr(render, noisy) < p < 30
+    assert gain_matched_psnr(torch.zeros(4, 4, 3), torch.rand(4, 4, 3, generator=g))[0] == 1.0
 
 
 def test_a_model_that_covers_nothing_is_all_open_and_says_so(run_dir, tmp_path):
