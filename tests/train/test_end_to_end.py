@@ -52,7 +52,10 @@ def test_short_run_reaches_a_quality_floor_and_runs_every_routine(run):
     # trimmed textures (nothing left to crop), and the last test line scores that model.
     trims = [r for r in log if r["type"] == "routine" and r["kind"] == "trim"]
     assert len(trims) == 1 and trims[0]["texels_after"] == model.num_texels <= trims[0]["texels_before"]
-    assert [r["type"] for r in log[log.index(trims[0]):]] == ["routine", "test"]
+    # (since session 37 the preset learns the photos' exposures: the learned gains are logged before the last test)
+    assert [r["type"] for r in log[log.index(trims[0]):]] == ["routine", "exposure", "test"]
+    gains = next(r for r in log if r["type"] == "exposure")["gains"]
+    assert len(gains) > 0 and all(0.5 < g < 2 for gs in gains.values() for g in gs)
     assert torch.equal(texels.trim_res(model, 0.004), model.tex_res.cpu())
     # Textures of different texel sizes: the allocation adapted to content.
     assert model.num_texels > 0 and len(set(model.t2p_exp.tolist())) >= 3
