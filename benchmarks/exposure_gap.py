@@ -19,17 +19,15 @@ import os
 import platform
 import sys
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import torch
 
-from ctgs.io.run_model import load_run
 from ctgs.render.api import render
-from ctgs.stages.train import _load_scene
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from record import write_record  # noqa: E402
+from validation_runs import load_validation_run  # noqa: E402
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -63,13 +61,8 @@ def main() -> None:
                 rd = os.path.join(args.work, f"{prefix}_{preset}_s{seed}")
                 if not os.path.isfile(os.path.join(rd, "model.pt")):
                     continue
-                run = load_run(rd)
+                run, scene = load_validation_run(rd)
                 cfg = run.config
-                if int(cfg.get("validation_holdout", 0)) <= 0:
-                    raise SystemExit(f"{rd}: not a validation run (validation_holdout = 0)")
-                scene = _load_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images,
-                                                    holdout=int(cfg.get("holdout", 8)),
-                                                    validation_holdout=int(cfg["validation_holdout"])))
                 inputs = run.model.render_inputs()
                 deg = run.model.sh_degree
                 val = [view_gap(inputs, v, deg) for v in scene.test]

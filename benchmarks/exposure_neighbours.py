@@ -19,17 +19,15 @@ import platform
 import statistics
 import sys
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import torch
 
-from ctgs.io.run_model import load_run
 from ctgs.render.api import render
-from ctgs.stages.train import _load_scene
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from record import write_record  # noqa: E402
+from validation_runs import load_validation_run  # noqa: E402
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -73,14 +71,8 @@ def main() -> None:
     runs = []
     for seed in args.seeds:
         rd = os.path.join(args.work, f"{args.prefix}_{args.preset}_s{seed}")
-        run = load_run(rd)
-        cfg = run.config
-        if int(cfg.get("validation_holdout", 0)) <= 0:
-            raise SystemExit(f"{rd}: not a validation run (validation_holdout = 0)")
+        run, scene = load_validation_run(rd)
         gains = learned_gains(rd)
-        scene = _load_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images,
-                                            holdout=int(cfg.get("holdout", 8)),
-                                            validation_holdout=int(cfg["validation_holdout"])))
         centers = np.stack([v.camera.center.double().numpy() for v in scene.train])
         log_gains = np.log(np.stack([gains[v.name] for v in scene.train]))
         inputs = run.model.render_inputs()

@@ -19,18 +19,15 @@ import os
 import platform
 import sys
 import time
-from types import SimpleNamespace
 
 import torch
 
-from ctgs.io.run_model import load_run
-from ctgs.render.api import render
-from ctgs.stages.train import _load_scene
-from ctgs.train.normal import consistency, depth_normals, normal_inputs
+from ctgs.train.normal import blended_normal, consistency, depth_normals, render_normals
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from record import write_record  # noqa: E402
+from validation_runs import load_validation_run  # noqa: E402
 
 
 @torch.no_grad()
@@ -38,9 +35,9 @@ def agreement(inputs, views) -> dict:
     """{"term": mean consistency over the views, "angle_deg": alpha-weighted mean angle (alpha >= 0.5)}."""
     terms, num, den = [], 0.0, 0.0
     for v in views:
-        out = render(normal_inputs(inputs, v.camera), v.camera, sh_degree=0, background=inputs.means.new_zeros(3))
+        out = render_normals(inputs, v.camera)
         terms.append(float(consistency(out, v.camera)))
-        n_r = 2.0 * out.rgb - out.alpha[..., None]
+        n_r = blended_normal(out)
         n_d = depth_normals(out.depth, out.alpha, v.camera)
         ok = (out.alpha >= 0.5) & (n_d.norm(dim=-1) > 0)
         cos = ((n_r / n_r.norm(dim=-1, keepdim=True).clamp_min(1e-12)) * n_d).sum(-1).clamp(-1, 1)
@@ -67,13 +64,8 @@ def main() -> None:
                 rd = os.path.join(args.work, f"{prefix}_{preset}_s{seed}")
                 if not os.path.isfile(os.path.join(rd, "model.pt")):
                     continue
-                run = load_run(rd)
+                run, scene = load_validation_run(rd)
                 cfg = run.config
-                if int(cfg.get("validation_holdout", 0)) <= 0:
-                    raise SystemExit(f"{rd}: not a validation run (validation_holdout = 0)")
-                scene = _load_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images,
-                                                    holdout=int(cfg.get("holdout", 8)),
-                                                    validation_holdout=int(cfg["validation_holdout"])))
                 run.model.sh_degree = 0
                 inputs = run.model.render_inputs()
                 tr, va = agreement(inputs, scene.train), agreement(inputs, scene.test)

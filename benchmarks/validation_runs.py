@@ -83,18 +83,26 @@ def by_view_table(title: str, groups: list, key: str, columns: list, extra=None)
     return lines
 
 
-def measure(run_dir: str, net=None, train_views: bool = False) -> dict:
+def load_validation_run(run_dir: str):
+    """(RunModel, scene) of a tuning-mode run (`--set validation_holdout=K`): scene.test are its validation views,
+    taken from the training set, never the protocol's test views. Exits with a message for any other run."""
     with open(os.path.join(run_dir, "config.toml"), "rb") as fh:
-        cfg = tomllib.load(fh)
-    if int(cfg.get("validation_holdout", 0)) <= 0:
+        holdout = int(tomllib.load(fh).get("validation_holdout", 0))
+    if holdout <= 0:
         raise SystemExit(f"{run_dir}: not a validation run (validation_holdout = 0); train with "
                          "--set validation_holdout=8")
+    run = load_run(run_dir)
+    scene = _load_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images, holdout=run.holdout,
+                                        validation_holdout=holdout))
+    return run, scene
+
+
+def measure(run_dir: str, net=None, train_views: bool = False) -> dict:
+    run, scene = load_validation_run(run_dir)
+    cfg = run.config
     with open(os.path.join(run_dir, "train_summary.json")) as fh:
         summary = json.load(fh)
-    run = load_run(run_dir)
     model = run.model
-    scene = _load_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images, holdout=run.holdout,
-                                        validation_holdout=int(cfg["validation_holdout"])))
     centre, reach = scene_sphere(scene.points, scene.train)
     far = far_mask(model.means, centre, reach)
     inputs = model.render_inputs()

@@ -80,14 +80,10 @@ def geometry_maps(inputs, camera, backend: str):
     normals as colour (ctgs.train.normal, the maps 2DGS's normal term compares)."""
     import torch
 
-    from ctgs.render import render
-    from ctgs.train.normal import normal_inputs
+    from ctgs.train.normal import blended_normal, expected_depth, render_normals
 
-    out = render(normal_inputs(inputs, camera), camera, backend=backend, sh_degree=0,
-                 background=inputs.means.new_zeros(3))
-    n = 2.0 * out.rgb - out.alpha[..., None]
+    out = render_normals(inputs, camera, backend)
+    n = blended_normal(out)
     norm = n.norm(dim=-1, keepdim=True)
     normal = torch.where(norm > 1e-8, n / norm.clamp_min(1e-8), torch.zeros_like(n))
-    drawn = out.alpha > 1e-6
-    depth = torch.where(drawn, out.depth / out.alpha.clamp_min(1e-6), torch.zeros_like(out.depth))
-    return normal, out.alpha, depth
+    return normal, out.alpha, expected_depth(out.depth, out.alpha)

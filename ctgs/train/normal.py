@@ -46,11 +46,30 @@ def normal_inputs(inputs: SurfelInputs, camera) -> SurfelInputs:
                         tex_res=torch.zeros_like(inputs.tex_res), tex_offset=torch.zeros_like(inputs.tex_offset))
 
 
+def render_normals(inputs: SurfelInputs, camera, backend: str = "auto"):
+    """RenderOutput of `normal_inputs` over a black background: rgb = (N_r + alpha) / 2 (see `blended_normal`),
+    alpha and depth as in a colour render of `inputs`."""
+    from ctgs.render import render
+
+    return render(normal_inputs(inputs, camera), camera, backend=backend, sh_degree=0,
+                  background=inputs.means.new_zeros(3))
+
+
+def blended_normal(out) -> torch.Tensor:
+    """[H, W, 3] N_r = sum_i w_i n_i from a `render_normals` output."""
+    return 2.0 * out.rgb - out.alpha[..., None]
+
+
+def expected_depth(depth: torch.Tensor, alpha: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """[H, W] depth / alpha where alpha > eps, else 0."""
+    return torch.where(alpha > eps, depth / alpha.clamp_min(eps), torch.zeros_like(depth))
+
+
 def depth_normals(depth: torch.Tensor, alpha: torch.Tensor, camera, eps: float = 1e-6) -> torch.Tensor:
     """[H, W, 3] unit camera-space normals (facing the camera) of the surface at the expected depth depth / alpha;
     zero on the one-pixel border, where alpha <= eps, and where the central differences are degenerate."""
     H, W = depth.shape
-    z = torch.where(alpha > eps, depth / alpha.clamp_min(eps), torch.zeros_like(depth))
+    z = expected_depth(depth, alpha, eps)
     u = (torch.arange(W, device=depth.device, dtype=depth.dtype) + 0.5 - camera.cx) / camera.fx
     v = (torch.arange(H, device=depth.device, dtype=depth.dtype) + 0.5 - camera.cy) / camera.fy
     p = torch.stack([z * u[None, :], z * v[:, None], z], -1)  # [H, W, 3]
@@ -67,7 +86,7 @@ def depth_normals(depth: torch.Tensor, alpha: torch.Tensor, camera, eps: float =
 def consistency(out, camera, weight: torch.Tensor | None = None) -> torch.Tensor:
     """mean(1 - weight N_r . N_d) of a normal render `out` (RenderOutput of `normal_inputs`); weight [H, W] defaults
     to out.alpha detached (2DGS's form; a constant of the step, so gradients flow through N_r and N_d only)."""
-    n_r = 2.0 * out.rgb - out.alpha[..., None]  # [H, W, 3] sum_i w_i n_i
+    n_r = blended_normal(out)
     n_d = depth_normals(out.depth, out.alpha, camera)
     weight = out.alpha.detach() if weight is None else weight
     return (1.0 - weight * (n_r * n_d).sum(-1)).mean()
@@ -75,8 +94,4 @@ def consistency(out, camera, weight: torch.Tensor | None = None) -> torch.Tensor
 
 def normal_loss(inputs: SurfelInputs, camera, backend: str = "auto") -> torch.Tensor:
     """Scalar 2DGS normal-consistency term of one view (unweighted), from one more render of `inputs`."""
-    from ctgs.render import render
-
-    out = render(normal_inputs(inputs, camera), camera, backend=backend, sh_degree=0,
-                 background=inputs.means.new_zeros(3))
-    return consistency(out, camera)
+    return consistency(render_normals(inputs, camera, backend), camera)

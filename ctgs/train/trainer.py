@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, replace
@@ -334,9 +335,10 @@ class Trainer:
         if not self._normal_active(it):
             return
         term = normal_loss(self.model.render_inputs(), view.camera, self.cfg.backend)
-        self._check_finite(term)
-        (self.cfg.lambda_normal * term).backward()
         self.last_normal = float(term.detach())
+        if not math.isfinite(self.last_normal):  # (the parameters are scanned once per step, after the optimiser)
+            self._check_finite(term)
+        (self.cfg.lambda_normal * term).backward()
 
     def _calibrate(self) -> tuple[float, float, float | None]:
         """Median seconds, timed on a copy of the model and optimiser (the run's own are not touched), of a
