@@ -58,6 +58,14 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
     t0 = time.time()
     ctgs(*cmd, log=log)
     wall = time.time() - t0
+    rec = finish(run, label, seed, commit, "-m ctgs " + " ".join(cmd), wall, lpips, log)
+    with open(rec_path, "w") as fh:
+        json.dump(rec, fh, indent=1)
+    return rec
+
+
+def finish(run: str, label: str, seed: int, commit: str, command: str, wall: float, lpips: bool, log: str) -> dict:
+    """`ctgs export` + `ctgs eval` of a trained run (on this machine, wherever it trained) and its record."""
     ctgs("export", run, "-o", os.path.join(run, "model"), log=log)
     ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"),
          *([] if lpips else ["--no-lpips"]), log=log)
@@ -65,16 +73,12 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
         s = json.load(fh)
     with open(os.path.join(run, "eval", "metrics.json")) as fh:
         m = json.load(fh)
-    rec = {"label": label, "seed": seed, "run": run, "commit": commit, "command": "-m ctgs " + " ".join(cmd),
-           "wall_s": wall,
+    return {"label": label, "seed": seed, "run": run, "commit": commit, "command": command, "wall_s": wall,
            "iterations": s["iterations"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
            "per_view_psnr": {r["name"]: r["psnr"] for r in m["per_image"]},
            "per_view_open": {r["name"]: r.get("open") for r in m["per_image"]},  # rendered alpha < 0.9 (ctgs eval)
            "primitives": m["points"], "texels": m["texels"], "params": m["params"],
            "params_per_value": s.get("params_per_observed_value"), "mb": m["bytes_on_disk"] / 1e6, "fps": m["fps"]}
-    with open(rec_path, "w") as fh:
-        json.dump(rec, fh, indent=1)
-    return rec
 
 
 def main() -> None:
@@ -92,6 +96,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--parallel", type=int, default=2)
     ap.add_argument("--tag", required=True)
+    ap.add_argument("--trained-on", default=None,
+                    help="where the runs in --work were trained, when not here (e.g. runs imported from a GPU by "
+                         "benchmarks/device/import_runs.py); replaces the record's 'CPU backend, N threads' sentence")
     args = ap.parse_args()
     commit = git_commit()  # at the start: the runs this invocation trains use this code
     from ctgs.metrics.vgg_weights import find_vgg16
@@ -136,8 +143,10 @@ def main() -> None:
                 if reused else "")
              + (f" (runs of this invocation trained at {', '.join(other_commits)}: commits made while it ran)"
                 if other_commits else "")
-             + f", CPU backend, {args.threads} thread per training, {args.parallel} trainings "
-             "at a time in seed order (A and B of a seed start together). Test views: the protocol's every 8th; A and B were fixed before "
+             + (f". Trained on {args.trained_on}" if args.trained_on else
+                f", CPU backend, {args.threads} thread per training, {args.parallel} trainings "
+                "at a time in seed order (A and B of a seed start together)")
+             + ". Test views: the protocol's every 8th; A and B were fixed before "
              "the runs, nothing was chosen from the test views. Metrics: `ctgs eval` of the exported model."
              + ("" if lpips else " LPIPS: not computed (no VGG weights; `make lpips-weights`)."), "",
              "| seed | run | iterations | wall min | test PSNR | SSIM | LPIPS | " + " | ".join(views) +
