@@ -11,7 +11,8 @@
 # output) and one $OUT/run_NAME.tgz per finished job (model.pt, config.toml, log.jsonl, train_summary.json; no
 # checkpoints), which benchmarks/device/import_runs.py turns into benchmarks/paired.py's runs on the dev machine.
 # Exit 0: all jobs ended; 3: some still run (call `wait` within 30 s). Env: G (.gpu), OUT, ROOT (/tmp/many),
-# DEVICE_ENV=0 and SMOKE_ARGS for a dry run on the dev machine, TESTS_S (150; 0 skips the tests).
+# DEVICE_ENV=0 and SMOKE_ARGS for a dry run on the dev machine, TESTS_S (150; 0 skips the tests), SMOKE=0
+# skips the smoke run.
 set -u
 cd "$(dirname "$0")/../.."
 G=${G:-.gpu}
@@ -56,6 +57,7 @@ PY
     python3 benchmarks/cuda_agreement.py "$R/agreement.jsonl" --machine "$R/machine.json" -o "$R/cuda_agreement" \
       > /dev/null 2>&1 || echo "cuda_agreement.py failed"
   fi
+  [[ ${SMOKE:-1} == 0 ]] || {
   stamp "smoke"
   S=/tmp/smoke
   rm -rf "$S"
@@ -73,6 +75,7 @@ PY
   } > "$R/smoke.log" 2>&1
   tail -4 "$R/smoke.log"
   cp "$S/run/log.jsonl" "$R/smoke_log.jsonl" 2>/dev/null; cp "$S/eval/metrics.json" "$R/smoke_metrics.json" 2>/dev/null
+  }
   secs=$((secs - ($(date +%s) - t0)))
 elif [[ $mode == wait ]]; then
   secs=${2:?seconds to wait}

@@ -102,6 +102,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
         bytes_on_disk, model_source, manifest = files.bytes_on_disk, os.path.abspath(opts.model_dir), files.manifest
     model = type(model).from_state_dict(model.state_dict(), device=device)
     backend = opts.backend or str(run.config.get("backend", "auto"))
+    if opts.backend is None and backend == "cuda" and device.type != "cuda":
+        backend = "auto"  # trained on a GPU, evaluated where there is none: the run's backend is not a request
     if backend == "auto":  # the renderer's rule: cuda when the inputs live on a GPU, else cpu
         backend = "cuda" if device.type == "cuda" else "cpu"
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)

@@ -275,3 +275,23 @@ def test_eval_an_exported_gaussian_file(run_dir, tmp_path):
                                str(tmp_path / "e2")])
     assert res.exit_code != 0 and "x.txt: not a file `ctgs export` writes" in res.output
     assert not (tmp_path / "e2").exists()
+
+
+def test_a_run_trained_on_a_gpu_evaluates_where_there_is_none(run_dir, tmp_path):
+    """A run whose config says backend = "cuda" (trained on a GPU) is evaluated on the CPU backend on a machine
+    without one, unless --backend asks for cuda (then the renderer's one-line error)."""
+    import shutil
+
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("checks the machine without a GPU")
+    run = str(tmp_path / "gpu_run")
+    shutil.copytree(run_dir, run)
+    state = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    state["config"]["backend"] = "cuda"
+    torch.save(state, os.path.join(run, "model.pt"))
+    _eval(run, "--no-lpips", "-o", str(tmp_path / "e"))
+    assert json.load(open(tmp_path / "e" / "metrics.json"))["backend"] == "cpu"
+    res = CliRunner().invoke(main, ["eval", run, "--no-lpips", "--backend", "cuda", "-o", str(tmp_path / "e2")])
+    assert res.exit_code != 0 and "needs an NVIDIA GPU" in res.output
