@@ -60,3 +60,19 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
                     iteration=int(ckpt.get("iteration", -1)), config=ckpt.get("config") or {},
                     summary=summary, model_bytes=os.path.getsize(path),
                     world_origin=tuple(float(x) for x in ckpt.get("world_origin") or (0.0, 0.0, 0.0)))
+
+
+def with_scene(run: RunModel, scene_dir: str | None = None) -> RunModel:
+    """RUN with the scene folder its views are read from: SCENE_DIR when given (a run moved from the machine or folder
+    it trained on: this machine's copy of the scene), else the one its model.pt names, which must exist here."""
+    from dataclasses import replace
+
+    if scene_dir:
+        if not os.path.isdir(scene_dir):
+            raise UserError(f"{scene_dir}: scene folder not found; pass --scene the folder `ctgs sfm` made for this "
+                            "run's photos")
+        return replace(run, scene_dir=os.path.abspath(scene_dir))
+    if not os.path.isdir(run.scene_dir):
+        raise UserError(f"{os.path.join(run.run_dir, MODEL_FILE)}: trained on the scene folder {run.scene_dir}, which "
+                        "is not on this machine; pass --scene DIR, this machine's copy of that scene")
+    return run

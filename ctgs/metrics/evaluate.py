@@ -35,6 +35,7 @@ class EvalOptions:
     device: str | None = None  # None = cuda if available, else cpu
     lpips: bool = True
     lpips_weights: str | None = None
+    scene_dir: str | None = None  # this machine's copy of the run's scene, when the run moved (None: the one it names)
     dataset: str | None = None  # table grouping; None = name of the scene folder's parent
     split: str = "test"  # "test": the protocol's test views; "train": the views the run was trained on
 
@@ -82,11 +83,11 @@ def _machine(device: torch.device) -> dict:
 
 def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     """Write metrics.json, per_image.csv, renders/*.png and strips/*.png into opts.out_dir; returns metrics."""
-    from ctgs.io.run_model import load_run
+    from ctgs.io.run_model import load_run, with_scene
     from ctgs.scene import load_scene
 
     atomic.ensure_replaceable(opts.out_dir, lambda names: "metrics.json" in names, "an earlier eval folder")
-    run = load_run(run_dir)
+    run = with_scene(load_run(run_dir), opts.scene_dir)
     device = torch.device(opts.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, bytes_on_disk, model_source = run.model, run.model_bytes, os.path.join(run.run_dir, "model.pt")
     manifest, exported = None, None

@@ -66,8 +66,12 @@ def _table(paths: tuple[str, ...], out: str) -> None:
               help="Views to evaluate: the test views, or the views the run was trained on (how well it fits its "
                    "own photos; the gap to the test views is what did not generalise). Default output for train: "
                    "RUN_DIR/eval-train.")
+@click.option("--scene", "scene_dir", default=None, type=click.Path(file_okay=False),
+              help="This machine's copy of the scene the run trained on, when the run moved from the machine or "
+                   "folder it trained on (default: the folder its model.pt names).")
 @click.option("--table", is_flag=True, help="Aggregate the metrics.json of RUN_DIRS into the paper's table.")
-def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights, dataset, split, table) -> None:
+def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights, dataset, split, scene_dir,
+            table) -> None:
     """Render the test views of RUN_DIR (or its training views: --split train) and write metrics.json,
     per_image.csv, renders/ and strips/."""
     if table:
@@ -85,7 +89,8 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
             "" if model_dir is None else "-" + os.path.basename(os.path.normpath(model_dir)))
         out_dir = os.path.join(run_dir, "eval" + suffix)
     m = evaluate(run_dir, EvalOptions(out_dir=out_dir, model_dir=model_dir, backend=backend, device=device,
-                                      lpips=lpips, lpips_weights=lpips_weights, dataset=dataset, split=split))
+                                      lpips=lpips, lpips_weights=lpips_weights, dataset=dataset, split=split,
+                                      scene_dir=scene_dir))
     lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
     views = f" ({m['num_views']} training views)" if split == "train" else ""
     click.echo(f"{out_dir}{views}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, LPIPS {lp}, {m['points']} points, "

@@ -22,13 +22,17 @@ import click
               help="Comma-separated maps per view: rgb (NAME.png), normal (NAME.normal.png: the blended surfel normal "
                    "in camera space, x right, y down, z forward, as (n + 1) / 2, alpha in the 4th channel), depth "
                    "(NAME.depth.exr: expected camera-space depth, depth / alpha, float32, 0 where nothing is drawn).")
-def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str | None, maps: str) -> None:
+@click.option("--scene", "scene_dir", default=None, type=click.Path(file_okay=False),
+              help="This machine's copy of the scene the run trained on, when the run moved from the machine or "
+                   "folder it trained on (default: the folder its model.pt names).")
+def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str | None, maps: str,
+            scene_dir: str | None) -> None:
     """Render RUN_DIR/model.pt (or --model) from the cameras of the scene it was trained on."""
     import torch
 
     from ctgs.io import atomic
     from ctgs.io.images import write_image
-    from ctgs.io.run_model import load_run
+    from ctgs.io.run_model import load_run, with_scene
     from ctgs.render import render
     from ctgs.scene.loader import load_scene
 
@@ -39,7 +43,7 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     atomic.ensure_replaceable(out_dir, lambda names: all(n.endswith((".png", ".exr")) for n in names),
                               "an earlier render folder (PNG and EXR files only)")
     device = "cuda" if backend == "cuda" or (backend == "auto" and torch.cuda.is_available()) else "cpu"
-    run = load_run(run_dir, device=device)
+    run = with_scene(load_run(run_dir, device=device), scene_dir)
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
     chosen = {"test": scene.test, "train": scene.train, "all": scene.train + scene.test}[views]
     from ctgs.scene.loader import check_same_frame

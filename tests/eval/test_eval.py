@@ -295,3 +295,32 @@ def test_a_run_trained_on_a_gpu_evaluates_where_there_is_none(run_dir, tmp_path)
     assert json.load(open(tmp_path / "e" / "metrics.json"))["backend"] == "cpu"
     res = CliRunner().invoke(main, ["eval", run, "--no-lpips", "--backend", "cuda", "-o", str(tmp_path / "e2")])
     assert res.exit_code != 0 and "needs an NVIDIA GPU" in res.output
+
+
+def test_a_moved_run_names_its_missing_scene_and_takes_scene(run_dir, tmp_path):
+    """A run whose model.pt names a scene folder that is not here (trained on another machine) fails with one line
+    that names it and the fix; --scene (eval and render) reads this machine's copy instead."""
+    import shutil
+
+    import torch
+
+    run = str(tmp_path / "moved")
+    shutil.copytree(run_dir, run)
+    state = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    here = state["scene_dir"]
+    state["scene_dir"] = "/nonexistent/gpu-server/scenes/demo"
+    torch.save(state, os.path.join(run, "model.pt"))
+    res = CliRunner().invoke(main, ["eval", run, "--no-lpips", "--backend", "cpu", "-o", str(tmp_path / "e")])
+    assert res.exit_code != 0 and "/nonexistent/gpu-server/scenes/demo" in res.output and "--scene" in res.output
+    assert not os.path.exists(tmp_path / "e")
+    res = CliRunner().invoke(main, ["render", run, "-o", str(tmp_path / "r"), "--backend", "cpu"])
+    assert res.exit_code != 0 and "--scene" in res.output
+    _eval(run, "--no-lpips", "--backend", "cpu", "--scene", here, "-o", str(tmp_path / "e"))
+    m = json.load(open(tmp_path / "e" / "metrics.json"))
+    assert m["scene_dir"] == os.path.abspath(here) and m["num_test_views"] == 2
+    res = CliRunner().invoke(main, ["render", run, "-o", str(tmp_path / "r"), "--backend", "cpu", "--scene", here])
+    assert res.exit_code == 0, res.output
+    assert len([f for f in os.listdir(tmp_path / "r") if f.endswith(".png")]) == 2
+    res = CliRunner().invoke(main, ["eval", run, "--no-lpips", "--scene", str(tmp_path / "nope"), "-o",
+                                    str(tmp_path / "e3")])
+    assert res.exit_code != 0 and "scene folder not found" in res.output
