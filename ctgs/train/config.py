@@ -104,6 +104,8 @@ class TrainConfig:
     exposure_comp: bool = _f(False, "learn a per-channel gain per training image, applied to its training renders "
                              "before the loss (ctgs.train.exposure; evaluation and exports use none; false = the paper)")
     lr_exposure: float = _f(5e-3, "lr of the exposure log-gains (Adam)")
+    exposure_channels: int = _f(3, "3: a gain per colour channel (exposure and white balance); 1: one gain per image "
+                                "(exposure only)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
@@ -205,7 +207,7 @@ _RANGES = [
     ("lr_scale_final", _ge(0), ">= 0 (0 = constant lr_scale)"), ("adam_eps", _gt(0), "> 0"),
     ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
     ("lambda_texture", _ge(0), ">= 0"), ("lambda_normal", _ge(0), ">= 0"),
-    ("normal_from", _ge(0), ">= 0"), ("lr_exposure", _ge(0), ">= 0"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
+    ("normal_from", _ge(0), ">= 0"), ("lr_exposure", _ge(0), ">= 0"), ("exposure_channels", lambda v: v in (1, 3), "1 or 3"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
     ("virtual_every", _ge(1), ">= 1"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
     ("routine_every", _gt(0), "> 0"), ("routine_until", _ge(0), ">= 0"), ("routine_margin", _ge(0), ">= 0"),
     ("late_downscale_every", _gt(0), "> 0"), ("realloc_every", _gt(0), "> 0"),

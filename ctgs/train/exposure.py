@@ -21,15 +21,16 @@ EPS = 1e-15
 
 
 class Exposure:
-    def __init__(self, num_images: int, device, lr: float):
-        self.log_gain = torch.zeros(num_images, 3, device=device, requires_grad=True)
-        self.m = torch.zeros(num_images, 3, device=device)
-        self.v = torch.zeros(num_images, 3, device=device)
+    def __init__(self, num_images: int, device, lr: float, channels: int = 3):
+        self.log_gain = torch.zeros(num_images, channels, device=device, requires_grad=True)
+        self.m = torch.zeros(num_images, channels, device=device)
+        self.v = torch.zeros(num_images, channels, device=device)
         self.t = 0
         self.lr = lr
 
     def gains(self) -> torch.Tensor:
-        """[V, 3] per-channel gains, geometric mean 1 over the images in each channel (differentiable)."""
+        """[V, C] gains (C = 3 per channel, or 1 for all three), geometric mean 1 over the images in each channel
+        (differentiable)."""
         lg = self.log_gain
         return torch.exp(lg - lg.mean(0, keepdim=True))
 

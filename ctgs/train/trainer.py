@@ -149,7 +149,8 @@ class Trainer:
         np.random.seed(cfg.seed % 2**32)
         # exposure_comp: a per-channel gain per training image on its training renders (ctgs.train.exposure)
         self.view_index = {v.name: i for i, v in enumerate(self.train_views)}
-        self.exposure = Exposure(len(self.train_views), self.device, cfg.lr_exposure) if cfg.exposure_comp else None
+        self.exposure = (Exposure(len(self.train_views), self.device, cfg.lr_exposure, cfg.exposure_channels)
+                         if cfg.exposure_comp else None)
         if state is None:
             mode = {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}[cfg.method]
             # extra initial points, appended after the SfM points' cap: the far shell's, then the fill's

@@ -21,6 +21,24 @@ def test_gains_are_centred_and_only_scale_the_render():
     assert torch.allclose(e.apply(rgb, 1), rgb * g[1])
 
 
+def test_one_gain_per_image_scales_all_three_channels_alike():
+    """exposure_channels = 1: one gain per image (exposure, not white balance), centred the same way; fitted to an
+    image whose channels brighten unequally it takes their common part and cannot tint the render."""
+    e = Exposure(2, "cpu", lr=0.02, channels=1)
+    assert e.gains().shape == (2, 1)
+    render = torch.full((4, 4, 3), 0.5)
+    targets = [torch.tensor([0.4, 0.4, 0.4]), torch.tensor([0.55, 0.6, 0.65])]
+    for it in range(400):
+        i = it % 2
+        ((e.apply(render, i) - targets[i]) ** 2).mean().backward()
+        e.step()
+    g = e.gains().detach()
+    assert torch.allclose(g.log().mean(0), torch.zeros(1), atol=1e-6)
+    out = e.apply(render, 1)
+    assert torch.allclose(out[..., 0], out[..., 2])  # no tint
+    assert float(g[1, 0] / g[0, 0]) == pytest.approx(0.6 / 0.4, rel=0.05)
+
+
 def test_the_gains_follow_a_brighter_image_and_round_trip():
     """Fitting gain x a grey render to images brighter and darker than it: the gains order as the images do, and
     their state restores exactly."""
