@@ -104,6 +104,8 @@ class TrainConfig:
     exposure_comp: bool = _f(False, "learn a per-channel gain per training image, applied to its training renders "
                              "before the loss (ctgs.train.exposure; evaluation and exports use none; false = the paper)")
     lr_exposure: float = _f(5e-3, "lr of the exposure log-gains (Adam)")
+    exposure_in_E: bool = _f(False, "scale each training view's render by its gain in the routines' error E too (as "
+                             "in its loss), so that E does not hold the photos' exposures")
     exposure_channels: int = _f(3, "3: a gain per colour channel (exposure and white balance); 1: one gain per image "
                                 "(exposure only)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----

@@ -37,9 +37,13 @@ def accumulate_error(stats_per_view: list[tuple[torch.Tensor, torch.Tensor, int]
 
 
 @torch.no_grad()
-def compute_E(model, views, render_fn, lambda_ssim: float = 0.2, with_support: bool = False):
+def compute_E(model, views, render_fn, lambda_ssim: float = 0.2, with_support: bool = False, gains=None):
     """E over ALL `views` (objects with .camera and .image_t [H,W,3] tensors); render_fn(inputs, cam, err)
     with err a function of the rendered rgb (ctgs.render.render's error_image).
+
+    gains: optional {view name: [C] gain} (exposure compensation's, config exposure_in_E): each view's render is
+    scaled by its gain before the error, as in its training loss, so that E holds what the model fails to explain
+    and not the photo's exposure.
 
     with_support: return (E, support) where support [N] is each primitive's blend weight summed over the pixels
     of the view where it weighs most (the image area it covers at best, in pixels)."""
@@ -49,8 +53,10 @@ def compute_E(model, views, render_fn, lambda_ssim: float = 0.2, with_support: b
     support = None
     for view in views:
         # The error image of this very render (one pass on the CPU backend, see ctgs.render.render).
-        stats = render_fn(inputs, view.camera, lambda rgb, gt=view.image_t: error_image(rgb.clamp(0, 1), gt,
-                                                                                        lambda_ssim)).stats
+        g = None if gains is None else gains.get(view.name)
+        stats = render_fn(inputs, view.camera,
+                          lambda rgb, gt=view.image_t, g=g: error_image((rgb if g is None else rgb * g).clamp(0, 1),
+                                                                        gt, lambda_ssim)).stats
         acc.append((stats.err, stats.contrib, view.image_t.shape[0] * view.image_t.shape[1]))
         if with_support:
             support = stats.contrib.clone() if support is None else torch.maximum(support, stats.contrib)

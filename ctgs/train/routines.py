@@ -11,20 +11,22 @@ from ctgs.train.split import prune, split
 
 
 @torch.no_grad()
-def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None, lean: bool = True) -> dict:
+def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None, lean: bool = True,
+                 gains=None) -> dict:
     """E over all training views; split (tau_tr), upscale top E (t2p_exp > min), downscale the others
     (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
 
     background: optional function model -> [N] bool of primitives the ranking leaves out (never split or upscaled;
     the top fraction is taken among the others).
+    gains: {view name: gain} for E (compute_E; exposure_in_E), or None.
     lean=False: upscale first, to 2x, then downscale, and let realloc crop (the paper's order; the same final state
     with up to ~2x the texels in between: tests/train/test_routines_image.py, benchmarks/lean_routine.py).
     """
     support = None
     if cfg.max_params > 0:
-        E, support = compute_E(model, views, render_fn, cfg.lambda_ssim, with_support=True)
+        E, support = compute_E(model, views, render_fn, cfg.lambda_ssim, with_support=True, gains=gains)
     else:
-        E = compute_E(model, views, render_fn, cfg.lambda_ssim)
+        E = compute_E(model, views, render_fn, cfg.lambda_ssim, gains=gains)
     if background is None:
         top = top_fraction_mask(E, cfg.top_fraction)
     else:

@@ -559,8 +559,12 @@ class Trainer:
                 # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops;
                 # on a GPU about the lean order's time, 1.5x its peak memory: docs/gpu.md, session 35)
                 lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
+                gains = None
+                if self.exposure is not None and cfg.exposure_in_E:
+                    g = self.exposure.gains().detach()
+                    gains = {v.name: g[i] for i, v in enumerate(self.train_views)}
                 yield Routine(it, "full", full_routine(model, opt, cfg, it, self.train_views, self.render_fn,
-                                                       self.cameras, self._background_mask(), lean=lean))
+                                                       self.cameras, self._background_mask(), lean=lean, gains=gains))
                 if schedule.content_opacity_reset(cfg, it, self._shift):
                     value = max(2.0 * cfg.prune_opacity, RESET_OPACITY)  # prune_opacity = 0 would give 0
                     reset_opacity(model, opt, value)

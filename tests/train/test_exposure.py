@@ -87,3 +87,31 @@ def test_exposure_comp_recovers_the_gains_a_capture_was_shot_with(tmp_path):
     assert float(g[~is_dark].mean() / g[is_dark].mean()) == pytest.approx(1 / 0.8, rel=0.08)
     state = ckpt.load_checkpoint(run)
     assert torch.equal(state["exposure"]["log_gain"], t.exposure.log_gain.detach().cpu())
+
+
+def test_E_with_the_views_gains_holds_what_the_model_does_not_explain():
+    """compute_E with gains (exposure_in_E): a photo that is the render x 1.25 leaves E at about 0 once its gain is
+    applied, and a large E without it; a view without a gain in the dict is scored as before."""
+    from types import SimpleNamespace
+
+    from ctgs.render import render
+    from ctgs.train.error import compute_E
+    from train_helpers import BACKEND, camera, image, model
+
+    m = model(means=[[-0.25, 0.0, 3.0], [0.3, 0.1, 3.5]], scales=[[0.2, 0.15], [0.15, 0.2]], opacities=[0.9, 0.8],
+              tex_res=[[4, 4], [4, 4]])
+    with torch.no_grad():
+        m.sh[:, 0] = -0.8  # dark enough that x 1.25 stays below 1
+    cam = camera()
+    photo = (image(m, cam) * 1.25).detach()
+    view = SimpleNamespace(name="a.jpg", camera=cam, image_t=photo)
+
+    def render_fn(inputs, c, error_image=None):
+        return render(inputs, c, backend=BACKEND, sh_degree=0, error_image=error_image)
+
+    plain = compute_E(m, [view], render_fn)
+    matched = compute_E(m, [view], render_fn, gains={"a.jpg": torch.full((3,), 1.25)})
+    other = compute_E(m, [view], render_fn, gains={"b.jpg": torch.full((3,), 1.25)})
+    assert float(plain.max()) > 1e-4
+    assert float(matched.max()) < 1e-3 * float(plain.max())
+    assert torch.equal(other, plain)
