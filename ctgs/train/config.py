@@ -106,6 +106,9 @@ class TrainConfig:
     lr_exposure: float = _f(5e-3, "lr of the exposure log-gains (Adam)")
     exposure_in_E: bool = _f(False, "scale each training view's render by its gain in the routines' error E too (as "
                              "in its loss), so that E does not hold the photos' exposures")
+    exposure_check: float = _f(0.0, "> 0: at this fraction of the run, freeze the gains at 1 if none is more than "
+                               "exposure_min_gain from 1 (a capture of one exposure); 0 = never")
+    exposure_min_gain: float = _f(0.03, "relative gain below which exposure_check takes the photos for one exposure")
     exposure_channels: int = _f(3, "3: a gain per colour channel (exposure and white balance); 1: one gain per image "
                                 "(exposure only)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
@@ -209,7 +212,8 @@ _RANGES = [
     ("lr_scale_final", _ge(0), ">= 0 (0 = constant lr_scale)"), ("adam_eps", _gt(0), "> 0"),
     ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
     ("lambda_texture", _ge(0), ">= 0"), ("lambda_normal", _ge(0), ">= 0"),
-    ("normal_from", _ge(0), ">= 0"), ("lr_exposure", _ge(0), ">= 0"), ("exposure_channels", lambda v: v in (1, 3), "1 or 3"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
+    ("normal_from", _ge(0), ">= 0"), ("lr_exposure", _ge(0), ">= 0"), ("exposure_channels", lambda v: v in (1, 3), "1 or 3"),
+    ("exposure_check", lambda v: 0 <= v < 1, "in [0, 1)"), ("exposure_min_gain", _ge(0), ">= 0"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
     ("virtual_every", _ge(1), ">= 1"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
     ("routine_every", _gt(0), "> 0"), ("routine_until", _ge(0), ">= 0"), ("routine_margin", _ge(0), ">= 0"),
     ("late_downscale_every", _gt(0), "> 0"), ("realloc_every", _gt(0), "> 0"),

@@ -14,6 +14,8 @@ step's image has a gradient (the centring spreads a 1/V share to the others).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 BETAS = (0.9, 0.999)
@@ -27,6 +29,22 @@ class Exposure:
         self.v = torch.zeros(num_images, channels, device=device)
         self.t = 0
         self.lr = lr
+        self.checked = False  # exposure_check done (Trainer): gains kept, or frozen at 1
+        self.frozen = False
+
+    @torch.no_grad()
+    def check(self, min_gain: float) -> dict:
+        """The capture's exposures, judged once (config exposure_check): if no learned gain is more than `min_gain`
+        (relative) from 1, the photos share one exposure in practice and the gains are frozen at 1 from here on (a free
+        gain per photo would only absorb the model's view-dependent errors). Returns what it saw and did."""
+        dev = float(self.gains().log().abs().max()) if self.log_gain.numel() else 0.0
+        self.checked = True
+        if dev < math.log1p(min_gain):
+            self.log_gain.zero_()
+            self.m.zero_()
+            self.v.zero_()
+            self.frozen = True
+        return {"max_gain_deviation": round(math.expm1(dev), 5), "min_gain": min_gain, "frozen": self.frozen}
 
     def gains(self) -> torch.Tensor:
         """[V, C] gains (C = 3 per channel, or 1 for all three), geometric mean 1 over the images in each channel
@@ -43,6 +61,9 @@ class Exposure:
         g = self.log_gain.grad
         if g is None:
             return
+        if self.frozen:
+            self.log_gain.grad = None
+            return
         self.t += 1
         b1, b2 = BETAS
         self.m.mul_(b1).add_(g, alpha=1 - b1)
@@ -53,7 +74,8 @@ class Exposure:
         self.log_gain.grad = None
 
     def state_dict(self) -> dict:
-        return {"log_gain": self.log_gain.detach().cpu(), "m": self.m.cpu(), "v": self.v.cpu(), "t": self.t}
+        return {"log_gain": self.log_gain.detach().cpu(), "m": self.m.cpu(), "v": self.v.cpu(), "t": self.t,
+                "checked": self.checked, "frozen": self.frozen}
 
     def load_state_dict(self, state: dict) -> None:
         dev = self.log_gain.device
@@ -62,3 +84,5 @@ class Exposure:
         self.m = state["m"].to(dev)
         self.v = state["v"].to(dev)
         self.t = int(state["t"])
+        self.checked = bool(state.get("checked", False))
+        self.frozen = bool(state.get("frozen", False))

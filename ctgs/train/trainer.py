@@ -458,6 +458,9 @@ class Trainer:
             self.opt.step(self.model, lrs)
             if self.exposure is not None:
                 self.exposure.step()
+                if (cfg.exposure_check > 0 and not self.exposure.checked
+                        and it >= max(1, round(cfg.exposure_check * cfg.iterations))):
+                    self._log({"type": "exposure_check", "it": it, **self.exposure.check(cfg.exposure_min_gain)})
             self._check_finite(loss.detach())
             t1 = time.perf_counter()
             events = list(self._adapt(it))

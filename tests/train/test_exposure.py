@@ -115,3 +115,26 @@ def test_E_with_the_views_gains_holds_what_the_model_does_not_explain():
     assert float(plain.max()) > 1e-4
     assert float(matched.max()) < 1e-3 * float(plain.max())
     assert torch.equal(other, plain)
+
+
+def test_the_check_freezes_gains_of_one_exposure_and_keeps_real_ones():
+    """exposure_check: gains all within exposure_min_gain of 1 are frozen at 1 (and stay there through steps and a
+    checkpoint); a capture whose photos differ keeps its gains."""
+    same = Exposure(3, "cpu", lr=0.02)
+    with torch.no_grad():
+        same.log_gain.copy_(torch.tensor([[0.01, 0.0, -0.01], [0.0, 0.02, 0.0], [-0.01, -0.02, 0.01]]))
+    seen = same.check(0.03)
+    assert seen["frozen"] and 0 < seen["max_gain_deviation"] < 0.03
+    assert torch.equal(same.gains(), torch.ones(3, 3))
+    (same.apply(torch.full((2, 2, 3), 0.5), 0) - 0.9).abs().mean().backward()
+    same.step()
+    assert torch.equal(same.gains(), torch.ones(3, 3))
+    again = Exposure(3, "cpu", lr=0.02)
+    again.load_state_dict(same.state_dict())
+    assert again.frozen and again.checked
+    differ = Exposure(3, "cpu", lr=0.02)
+    with torch.no_grad():
+        differ.log_gain.copy_(torch.tensor([[0.15, 0.15, 0.15], [0.0, 0.0, 0.0], [-0.1, -0.1, -0.1]]))
+    before = differ.gains().clone()
+    seen = differ.check(0.03)
+    assert not seen["frozen"] and seen["max_gain_deviation"] > 0.1 and torch.equal(differ.gains(), before)
