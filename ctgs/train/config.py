@@ -108,7 +108,7 @@ class TrainConfig:
                              "in its loss), so that E does not hold the photos' exposures")
     exposure_check: float = _f(0.0, "> 0: at this fraction of the run, freeze the gains at 1 if none is more than "
                                "exposure_min_gain from 1 (a capture of one exposure); 0 = never")
-    exposure_min_gain: float = _f(0.03, "relative gain below which exposure_check takes the photos for one exposure")
+    exposure_min_gain: float = _f(0.05, "relative gain below which exposure_check takes the photos for one exposure")
     exposure_channels: int = _f(3, "3: a gain per colour channel (exposure and white balance); 1: one gain per image "
                                 "(exposure only)")
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
