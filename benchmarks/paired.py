@@ -64,11 +64,13 @@ def run_one(args, label: str, train_args: list[str], seed: int, lpips: bool) -> 
     return rec
 
 
-def finish(run: str, label: str, seed: int, commit: str, command: str, wall: float, lpips: bool, log: str) -> dict:
-    """`ctgs export` + `ctgs eval` of a trained run (on this machine, wherever it trained) and its record."""
+def finish(run: str, label: str, seed: int, commit: str, command: str, wall: float, lpips: bool, log: str,
+           scene: str | None = None) -> dict:
+    """`ctgs export` + `ctgs eval` of a trained run (on this machine, wherever it trained: `scene` is this machine's
+    copy of its scene when the run trained elsewhere) and its record."""
     ctgs("export", run, "-o", os.path.join(run, "model"), log=log)
     ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"),
-         *([] if lpips else ["--no-lpips"]), log=log)
+         *([] if lpips else ["--no-lpips"]), *(["--scene", scene] if scene else []), log=log)
     with open(os.path.join(run, "train_summary.json")) as fh:
         s = json.load(fh)
     with open(os.path.join(run, "eval", "metrics.json")) as fh:

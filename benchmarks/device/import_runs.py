@@ -1,6 +1,6 @@
 """Runs trained on the device (benchmarks/device/paired_many.sh: one run_NAME.tgz each) made into
-benchmarks/paired.py's finished runs on this machine: unpacked into WORK/NAME, pointed at this machine's copy of
-the scene, exported and evaluated here (`ctgs eval`, LPIPS included where the VGG weights are), with the
+benchmarks/paired.py's finished runs on this machine: unpacked into WORK/NAME, exported and evaluated here against
+this machine's copy of the scene (`ctgs eval --scene`; LPIPS included where the VGG weights are), with the
 paired_record.json that paired.py reuses. NAME is LABEL_sSEED (the jobs file's names, e.g. balanced_s0).
 
     .venv/bin/python benchmarks/device/import_runs.py FILES_DIR --work WORK --scene /work/scenes/herzjesu25 \\
@@ -60,27 +60,10 @@ def main() -> None:
         os.makedirs(run, exist_ok=True)
         with tarfile.open(tgz) as tf:
             tf.extractall(run, filter="data")
-        cfg_path = os.path.join(run, "config.toml")
-        with open(cfg_path) as fh:
-            cfg = fh.read()
-        cfg, n = re.subn(r'(?m)^scene_dir = ".*"$', f'scene_dir = "{scene}"', cfg)
-        if n != 1:
-            raise SystemExit(f"import_runs.py: {cfg_path}: no scene_dir line to point at {scene}")
-        with open(cfg_path, "w") as fh:
-            fh.write(cfg)
-        # the model names the scene folder it trained on (the device's path): point it at this machine's copy
-        import torch
-
-        pt = os.path.join(run, "model.pt")
-        ckpt = torch.load(pt, map_location="cpu", weights_only=True)
-        ckpt["scene_dir"] = scene
-        if isinstance(ckpt.get("config"), dict) and "scene_dir" in ckpt["config"]:
-            ckpt["config"]["scene_dir"] = scene
-        torch.save(ckpt, pt + ".tmp")
-        os.replace(pt + ".tmp", pt)
         job = status.get(name, {})
         command = "-m ctgs train " + " ".join(job.get("args", ["?"]))
-        rec = finish(run, label, seed, args.commit, command, float(job.get("wall_s") or "nan"), lpips, run + ".log")
+        rec = finish(run, label, seed, args.commit, command, float(job.get("wall_s") or "nan"), lpips, run + ".log",
+                     scene=scene)
         rec["trained_on"] = "device (benchmarks/device/paired_many.sh)"
         with open(os.path.join(run, "paired_record.json"), "w") as fh:
             json.dump(rec, fh, indent=1)
