@@ -1,7 +1,8 @@
 """Per-phase timing of training runs from their log.jsonl (the GPU records of issue 13; trains nothing).
 
 Phases of the paper's schedule (at 30k iterations: texture start 500, tau_tr settles at 7000, last full
-routine 25000, then the tail), read from each run's config.toml: for each phase the iterations the log
+routine 25000, then the tail; for the 2dgs/3dgs baselines: before densification (500), densification (until
+15000), the tail), read from each run's config.toml: for each phase the iterations the log
 covers, training seconds per 1000 iterations (the trainer's own `seconds`: steps and routines, without
 test evaluations and checkpoints), primitives and texels at the end of what was covered, peak CUDA memory
 (`cuda_peak_mb`), and every test-view PSNR/SSIM the run logged. A run stopped early (the device's time
@@ -22,6 +23,10 @@ from pathlib import Path
 def phases(cfg: dict) -> list[tuple[str, int, int]]:
     n = int(cfg.get("iterations", 30000))
     scale = n / 30000.0 if not cfg.get("schedule_scale") else float(cfg["schedule_scale"])
+    if cfg.get("method", "content_aware") != "content_aware":  # the baselines' schedule: 3DGS/2DGS densification
+        d0 = round(cfg.get("densify_from", 500) * scale)
+        d1 = min(round(cfg.get("densify_until", 15000) * scale), n)
+        return [("before densification", 0, d0), ("densification", d0, d1), ("tail", d1, n)]
     ts = round(cfg.get("texture_start", 500) * scale)
     tau = round(cfg.get("tau_tr_iters", 7000) * scale)
     last = min(round(cfg.get("routine_until", 25000) * scale), n - round(cfg.get("routine_margin", 3000) * scale))
@@ -62,8 +67,10 @@ def summarise(run: Path) -> dict:
             "extrapolated_train_seconds": extrap, "pixels": start.get("pixels")}
 
 
-def to_markdown(runs: list[dict], machine: dict) -> str:
+def to_markdown(runs: list[dict], machine: dict, note: str = "") -> str:
     lines = ["# Paper-scale training on a GPU: per-phase timing", ""]
+    if note:
+        lines += [note, ""]
     if machine:
         lines += [f"Machine: {machine.get('gpu')} (driver {machine.get('driver')}), torch {machine.get('torch')}, "
                   f"CUDA {machine.get('cuda')}, Python {machine.get('python')}; command: "
@@ -98,12 +105,14 @@ def main() -> int:
     ap.add_argument("runs", type=Path, nargs="+")
     ap.add_argument("--machine", type=Path)
     ap.add_argument("-o", "--output", type=Path, required=True)
+    ap.add_argument("--note", default="", help="a paragraph under the title (where the runs come from, what differs)")
     args = ap.parse_args()
     machine = json.loads(args.machine.read_text()) if args.machine and args.machine.is_file() else {}
     runs = [summarise(r) for r in args.runs]
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.with_suffix(".json").write_text(json.dumps({"machine": machine, "runs": runs}, indent=1) + "\n")
-    md = to_markdown(runs, machine)
+    args.output.with_suffix(".json").write_text(json.dumps({"machine": machine, "runs": runs, "note": args.note},
+                                                           indent=1) + "\n")
+    md = to_markdown(runs, machine, args.note)
     args.output.with_suffix(".md").write_text(md)
     print(md)
     return 0
