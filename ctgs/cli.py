@@ -6,6 +6,7 @@ lazily so `ctgs --help` stays fast and never touches torch or the compiled exten
 
 from __future__ import annotations
 
+import errno
 import importlib
 import os
 import signal
@@ -15,7 +16,7 @@ import threading
 import click
 
 from ctgs import __version__
-from ctgs.errors import Terminated, UserError
+from ctgs.errors import OS_ERROR_EXIT, Terminated, UserError, describe_os_error
 
 # name -> (module, one-line help). Each module defines `command`, a click.Command.
 STAGES: dict[str, tuple[str, str]] = {
@@ -70,6 +71,13 @@ class LazyGroup(click.Group):
         except UserError as exc:
             click.secho(f"error: {exc}", fg="red", err=True)
             sys.exit(exc.exit_code)
+        except OSError as exc:
+            # A fault of the machine (full disk, read-only or unreadable folder, a device gone): one line naming
+            # the path and the fix, whichever stage hit it (CTGS_TRACEBACK=1 shows where, for a bug report).
+            if os.environ.get("CTGS_TRACEBACK") == "1" or exc.errno == errno.EPIPE:  # EPIPE: click's own handling
+                raise
+            click.secho(f"error: {describe_os_error(exc)}", fg="red", err=True)
+            sys.exit(OS_ERROR_EXIT)
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -4,30 +4,115 @@ Every writer in ctgs goes through here (reports, checkpoints, model.pt, PLY, ima
 demo scene, eval folders...). Files are written under a hidden temporary name in the destination's own
 folder (same filesystem, so the final `os.replace` is atomic) and renamed; folders are built in a hidden
 temporary sibling and renamed into place. On any exception the temporary is removed, so a failure never
-leaves a half-written artifact behind, and a crash (kill -9) leaves at most a hidden `.NAME.tmp-*`.
+leaves a half-written artifact behind, and a crash (kill -9) leaves at most a hidden `.NAME.tmp-PID-*`, which
+the next write to the same folder removes once process PID is gone (`sweep_temps`).
+
+An OSError raised while writing (a full disk, a read-only folder: `fh.write` names no file) leaves here with
+its `filename` set to the final path, so the CLI's one line names the file the user asked for.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import shutil
 import signal
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from ctgs.errors import UserError
 
-TMP_TAG = ".tmp-"  # every temporary name is ".<final name>.tmp-<random>": hidden, and says what it was for
+TMP_TAG = ".tmp-"  # every temporary name is ".<final name>.tmp-<pid>-<random>": hidden, says what it was for and whose
 # mkstemp/mkdtemp create private (0600/0700) entries; the results are ordinary output files and folders.
 FILE_MODE = 0o644
 DIR_MODE = 0o755
 
 
+# Temporaries of a process that is gone (crash, kill -9) older than this are removed even when their name carries no
+# process id (names from before ids were added) or the id was reused by an unrelated process since.
+STALE_TEMP_S = 24 * 3600.0
+# ".NAME.tmp-PID-<mkstemp's 8 characters>[.ext]" (group 1: PID), or as named before ids were added (no PID)
+_TEMP_NAME = re.compile(r"^\..+" + re.escape(TMP_TAG) + r"(?:(\d+)-(?:old-)?)?[a-z0-9_]{8}(?:\.[^.]*)?$")
+
+
 def _tmp_prefix(path: str) -> str:
-    return "." + os.path.basename(os.path.normpath(path)) + TMP_TAG
+    return "." + os.path.basename(os.path.normpath(path)) + TMP_TAG + f"{os.getpid()}-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: alive, another user's
+        return True
+    return True
+
+
+def sweep_temps(folder: str) -> list[str]:
+    """Remove the hidden temporaries (`.NAME.tmp-PID-*`, files or folders) that killed writers left in `folder`:
+    those whose process is no longer running, and any older than STALE_TEMP_S. A live writer's are kept (two runs
+    writing into one folder). Returns the names removed; never raises (a sweep must not fail a run)."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        m = _TEMP_NAME.match(entry.name)
+        if m is None or m.group(1) == str(os.getpid()):
+            continue
+        try:
+            dead = m.group(1) is not None and not _pid_alive(int(m.group(1)))
+            if not dead and now - entry.stat(follow_symlinks=False).st_mtime <= STALE_TEMP_S:
+                continue
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.remove(entry.path)
+            removed.append(entry.name)
+        except OSError:
+            continue
+    return removed
+
+
+def _named(exc: OSError, path: str) -> OSError:
+    """`exc` with `path` as its filename when it names none (`fh.write` on a full disk names no file)."""
+    if exc.filename is not None or exc.errno is None:
+        return exc
+    new = type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), path)
+    new.__cause__ = exc
+    return new
+
+
+def _os_error_inside(exc: BaseException) -> OSError | None:
+    """The OSError behind `exc` (a RuntimeError of torch's zip writer has the failed write as its context)."""
+    seen = 0
+    while exc is not None and seen < 8:
+        if isinstance(exc, OSError):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return None
+
+
+def check_free_space(folder: str, need_bytes: int, what: str) -> None:
+    """OSError(ENOSPC) naming `folder` when its filesystem has fewer than `need_bytes` free (for writers that
+    cannot stop cleanly once the disk fills, like COLMAP's SQLite database). Unknown free space passes."""
+    try:
+        st = os.statvfs(folder)
+    except (OSError, AttributeError):
+        return
+    free = st.f_bavail * st.f_frsize
+    if free < need_bytes:
+        raise OSError(errno.ENOSPC, f"{free / 2**20:.0f} MiB free, {what} needs about {need_bytes / 2**20:.0f} MiB",
+                      folder)
 
 
 @contextmanager
@@ -38,9 +123,13 @@ def atomic_path(path: str, *, fsync: bool = False) -> Iterator[str]:
     fsync: flush the file to disk before the rename (checkpoints: survive a power cut, not just a kill).
     """
     folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=_tmp_prefix(path), suffix=os.path.splitext(path)[1], dir=folder)
-    os.close(fd)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        sweep_temps(folder)
+        fd, tmp = tempfile.mkstemp(prefix=_tmp_prefix(path), suffix=os.path.splitext(path)[1], dir=folder)
+        os.close(fd)
+    except OSError as exc:
+        raise _named(exc, path) from None
     try:
         yield tmp
         if fsync:
@@ -48,10 +137,21 @@ def atomic_path(path: str, *, fsync: bool = False) -> Iterator[str]:
                 os.fsync(fh.fileno())
         os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    except BaseException as exc:
+        _remove_quietly(tmp)
+        if isinstance(exc, OSError):
+            raise _named(exc, path) from None
         raise
+
+
+def _remove_quietly(path: str) -> None:
+    try:
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path, ignore_errors=True)
+        elif os.path.lexists(path):
+            os.remove(path)
+    except OSError:
+        pass  # a read-only folder: nothing could be written there either
 
 
 def write_bytes(path: str, data: bytes, *, fsync: bool = False) -> None:
@@ -103,8 +203,16 @@ def torch_save(obj, path: str, *, fsync: bool = True) -> None:
     and a stop that lands inside torch.save otherwise ends in torch's own error instead of a clean stop."""
     import torch
 
-    with signals_deferred(), atomic_path(path, fsync=fsync) as tmp, open(tmp, "wb") as fh:
-        torch.save(obj, fh)
+    try:
+        with signals_deferred(), atomic_path(path, fsync=fsync) as tmp, open(tmp, "wb") as fh:
+            torch.save(obj, fh)
+    except RuntimeError as exc:
+        # torch's zip writer reports a failed write (a full disk) as "enforce fail ... unexpected pos": the
+        # OSError it hit is its context; that one says what happened
+        inner = _os_error_inside(exc)
+        if inner is None:
+            raise
+        raise _named(inner, path) from None
 
 
 def ensure_replaceable(out_dir: str, looks_ours: Callable[[list[str]], bool], what: str) -> None:
@@ -130,14 +238,20 @@ def atomic_dir(out_dir: str, *, replace: bool = True) -> Iterator[str]:
     """
     out_dir = os.path.normpath(out_dir)
     parent = os.path.dirname(os.path.abspath(out_dir))
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=_tmp_prefix(out_dir), dir=parent)
-    os.chmod(tmp, DIR_MODE)
+    try:
+        os.makedirs(parent, exist_ok=True)
+        sweep_temps(parent)
+        tmp = tempfile.mkdtemp(prefix=_tmp_prefix(out_dir), dir=parent)
+        os.chmod(tmp, DIR_MODE)
+    except OSError as exc:
+        raise _named(exc, out_dir) from None
     try:
         yield tmp
         _move_into_place(tmp, out_dir, replace)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OSError) and not isinstance(exc, FileExistsError):
+            raise _named(exc, out_dir) from None
         raise
 
 

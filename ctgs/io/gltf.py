@@ -25,6 +25,7 @@ hand; `read_glb` reads it back (tests, benchmarks/export_formats.py).
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 from dataclasses import dataclass
@@ -33,6 +34,7 @@ import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.model.geometry import quat_to_rotmat
 from ctgs.model.surfels import SurfelModel
 
@@ -298,13 +300,11 @@ def write_glb(model: SurfelModel, path: str, origin=None) -> int:
     """Write `model` as a .glb (atomically: a temporary name, then renamed). Returns its bytes."""
     if model.num_primitives == 0:
         raise UserError(f"{path}: the model has no surfels; nothing to export")
-    tmp = path + ".tmp"
-    try:
-        build_gltf(model, origin).save_binary(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    gltf = build_gltf(model, origin)
+    with atomic.atomic_path(path) as tmp:
+        # pygltflib reports a failed write by returning False, not by raising
+        if not gltf.save_binary(tmp) or os.path.getsize(tmp) == 0:
+            raise OSError(errno.EIO, "pygltflib could not write the file", path)
     return os.path.getsize(path)
 
 

@@ -7,7 +7,8 @@ Alpha: `read_rgb` composites RGBA over a background colour exactly as 3DGS does
 (`rgb * a + bg * (1 - a)`, with the file's unassociated alpha), black by default; `read_image`
 returns all channels untouched. Grey images are replicated to three channels by `read_rgb`.
 
-Writes are atomic (ctgs.io.atomic): an interrupted run never leaves a half-written image behind.
+Writes are atomic (ctgs.io.atomic): an interrupted run never leaves a half-written image behind. Every write is
+read back before it takes its final name (OIIO can report success for a file a full disk cut short).
 """
 
 from __future__ import annotations
@@ -148,12 +149,53 @@ def write_image(path: str, array: np.ndarray, *, bits: int | None = None, half: 
     with atomic.atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
-            raise OSError(f"{path}: OpenImageIO cannot write this file type ({_oiio_message()})")
+            detail = _first_line((out.geterror() if out is not None else "") or _oiio_message())
+            raise _write_error(path, tmp, f"OpenImageIO cannot write this file ({detail})")
         ok = out.write_image(np.ascontiguousarray(data, dtype=np.float32))
+        # OIIO reports a short write (a full disk) only through geterror() while write_image still returns True
+        # (and so does close(), at which PNGs are written), and geterror() also holds harmless notes (TIFF's Exif
+        # directory): the file is read back instead, and the notes are kept to explain a failure.
         err = out.geterror()
-        out.close()
-        if not ok:
-            raise OSError(f"{path}: write failed ({err})")
+        closed = out.close()
+        err = err or out.geterror()
+        if not ok or not closed:
+            raise _write_error(path, tmp, f"write failed ({_first_line(err or 'unknown OpenImageIO error')})")
+        _verify_written(path, tmp, w, h, c, err)
+
+
+def _write_error(path: str, tmp: str, detail: str) -> OSError:
+    """An OSError for a failed image write: ENOSPC when the disk holding `path` is full (OIIO does not pass on
+    errno), EIO otherwise. The CLI prints it as one line naming `path`."""
+    import errno
+
+    try:
+        st = os.statvfs(os.path.dirname(os.path.abspath(tmp)))
+        full = st.f_bavail * st.f_frsize < 64 * 1024
+    except OSError:
+        full = False
+    if full:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), path)
+    return OSError(errno.EIO, " ".join(detail.split()), path)
+
+
+def _verify_written(path: str, tmp: str, width: int, height: int, channels: int, notes: str = "") -> None:
+    """Read the just-written file back whole: a write that failed silently (an empty or cut file) is an OSError
+    here, before the temporary becomes `path`."""
+    if os.path.getsize(tmp) == 0:
+        raise _write_error(path, tmp, "the written file is empty")
+    with stderr_silenced():  # libpng prints its own line for a cut file; the OSError says it
+        inp = oiio.ImageInput.open(tmp)
+        if inp is None:
+            raise _write_error(path, tmp, f"the written file does not read back ({_oiio_message()})")
+        try:
+            spec = inp.spec()
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+            if pixels is None or inp.has_error or (spec.width, spec.height, spec.nchannels) != (width, height,
+                                                                                                 channels):
+                raise _write_error(path, tmp, f"the written file does not read back whole "
+                                   f"({_first_line(notes or inp.geterror() or 'size differs')})")
+        finally:
+            inp.close()
 
 
 def resize_image(pixels: np.ndarray, width: int, height: int) -> np.ndarray:

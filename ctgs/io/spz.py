@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import gzip
 import math
-import os
 import struct
 import zlib
 
@@ -37,6 +36,7 @@ import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.plain_ply import FLAT_SCALE_RATIO, SH_C0, surfels_from_gaussians, texture_means
 from ctgs.io.splat import ALPHA_EPS  # 8-bit alphas of 0 or 255 read back this far inside (a finite logit)
 from ctgs.model.surfels import SurfelModel
@@ -173,10 +173,7 @@ def write_spz(model: SurfelModel, path: str) -> dict:
     """Write `model` as .spz (atomically). Returns {"bytes": file size, **what spz_bytes reports}."""
     raw, info = spz_bytes(model)
     data = gzip.compress(raw, compresslevel=9, mtime=0)
-    tmp = path + ".tmp"
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
+    atomic.write_bytes(path, data)
     return {"bytes": len(data), **info}
 
 

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.model.surfels import SurfelModel, jagged_offsets
 from ctgs.render.types import SurfelInputs
 
@@ -195,13 +194,12 @@ def write_web_bundle(model: SurfelModel, out_dir: str, cameras: list[dict], *, t
     pages = atlas_pages(textures, res, model.tex_offset.detach().cpu().numpy(), layout, texel_bits)
     arrays = _surfel_arrays(model, layout, res)
 
-    parent = os.path.dirname(os.path.abspath(out_dir))
-    os.makedirs(parent, exist_ok=True)
     if os.path.exists(out_dir) and not (os.path.isdir(out_dir) and (
             not os.listdir(out_dir) or os.path.isfile(os.path.join(out_dir, BUNDLE_JSON)))):
         raise UserError(f"{out_dir}: exists and is not a ctgs web bundle; choose another output folder")
-    tmp = tempfile.mkdtemp(prefix=".tmp-web-", dir=parent)
-    try:
+    # Built in a hidden sibling that replaces OUT_DIR whole when complete, with the modes of every other output
+    # (the bundle is served to a browser and may be copied to a web server: readable by others, not 0700).
+    with atomic.atomic_dir(out_dir) as tmp:
         layout_json, offset = {}, 0
         with open(os.path.join(tmp, SURFELS_BIN), "wb") as f:
             for name, a in arrays.items():
@@ -241,12 +239,8 @@ def write_web_bundle(model: SurfelModel, out_dir: str, cameras: list[dict], *, t
         }
         with open(os.path.join(tmp, BUNDLE_JSON), "w") as f:
             json.dump(bundle, f, indent=1)
-        if os.path.isdir(out_dir):
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        for name in os.listdir(tmp):
+            os.chmod(os.path.join(tmp, name), atomic.FILE_MODE)
     return bundle
 
 
