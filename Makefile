@@ -144,5 +144,11 @@ bench-paired: $(STAMP) lpips-weights
 	$(PY) benchmarks/paired.py --scene out/herzjesu25 --images images_8 --a balanced --b fast --seeds 0 1 2 3 \
 		--work out/paired --tag $$(hostname)
 
+# The documentation site (mkdocs.yml): strict, so a broken link, a missing page or a stale config-keys page fails.
+.PHONY: docs
+docs: $(STAMP)
+	$(PY) -m pip install -q -e ".[docs]"
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --site-dir site
+
 clean:
 	rm -rf build out runs .pytest_cache

@@ -1,4 +1,5 @@
-"""Every result file and local link the README and docs name exists (a figure points to the file a command wrote)."""
+"""Every result file, benchmark script and local link the README and the docs name exists (a figure points to the
+file a command wrote)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,11 @@ import re
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PAGES = ["README.md", "benchmarks/README.md"] + sorted(
-    os.path.join("docs", f) for f in os.listdir(os.path.join(ROOT, "docs")) if f.endswith(".md"))
+DOCS = os.path.join(ROOT, "docs")
+PAGES = ["README.md", "CHANGELOG.md", "benchmarks/README.md"] + sorted(
+    os.path.relpath(os.path.join(d, f), ROOT) for d, _, files in os.walk(DOCS) for f in files if f.endswith(".md"))
 RESULT_PATH = re.compile(r"benchmarks/results/[A-Za-z0-9_.\-/]+")
+SCRIPT_PATH = re.compile(r"benchmarks/[A-Za-z0-9_/]+\.(?:py|sh)\b")
 MD_LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
 
 
@@ -22,10 +25,13 @@ def test_named_result_files_and_local_links_exist(page):
         path = m.group(0).rstrip(".,/")
         if text[m.end():m.end() + 1] in ("*", "{", "<"):  # a pattern (train_speed_*.md, x.{md,json}): a prefix
             folder, prefix = os.path.split(os.path.join(ROOT, m.group(0)))
-            if not any(f.startswith(prefix) for f in os.listdir(folder)):
+            if not os.path.isdir(folder) or not any(f.startswith(prefix) for f in os.listdir(folder)):
                 missing.append(m.group(0) + "...")
         elif not os.path.exists(os.path.join(ROOT, path)):
             missing.append(path)
+    for m in SCRIPT_PATH.finditer(text):
+        if not os.path.exists(os.path.join(ROOT, m.group(0))):
+            missing.append(m.group(0))
     for m in MD_LINK.finditer(text):
         target = m.group(1)
         if "://" in target or target.startswith("mailto:"):
