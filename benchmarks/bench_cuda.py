@@ -16,7 +16,7 @@ of the paper's size distribution, 30-450 texels per primitive, log-uniform), `gs
 rasterization_2dgs, render_mode "RGB+D" so that it also returns alpha and accumulated depth, as ours does;
 its 2DGS kernel also renders normals and distortion, which it always does). Variants, each against its default
 in the same run: `ours_mbK` / `ours_tex_mbK` (--bwd-min-blocks K: the backward kernel compiled for K blocks per
-SM; the default is 3, at most 80 registers since session 34; 1 is the uncapped kernel), `ours_tex_noagg` (--tex-agg-off-too: texel gradients with one atomic per lane), `ours_syncval` /
+SM; the default is 3, at most 80 registers; 1 is the uncapped kernel), `ours_tex_noagg` (--tex-agg-off-too: texel gradients with one atomic per lane), `ours_syncval` /
 `ours_tex_syncval` (--checks-one-by-one-too: the input checks with one synchronisation each, as before).
 
 The surfels look like a trained scene, not a uniform cloud: depths log-uniform in [2, 20] over a frustum

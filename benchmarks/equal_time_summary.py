@@ -60,13 +60,13 @@ def main() -> None:
     for key, note in (("ssim", ""), ("lpips", "; lower is better")):
         sk = paired([r[3][key] - r[4][key] for r in rows])
         lines.append(f"Paired {key.upper()} difference: mean {sk['mean']:+.4f}, p = {sk['p']:.3f}{note}.")
-    # Per-view differences, for the seeds whose records kept each view's PSNR (equal_time.py since session 10).
+    # Per-view differences, for the seeds whose records kept each view's PSNR (equal_time.py keeps them).
     views = [(ca["per_view_psnr"], g["per_view_psnr"]) for _, _, _, ca, g in rows
              if ca.get("per_view_psnr") and g.get("per_view_psnr")]
     if views:
         lines += ["", f"Per test view, over the {len(views)} seed(s) whose records keep each view's PSNR "
                   "(the first view of herzjesu25's one-sided trajectory is an extrapolation; "
-                  "benchmarks/results/train_findings.md):", "",
+                  "benchmarks/results/findings/train_findings.md):", "",
                   "| view | content-aware mean | 2dgs mean | paired difference |", "| --- | ---: | ---: | --- |"]
         for name in sorted(views[0][0]):
             d = [a[name] - b[name] for a, b in views]

@@ -6,10 +6,10 @@ a table (mean, standard deviation and count over seeds; the commit of every sour
 wall-clock minutes and against parameters, content-aware in red and 2dgs in blue, one panel column per image
 size, error bars one standard deviation over seeds where a point has several.
 
-The records come from different commits (the trainer changed between sessions; each file names its commit), and
+The records come from different commits (the trainer changed between them; each file names its commit), and
 single runs on herzjesu25 move by up to 1 dB with the seed: read the seeded points first.
 
-Usage: .venv/bin/python benchmarks/trade_summary.py  (writes benchmarks/results/trade_summary_<scene>.{md,png})
+Usage: .venv/bin/python benchmarks/trade_summary.py  (writes benchmarks/results/trade_summary/<scene>.{md,png})
 """
 
 from __future__ import annotations
@@ -28,18 +28,20 @@ RESULTS = os.path.join(ROOT, "benchmarks", "results")
 #   ("trade", scale, row name)      rows of a trade.py record
 #   ("paired", run label)           runs of a paired.py record
 #   ("equal_time", method)          the test-split run of an equal_time.py record (ca | 2dgs)
-HERZ_EQUAL_TIME_192 = ["equal_time_vm5.json", "equal_time_vm5_seed1.json", "equal_time_vm7_seed2.json",
-                       "equal_time_vm7_seed3.json"] + [f"equal_time_vm10_seed{s}.json" for s in range(4, 8)]
-HERZ_EQUAL_TIME_384 = [f"equal_time_vm11_384_seed{s}.json" for s in range(3)]
+HERZ_EQUAL_TIME_192 = ["equal_time/herzjesu25_192_d64bc36.json", "equal_time/herzjesu25_192_seed1_d64bc36.json", "equal_time/herzjesu25_192_seed2_1c1d1a1.json",
+                       "equal_time/herzjesu25_192_seed3_1c1d1a1.json"] + [
+    f"equal_time/herzjesu25_192_seed{s}_edb494c.json" for s in range(4, 8)]
+HERZ_EQUAL_TIME_384 = ["equal_time/herzjesu25_384_seed0_5de4149.json", "equal_time/herzjesu25_384_seed1_4865d28.json",
+                       "equal_time/herzjesu25_384_seed2_4865d28.json"]
 
 
 def size_budget_points(record: str, scale: str) -> list:
-    """The session-24 trade pairs of a trade.py record: `fast` and `preview` with their size budget, and 2DGS given
+    """The size-budget trade pairs of a trade.py record: `fast` and `preview` with their size budget, and 2DGS given
     each one's wall time."""
     points = []
     for method, prefix, suffix in (("content-aware", "ca", ""), ("2dgs", "2dgs", "'s time")):
         for preset in ("fast", "preview"):
-            points.append((method, f"{preset} + size budget{suffix} (s24)",
+            points.append((method, f"{preset} + size budget{suffix}",
                            [(record, ("trade", scale, f"{prefix}_{preset}"))]))
     return points
 
@@ -48,115 +50,115 @@ MIN_PSNR_SPAN = 2.0  # dB: the least PSNR range a panel shows (the seed spread o
 REGISTRY = {
     "herzjesu25": {
         "192x128": [
-            ("content-aware", "preview (1000 it.)", [("trade_vm5p.json", ("trade", "images_8", "ca_preview"))]),
+            ("content-aware", "preview (1000 it.)", [("trade/herzjesu25_preview_66660b4.json", ("trade", "images_8", "ca_preview"))]),
             ("content-aware", "fast (3000 it.)",
-             [("paired_herzjesu25_balanced_fast_vm10.json", ("paired", "fast"))]),
+             [("paired/herzjesu25_balanced_fast_eca05b4.json", ("paired", "fast"))]),
             ("content-aware", "fast, length chosen on validation",
              [(f, ("equal_time", "ca")) for f in HERZ_EQUAL_TIME_192]),
             ("content-aware", "balanced (10k it.)",
-             [("paired_herzjesu25_balanced_fast_vm10.json", ("paired", "balanced"))]),
-            ("content-aware", "paper (30k it.)", [("trade_vm9ph.json", ("trade", "images_8", "ca_paper"))]),
-            *size_budget_points("trade_vm24h.json", "images_8"),
-            ("content-aware", "fast + size budget (s24), 3000 it.",
-             [("paired_herzjesu25_192_balanced_budget_fast_vm27_4seeds.json", ("paired", "fast"))]),
-            ("content-aware", "balanced + size budget (s26), 10k it.",
-             [("paired_herzjesu25_192_balanced_budget_fast_vm27_4seeds.json", ("paired", "balanced"))]),
-            ("content-aware", "balanced, no size budget (s27), 10k it.",
-             [("paired_herzjesu25_192_balanced_nobudget_budget_vm27_4seeds.json",
+             [("paired/herzjesu25_balanced_fast_eca05b4.json", ("paired", "balanced"))]),
+            ("content-aware", "paper (30k it.)", [("trade/herzjesu25_paper_3d53175.json", ("trade", "images_8", "ca_paper"))]),
+            *size_budget_points("trade/herzjesu25_3148d9f.json", "images_8"),
+            ("content-aware", "fast + size budget, 3000 it.",
+             [("paired/herzjesu25_192_balanced_budget_fast_4seeds_17aac07.json", ("paired", "fast"))]),
+            ("content-aware", "balanced + size budget, 10k it.",
+             [("paired/herzjesu25_192_balanced_budget_fast_4seeds_17aac07.json", ("paired", "balanced"))]),
+            ("content-aware", "balanced, no size budget, 10k it.",
+             [("paired/herzjesu25_192_balanced_nobudget_budget_4seeds_030852a.json",
                ("paired", "balanced_max_params_per_value0"))]),
-            ("content-aware", "balanced + size budget (s26), trade run",
-             [("trade_vm27h.json", ("trade", "images_8", "ca_balanced"))]),
-            ("content-aware", "fast as it ships (s37: + exposure gains), 3000 it.",
-             [("paired_herzjesu25_192_balanced_fast_exposure_both_vm37_4seeds.json", ("paired", "fast"))]),
-            ("content-aware", "balanced as it ships (s37: + opacity resets, exposure gains), 10k it.",
-             [("paired_herzjesu25_192_balanced_fast_exposure_both_vm37_4seeds.json", ("paired", "balanced"))]),
-            ("2dgs", "preview's time", [("trade_vm5p.json", ("trade", "images_8", "2dgs_preview"))]),
-            ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_8", "2dgs_fast"))]),
+            ("content-aware", "balanced + size budget, trade run",
+             [("trade/herzjesu25_96fa9a6.json", ("trade", "images_8", "ca_balanced"))]),
+            ("content-aware", "fast as it ships (+ exposure gains), 3000 it.",
+             [("paired/herzjesu25_192_balanced_fast_exposure_both_4seeds_f91220f.json", ("paired", "fast"))]),
+            ("content-aware", "balanced as it ships (+ opacity resets, exposure gains), 10k it.",
+             [("paired/herzjesu25_192_balanced_fast_exposure_both_4seeds_f91220f.json", ("paired", "balanced"))]),
+            ("2dgs", "preview's time", [("trade/herzjesu25_preview_66660b4.json", ("trade", "images_8", "2dgs_preview"))]),
+            ("2dgs", "fast's time", [("trade/herzjesu25_fff5bb3.json", ("trade", "images_8", "2dgs_fast"))]),
             ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_192]),
-            ("2dgs", "balanced's time", [("trade_vm5b.json", ("trade", "images_8", "2dgs_balanced"))]),
-            ("2dgs", "balanced + size budget's time (s27)", [("trade_vm27h.json", ("trade", "images_8", "2dgs_balanced"))]),
-            ("2dgs", "paper's time", [("trade_vm9ph.json", ("trade", "images_8", "2dgs_paper"))]),
+            ("2dgs", "balanced's time", [("trade/herzjesu25_balanced_37db8bd.json", ("trade", "images_8", "2dgs_balanced"))]),
+            ("2dgs", "balanced + size budget's time", [("trade/herzjesu25_96fa9a6.json", ("trade", "images_8", "2dgs_balanced"))]),
+            ("2dgs", "paper's time", [("trade/herzjesu25_paper_3d53175.json", ("trade", "images_8", "2dgs_paper"))]),
         ],
         "384x256": [
             ("content-aware", "fast (3000 it.)",
-             [("paired_herzjesu25_384_balanced_fast_vm13.json", ("paired", "fast"))]),
+             [("paired/herzjesu25_384_balanced_fast_0f67e86.json", ("paired", "fast"))]),
             ("content-aware", "fast, length chosen on validation",
              [(f, ("equal_time", "ca")) for f in HERZ_EQUAL_TIME_384]),
             ("content-aware", "balanced (10k it.)",
-             [("paired_herzjesu25_384_balanced_fast_vm13.json", ("paired", "balanced"))]),
+             [("paired/herzjesu25_384_balanced_fast_0f67e86.json", ("paired", "balanced"))]),
             ("content-aware", "balanced, --time-budget 57",
-             [("paired_herzjesu25_384_balanced_hour_fast_vm14_3seeds.json", ("paired", "balanced_time_budget57"))]),
+             [("paired/herzjesu25_384_balanced_hour_fast_3seeds_b366019.json", ("paired", "balanced_time_budget57"))]),
             ("content-aware", "fast, --time-budget 10",
-             [("paired_herzjesu25_384_fast_2dgs_budget10_vm21_calendar_3seeds.json", ("paired", "fast_time_budget10"))]),
+             [("paired/herzjesu25_384_fast_2dgs_budget10_calendar_3seeds_c1f0a0a.json", ("paired", "fast_time_budget10"))]),
             ("content-aware", "fast, --time-budget 20",
-             [("paired_herzjesu25_384_fast_2dgs_budget20_vm22_3seeds.json", ("paired", "fast_time_budget20"))]),
+             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_e80749d.json", ("paired", "fast_time_budget20"))]),
             ("content-aware", "fast + tau_ds 0.04, --time-budget 20",
-             [("paired_herzjesu25_384_fast_tau04_2dgs_budget20_vm22_3seeds.json",
+             [("paired/herzjesu25_384_fast_tau04_2dgs_budget20_3seeds_7044685.json",
                ("paired", "fast_tau_ds0.04_time_budget20"))]),
-            ("content-aware", "fast + size budget (s24), --time-budget 10",
-             [("paired_herzjesu25_384_fast_default_budget_2dgs_budget10_vm24_3seeds.json",
+            ("content-aware", "fast + size budget, --time-budget 10",
+             [("paired/herzjesu25_384_fast_default_budget_2dgs_budget10_3seeds_bd1eb71.json",
                ("paired", "fast_time_budget10"))]),
-            ("content-aware", "fast + size budget (s24), --time-budget 20",
-             [("paired_herzjesu25_384_fast_default_budget_2dgs_budget20_vm24_3seeds.json",
+            ("content-aware", "fast + size budget, --time-budget 20",
+             [("paired/herzjesu25_384_fast_default_budget_2dgs_budget20_3seeds_08494ec.json",
                ("paired", "fast_time_budget20"))]),
-            ("content-aware", "fast + size budget (s24), 3000 it.",
-             [("paired_herzjesu25_384_balanced_budget_fast_vm26_3seeds.json", ("paired", "fast"))]),
-            ("content-aware", "balanced + size budget (s26), 10k it.",
-             [("paired_herzjesu25_384_balanced_budget_fast_vm26_3seeds.json", ("paired", "balanced"))]),
+            ("content-aware", "fast + size budget, 3000 it.",
+             [("paired/herzjesu25_384_balanced_budget_fast_3seeds_dbca6cf.json", ("paired", "fast"))]),
+            ("content-aware", "balanced + size budget, 10k it.",
+             [("paired/herzjesu25_384_balanced_budget_fast_3seeds_dbca6cf.json", ("paired", "balanced"))]),
             ("content-aware", "fast --max-params 1.28M, --time-budget 20",
-             [("paired_herzjesu25_384_fast_maxparams_2dgs_budget20_vm23_3seeds.json",
+             [("paired/herzjesu25_384_fast_maxparams_2dgs_budget20_3seeds_6ef5119.json",
                ("paired", "fast_time_budget20_max_params1284162"))]),
-            ("content-aware", "fast as it ships (s37: + exposure gains), --time-budget 10",
-             [("paired_herzjesu25_384_fast_2dgs_budget10_vm39_3seeds.json", ("paired", "fast_time_budget10"))]),
-            ("content-aware", "fast as it ships (s37: + exposure gains), --time-budget 20",
-             [("paired_herzjesu25_384_fast_2dgs_budget20_vm39_3seeds.json", ("paired", "fast_time_budget20"))]),
-            ("2dgs", "fast's time", [("trade_vm5.json", ("trade", "images_4", "2dgs_fast"))]),
+            ("content-aware", "fast as it ships (+ exposure gains), --time-budget 10",
+             [("paired/herzjesu25_384_fast_2dgs_budget10_3seeds_b4e3dc3.json", ("paired", "fast_time_budget10"))]),
+            ("content-aware", "fast as it ships (+ exposure gains), --time-budget 20",
+             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_2717385.json", ("paired", "fast_time_budget20"))]),
+            ("2dgs", "fast's time", [("trade/herzjesu25_fff5bb3.json", ("trade", "images_4", "2dgs_fast"))]),
             ("2dgs", "the same 10 min",
-             [("paired_herzjesu25_384_fast_2dgs_budget10_vm21_calendar_3seeds.json",
+             [("paired/herzjesu25_384_fast_2dgs_budget10_calendar_3seeds_c1f0a0a.json",
                ("paired", "fast_2dgs_time_budget10"))]),
             ("2dgs", "the same 20 min",
-             [("paired_herzjesu25_384_fast_2dgs_budget20_vm22_3seeds.json", ("paired", "fast_2dgs_time_budget20"))]),
-            ("2dgs", "the same 10 min (s39, beside `fast` as it ships)",
-             [("paired_herzjesu25_384_fast_2dgs_budget10_vm39_3seeds.json", ("paired", "fast_2dgs_time_budget10"))]),
-            ("2dgs", "the same 20 min (s39, beside `fast` as it ships)",
-             [("paired_herzjesu25_384_fast_2dgs_budget20_vm39_3seeds.json", ("paired", "fast_2dgs_time_budget20"))]),
+             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_e80749d.json", ("paired", "fast_2dgs_time_budget20"))]),
+            ("2dgs", "the same 10 min (beside `fast` as it ships)",
+             [("paired/herzjesu25_384_fast_2dgs_budget10_3seeds_b4e3dc3.json", ("paired", "fast_2dgs_time_budget10"))]),
+            ("2dgs", "the same 20 min (beside `fast` as it ships)",
+             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_2717385.json", ("paired", "fast_2dgs_time_budget20"))]),
             ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_384]),
             ("2dgs", "balanced's time",
-             [("paired_herzjesu25_384_balanced_2dgs_time_vm15_3seeds.json", ("paired", "balanced_2dgs_time_budget43.5"))]),
+             [("paired/herzjesu25_384_balanced_2dgs_time_3seeds_264fb57.json", ("paired", "balanced_2dgs_time_budget43.5"))]),
         ],
         "768x512": [
             ("content-aware", "fast, --time-budget 30",
-             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16_3seeds.json", ("paired", "fast_time_budget30"))]),
+             [("paired/herzjesu25_768_fast_2dgs_budget30_3seeds_be1f70a.json", ("paired", "fast_time_budget30"))]),
             ("2dgs", "the same 30 min",
-             [("paired_herzjesu25_768_fast_2dgs_budget30_vm16_3seeds.json", ("paired", "fast_2dgs_time_budget30"))]),
+             [("paired/herzjesu25_768_fast_2dgs_budget30_3seeds_be1f70a.json", ("paired", "fast_2dgs_time_budget30"))]),
         ],
     },
     "demo": {
         "192x144": [
-            ("content-aware", "preview (1000 it.)", [("trade_vm6d.json", ("trade", "192x144", "ca_preview"))]),
-            ("content-aware", "fast (3000 it.)", [("paired_demo192x144_balanced_fast_vm10.json", ("paired", "fast"))]),
+            ("content-aware", "preview (1000 it.)", [("trade/demo_6d9c165.json", ("trade", "192x144", "ca_preview"))]),
+            ("content-aware", "fast (3000 it.)", [("paired/demo192x144_balanced_fast_16b8d40.json", ("paired", "fast"))]),
             ("content-aware", "balanced (10k it.)",
-             [("paired_demo192x144_balanced_fast_vm10.json", ("paired", "balanced"))]),
-            ("content-aware", "paper (30k it.)", [("trade_vm9pd.json", ("trade", "192x144", "ca_paper"))]),
-            *size_budget_points("trade_vm24d.json", "192x144"),
-            ("content-aware", "balanced + size budget (s26)", [("trade_vm27d.json", ("trade", "192x144", "ca_balanced"))]),
-            ("content-aware", "fast + size budget (s24), 3000 it.",
-             [("paired_demo192x144_balanced_budget_fast_vm27_4seeds.json", ("paired", "fast"))]),
-            ("content-aware", "balanced + size budget (s26), 10k it.",
-             [("paired_demo192x144_balanced_budget_fast_vm27_4seeds.json", ("paired", "balanced"))]),
-            ("content-aware", "fast as it ships (s37: + exposure gains), 3000 it.",
-             [("paired_demo192x144_balanced_fast_exposure_vm38_4seeds.json", ("paired", "fast"))]),
-            ("content-aware", "balanced as it ships (s37: + opacity resets, exposure gains), 10k it.",
-             [("paired_demo192x144_balanced_fast_exposure_vm38_4seeds.json", ("paired", "balanced"))]),
-            ("2dgs", "preview's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_preview"))]),
-            ("2dgs", "fast's time", [("trade_vm5d.json", ("trade", "192x144", "2dgs_fast"))]),
-            ("2dgs", "balanced's time", [("trade_vm6d.json", ("trade", "192x144", "2dgs_balanced"))]),
-            ("2dgs", "balanced + size budget's time (s27)", [("trade_vm27d.json", ("trade", "192x144", "2dgs_balanced"))]),
-            ("2dgs", "paper's time", [("trade_vm9pd.json", ("trade", "192x144", "2dgs_paper"))]),
+             [("paired/demo192x144_balanced_fast_16b8d40.json", ("paired", "balanced"))]),
+            ("content-aware", "paper (30k it.)", [("trade/demo_paper_638e279.json", ("trade", "192x144", "ca_paper"))]),
+            *size_budget_points("trade/demo_3148d9f.json", "192x144"),
+            ("content-aware", "balanced + size budget", [("trade/demo_030852a.json", ("trade", "192x144", "ca_balanced"))]),
+            ("content-aware", "fast + size budget, 3000 it.",
+             [("paired/demo192x144_balanced_budget_fast_4seeds_d3509df.json", ("paired", "fast"))]),
+            ("content-aware", "balanced + size budget, 10k it.",
+             [("paired/demo192x144_balanced_budget_fast_4seeds_d3509df.json", ("paired", "balanced"))]),
+            ("content-aware", "fast as it ships (+ exposure gains), 3000 it.",
+             [("paired/demo192x144_balanced_fast_exposure_4seeds_68389ac.json", ("paired", "fast"))]),
+            ("content-aware", "balanced as it ships (+ opacity resets, exposure gains), 10k it.",
+             [("paired/demo192x144_balanced_fast_exposure_4seeds_68389ac.json", ("paired", "balanced"))]),
+            ("2dgs", "preview's time", [("trade/demo_6d9c165.json", ("trade", "192x144", "2dgs_preview"))]),
+            ("2dgs", "fast's time", [("trade/demo_fff5bb3.json", ("trade", "192x144", "2dgs_fast"))]),
+            ("2dgs", "balanced's time", [("trade/demo_6d9c165.json", ("trade", "192x144", "2dgs_balanced"))]),
+            ("2dgs", "balanced + size budget's time", [("trade/demo_030852a.json", ("trade", "192x144", "2dgs_balanced"))]),
+            ("2dgs", "paper's time", [("trade/demo_paper_638e279.json", ("trade", "192x144", "2dgs_paper"))]),
         ],
         "384x288": [
-            ("content-aware", "fast (3000 it.)", [("trade_vm5d.json", ("trade", "384x288", "ca_fast"))]),
-            ("2dgs", "fast's time", [("trade_vm5d.json", ("trade", "384x288", "2dgs_fast"))]),
+            ("content-aware", "fast (3000 it.)", [("trade/demo_fff5bb3.json", ("trade", "384x288", "ca_fast"))]),
+            ("2dgs", "fast's time", [("trade/demo_fff5bb3.json", ("trade", "384x288", "2dgs_fast"))]),
         ],
     },
 }
@@ -178,7 +180,7 @@ def runs_of(path: str, selector: tuple) -> tuple[list[dict], str]:
         runs = [r for r in rec["runs"] if r["label"] == selector[1]]
         picked = [{"psnr": r["psnr"], "wall_min": r["wall_s"] / 60, "params": r["params"],
                    "iterations": r["iterations"]} for r in runs]
-        # the commits the runs trained at where their records name them (paired.py since session 16)
+        # the commits the runs trained at where their records name them (paired.py names them)
         source = "/".join(sorted({r["commit"] for r in runs if r.get("commit")})) or rec["commit"]
     elif kind == "equal_time":
         picked = [{"psnr": r["psnr"], "wall_min": r["wall_s"] / 60, "params": r["params"],
@@ -271,7 +273,7 @@ def plot(scene: str, points: list[dict], path: str) -> None:
 
 
 def write(scene: str, points: list[dict]) -> None:
-    base = os.path.join(RESULTS, f"trade_summary_{scene}")
+    base = os.path.join(RESULTS, "trade_summary", scene)
     try:
         commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
                                 text=True, check=True).stdout.strip()
@@ -283,9 +285,9 @@ def write(scene: str, points: list[dict]) -> None:
              "no GPU, one thread per training, two trainings side by side). Mean over the runs of a point, +- one "
              "standard deviation where there are several (seeds). Wall = the whole `ctgs train` command. The records "
              "come from different commits (named per source): the trainer changed between them; `fast` and `preview` "
-             "points not marked 'size budget' predate session 24, when those presets took a default size budget of "
+             "points not marked 'size budget' predate those presets' default size budget of "
              "0.3 parameters per observed value. Plot: "
-             f"`trade_summary_{scene}.png`.", ""]
+             f"`{scene}.png`.", ""]
     for size in REGISTRY[scene]:
         lines += [f"## {size}", "", "| # | method | point | runs | iterations | test PSNR | wall min | params | sources |",
                   "| ---: | --- | --- | ---: | --- | --- | --- | --- | --- |"]
@@ -303,9 +305,12 @@ def write(scene: str, points: list[dict]) -> None:
 
 
 def main() -> None:
+    import argparse
+
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     for scene in REGISTRY:
         write(scene, summarise(scene))
-        print(f"wrote benchmarks/results/trade_summary_{scene}.md and .png")
+        print(f"wrote benchmarks/results/trade_summary/{scene}.md and .png")
 
 
 if __name__ == "__main__":

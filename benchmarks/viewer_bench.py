@@ -1,6 +1,6 @@
 """The web viewer in headless Chromium: per-view PSNR against `ctgs render`, where the difference comes
 from, frame times, bundle bytes; a screenshot of the viewer. Results: benchmarks/results/viewer_<host>.{md,json}
-and benchmarks/results/viewer_demo_screenshot.png.
+and benchmarks/results/viewer_bench/demo_screenshot_5043fcf.png.
 
 Usage: .venv/bin/python benchmarks/viewer_bench.py [--run RUN_DIR] [--work /tmp/ctgs_viewer_bench]
        [--frames 20] [--big-surfels 200000] [--size 1280x720] [--skip-big]

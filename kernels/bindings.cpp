@@ -566,7 +566,7 @@ std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, C++/OpenMP CPU backend (see docs/renderer.md)";
+  m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, C++/OpenMP CPU backend (see docs/reference/renderer.md)";
   m.def("forward_cpu", &forward_cpu, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
         "tile_list, count, contrib, err, setup_prims, setup_spans; the last two are opaque, for backward_cpu)");
   m.def("forward_pairs_cpu", &forward_pairs_cpu, "forward that also returns every blended (pix, prim, w) "

@@ -272,7 +272,7 @@ std::vector<Tensor> jagged_remap_cuda(std::vector<Tensor> buffers, Tensor old_re
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, CUDA backend (see docs/renderer.md)";
+  m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, CUDA backend (see docs/reference/renderer.md)";
   m.def("forward_cuda", &forward_cuda, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
         "tile_list, count, contrib, err)");
   m.def("backward_cuda", &backward_cuda, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "

@@ -1,4 +1,4 @@
-"""Build ctgs_cpu and ctgs_cuda on the dev machine for the lent GPU machine (benchmarks/device/session.sh).
+"""Build ctgs_cpu and ctgs_cuda on the dev machine for a GPU machine without network (benchmarks/device/session.sh).
 
 Run with a Python and torch matching the device's (KINDS.md of the device tool: Python 3.12, torch
 2.11.0+cu130), e.g. a venv made for the purpose; nvcc 13.0 compiles for sm_90 (no GPU needed). The builds

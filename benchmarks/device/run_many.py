@@ -9,7 +9,7 @@ SECONDS from the start the runs still going are stopped (SIGTERM; their log.json
 jobs not started are listed as such. ROOT/status.json says, per job, its state (done / stopped / failed /
 not started), its wall seconds and exit code, and is rewritten on every change; ROOT/DONE appears at the end.
 Meant to run detached (setsid nohup ... &) so that it outlives a device call while the machine stays warm; a
-later call waits for ROOT/DONE and packs ROOT (benchmarks/device/many.sh; docs/gpu.md).
+later call waits for ROOT/DONE and packs ROOT (benchmarks/device/many.sh; docs/guide/gpu.md).
 """
 
 from __future__ import annotations

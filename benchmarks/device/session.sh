@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# One call on a lent GPU machine (the `device` tool): CUDA tests with the agreement log, the kernel benchmark
+# One command on a GPU machine without network: CUDA tests with the agreement log, the kernel benchmark
 # against gsplat, and timed paper-scale training on herzjesu25, each phase under its own time limit so that
 # a failure or a slow phase leaves the others their time. Everything lands in $OUT/results.tgz plus
 # $OUT/session.log (the device returns at most 8 files).
 #
 # What travels with it (an ignored folder named in `carry`, built on the dev machine; see
-# docs/gpu.md, "Running the device checks again"): $G/ctgs_cache (prebuilt extensions), $G/py/gsplat + $G/gsplat_cuda.so,
+# docs/guide/gpu.md, "Running the device checks again"): $G/ctgs_cache (prebuilt extensions), $G/py/gsplat + $G/gsplat_cuda.so,
 # $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl). A training longer than a
 # call: bg.sh. Both source lib.sh (the environment; a run's export, compress and eval).
 #
@@ -65,7 +65,7 @@ if [[ $PHASES == *tests* ]]; then
   fi
   python3 benchmarks/cuda_agreement.py "$R/agreement.jsonl" --machine "$R/machine.json" -o "$R/cuda_agreement" | tail -45
   # The backward kernel's other variant against the CPU too: the uncapped one (CTGS_CUDA_BWD_MIN_BLOCKS=1; the
-  # default since session 34 is 3 blocks per SM, at most 80 registers), so that both stay checked.
+  # default is 3 blocks per SM, at most 80 registers), so that both stay checked.
   stamp "tests: uncapped backward"
   CTGS_CUDA_BWD_MIN_BLOCKS=1 timeout 60 python3 -m pytest -q -p no:cacheprovider tests/render/test_cuda_backend.py \
     -k "not compile_with_nvcc" 2>&1 | tee "$R/pytest_cuda_mb1.log" | tail -3

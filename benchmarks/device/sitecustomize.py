@@ -1,4 +1,4 @@
-"""Start-up hook for runs on a lent GPU machine (benchmarks/device/session.sh puts this folder on PYTHONPATH).
+"""Start-up hook for runs on a GPU machine without network (benchmarks/device/session.sh puts this folder on PYTHONPATH).
 
 That machine has no network and little time, so two things are brought ready-made instead of done there:
 - CTGS_PREBUILT=1: the compiled extensions (ctgs_cpu, ctgs_cuda), built on the dev machine against the same

@@ -2,7 +2,7 @@
 
 Gaussian viewers (3DGS PLY, .splat, .spz) know one colour per splat, so the plain exports fold each texture into
 its mean colour (ctgs.io.plain_ply), which loses the detail the content-aware method puts in textures (9.7 dB on
-the `make demo` model: docs/model_format.md). `bake_texels` instead replaces every textured surfel by a lattice of
+the `make demo` model: docs/reference/model_format.md). `bake_texels` instead replaces every textured surfel by a lattice of
 coplanar Gaussians, one at each texel centre, which any Gaussian viewer draws:
 
 - position: the texel centre on the surfel's plane, mu + lx u + ly v, with lx = (i - (r_u - 1) / 2) k_u (the
@@ -23,7 +23,7 @@ across it) stays one splat with its texture folded into one colour, as in the pl
 
 With a splat budget (`ctgs export --bake-max-splats`, and .spz's 10M points), plan_levels bakes each surfel on its
 own texels, on 2^l x 2^l blocks of them averaged (one splat per block), or folded, choosing per surfel by the detail
-each option drops against the splats it saves: flat textures go coarse first (docs/model_format.md).
+each option drops against the splats it saves: flat textures go coarse first (docs/reference/model_format.md).
 
 What is approximate: coplanar splats composite in depth order rather than summing, so between texel centres the
 nearer splat weighs more than a bilinear lookup would; a lattice of half-texel Gaussians covers at most 90% of a

@@ -1,4 +1,4 @@
-"""Compression of a SurfelModel into packed sections, and back (spec: docs/model_format.md).
+"""Compression of a SurfelModel into packed sections, and back (spec: docs/reference/model_format.md).
 
 Texels (paper sec. "Storage and Memory"; offsets are 2*sigmoid(x)-1, so they live in [-1, 1]):
 - `scalar` (the authors' release, the default): one 1-D codebook of K <= 256 values fitted to every
@@ -112,8 +112,8 @@ def _kmeans_k(codec: str) -> int | None:
     return int(k) if head == "kmeans" and k.isdigit() and int(k) >= 1 else None
 
 
-# The --target presets: measured points of the size-quality curve (benchmarks/results/compress_demo.md,
-# compress_herzjesu25.md), chosen on training views. Per-attribute train-PSNR costs on the demo, each on
+# The --target presets: measured points of the size-quality curve (benchmarks/results/compress_curve/demo_c42d198.md,
+# compress_curve/herzjesu25_c42d198.md), chosen on training views. Per-attribute train-PSNR costs on the demo, each on
 # top of scalar K=256 texels: every f16, sh_rest q8, opacity q8, scales q8/q16, means q16 <= 0.001 dB;
 # sh_dc q8 0.001, quats q8 0.016 dB; scalar K=256 / 64 / 32 texels 0.001 / 0.010 / 0.044 dB vs raw.
 # K-means SH (demo: 0.017 dB at K=1024 for <1% fewer bytes than q8; herzjesu25 0.08 dB for 22% fewer) and

@@ -91,7 +91,7 @@ def tile_sizes(model: SurfelModel) -> np.ndarray:
 
 def _texture_at(model: SurfelModel, prim: torch.Tensor, lx: torch.Tensor, ly: torch.Tensor) -> torch.Tensor:
     """[P, 3] bilinear texture value at local coordinates (lx, ly) (world units) of primitives `prim`,
-    exactly as the renderer samples it (docs/renderer.md step 5): taps outside the grid read 0."""
+    exactly as the renderer samples it (docs/reference/renderer.md step 5): taps outside the grid read 0."""
     res = model.tex_res.long()[prim]  # [P, 2]
     k = model.texel_size.detach().double()[prim]  # [P, 2]
     uu = lx / k[:, 0] + (res[:, 0] - 1) / 2

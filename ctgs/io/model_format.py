@@ -1,4 +1,4 @@
-"""The ctgs model folder (spec: docs/model_format.md), in one of two layouts.
+"""The ctgs model folder (spec: docs/reference/model_format.md), in one of two layouts.
 
 - version 1, written by `ctgs export`: manifest.json + primitives.ply + textures.bin. `write_model` /
   `read_model` round-trip a `SurfelModel` bit-exactly (raw parameters, dtypes kept). Folders from the

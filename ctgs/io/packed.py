@@ -5,20 +5,20 @@ row-major or column-major (one column after another), optionally byte-shuffled (
 element, then byte 1, ...: the high bytes of quantised or float16 values repeat far more than the low
 ones, which LZMA then finds), then coded with xz/LZMA (or zlib, or stored). The writer tries the
 layouts and keeps the smallest; the manifest records what was chosen, the byte range in `model.bin`,
-and a CRC-32 of the decoded bytes. The full specification is docs/model_format.md.
+and a CRC-32 of the decoded bytes. The full specification is docs/reference/model_format.md.
 
 Coder: LZMA (Python's `lzma`, the .xz format) at preset 9e. Measured on a demo model (1.1M texels,
 256-level scalar indices): xz 1.05 MB, zstd level 19/22 1.18 MB (zstandard 0.25), zlib 9 1.46 MB;
 on float16 SH and positions xz was also the smallest. zstd is faster but not smaller, so no new
 dependency: xz is in the standard library and every platform has a reader. A delta filter before LZMA (distance 3:
 one RGB texel back) shrank photos' 256-level indices by 22% but grew real texel indices by 8% (the demo model and a
-herzjesu25 model, session 34): textures are offsets around the SH colour, not images, so it is not used.
+herzjesu25 model): textures are offsets around the SH colour, not images, so it is not used.
 
 One xz stream codes at about 1-2 MB/s (one core), so a paper-scale model's texel indices (75 MB for 25M texels)
 take a minute or more. With jobs > 1 (`ctgs compress --jobs N`) a section above XZ_STREAM_BYTES is cut into
 independent xz streams of that size, coded on N threads (lzma releases the GIL) and concatenated: still one valid
 .xz file (a reader that ignores the entry's `streams` decodes it whole), about 2% larger, since each stream starts
-with an empty dictionary and fresh probabilities (benchmarks/results/xz_streams_herzjesu25_images_vm34.md).
+with an empty dictionary and fresh probabilities (benchmarks/results/xz_streams/herzjesu25_images_2d9476d.md).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ XZ_STREAM_BYTES = 16 << 20
 class Section:
     name: str
     array: np.ndarray  # [rows] or [rows, cols]
-    encoding: dict  # how the stored values become model quantities (ctgs.io.compress; docs/model_format.md)
+    encoding: dict  # how the stored values become model quantities (ctgs.io.compress; docs/reference/model_format.md)
 
 
 def _code(data: bytes, coder: str) -> bytes:

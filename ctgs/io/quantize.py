@@ -2,7 +2,7 @@
 
 Every codec is a pair: `encode(values [rows, cols]) -> (stored array, encoding dict)` and
 `decode(stored, encoding) -> values [rows, cols]` (float64). The encoding dict goes to the manifest and
-is all a reader needs (docs/model_format.md, "Compressed models"):
+is all a reader needs (docs/reference/model_format.md, "Compressed models"):
 
 - `{"kind": "float"}`: the stored float16/float32 values are the values.
 - `{"kind": "fixed", "levels": L, "min": [...], "max": [...]}`: stored unsigned integers q in [0, L],

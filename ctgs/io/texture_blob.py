@@ -1,6 +1,6 @@
 """The texture blob (`textures.bin`): a 64-byte little-endian header + raw or codebook texel payload.
 
-Layout (all little-endian; the full spec is docs/model_format.md):
+Layout (all little-endian; the full spec is docs/reference/model_format.md):
 
 | offset | type | field |
 | --- | --- | --- |

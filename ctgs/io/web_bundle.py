@@ -1,4 +1,4 @@
-"""The web bundle that `ctgs view` serves (spec: docs/model_format.md, "Web bundle").
+"""The web bundle that `ctgs view` serves (spec: docs/reference/model_format.md, "Web bundle").
 
 A folder of plain little-endian arrays a browser can upload to WebGL2 textures without parsing:
 bundle.json (layout, cameras), surfels.bin (per-surfel arrays, activated values), atlas_NNN.bin (the

@@ -50,10 +50,10 @@ def veil_share(inputs, cam, sh_degree: int, backend: str) -> float:
     """The largest share of the view's blending weight (sum of alpha T over its pixels) carried by one primitive
     whose centre lies outside the view (behind the near plane or projecting off the image).
 
-    Blending follows centre depth (docs/renderer.md, Ordering): a surfel far larger than the scene, centred off
+    Blending follows centre depth (docs/reference/renderer.md, Ordering): a surfel far larger than the scene, centred off
     to the side of a camera, is blended in front of the surface it crosses there, a veil over the view. Over the
     training views of 24 herzjesu25 runs (content-aware and 2dgs, 192 and 384 px) no such primitive carried more
-    than 12% of a view (benchmarks/results/oversized_herzjesu25_vm27.md, session 27)."""
+    than 12% of a view (benchmarks/results/oversized/herzjesu25_6f7d403.md)."""
     from ctgs.render import render
 
     err = torch.zeros(cam.height, cam.width, device=inputs.means.device)

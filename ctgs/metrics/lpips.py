@@ -4,7 +4,7 @@ The linear layers are the `lpips` package's v0.1 VGG weights, vendored in `weigh
 licence (7 KB). The VGG16 trunk weights come from `vgg_weights.find_vgg16`. Inputs follow the lpips
 package: images in [-1, 1]; `normalize=True` maps [0, 1] to [-1, 1]. ctgs' eval feeds [0, 1] images
 *without* rescaling (normalize=False), the 3DGS/2DGS evaluation convention, so its numbers compare with
-the paper's tables; docs/metrics.md states this.
+the paper's tables; docs/reference/metrics.md states this.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Eval artifacts: metrics.json (schema in docs/metrics.md), per-image CSV, strips, the paper's table."""
+"""Eval artifacts: metrics.json (schema in docs/reference/metrics.md), per-image CSV, strips, the paper's table."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ class ImageMetrics:
     open: float = float("nan")  # share of the pixels whose rendered alpha is below OPEN_ALPHA
     psnr_covered: float | None = None  # PSNR over the other pixels (None: every pixel open)
     # the largest share of the view's blending weight (sum of alpha T over its pixels) that one primitive whose
-    # centre lies outside the view carries: a veil blended in front of the scene (docs/renderer.md, Ordering)
+    # centre lies outside the view carries: a veil blended in front of the scene (docs/reference/renderer.md, Ordering)
     veil: float = float("nan")
     # exposure: the least-squares gain photo ~ gain x render, and PSNR after it (ctgs.metrics.psnr.gain_matched_psnr;
     # a diagnostic, not the protocol's PSNR: a new view's exposure is unknown to any method)

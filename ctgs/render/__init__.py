@@ -2,7 +2,7 @@
 
 `render(surfels, camera, backend=...)` is the one entry point; backends: "reference" (pure PyTorch,
 dense, autograd), "cpu" (C++/OpenMP extension), "cuda" (CUDA extension), "auto" (cuda if the inputs
-live on a GPU, else cpu). The exact semantics are in docs/renderer.md.
+live on a GPU, else cpu). The exact semantics are in docs/reference/renderer.md.
 """
 
 from ctgs.render.camera import Camera

@@ -1,6 +1,6 @@
 """`render()`: input validation and backend dispatch (the autograd bridge is ctgs.render.rasterize).
 
-Semantics: docs/renderer.md. The extension backends get camera-space primitives from
+Semantics: docs/reference/renderer.md. The extension backends get camera-space primitives from
 `ctgs.render.preprocess` (PyTorch, differentiable); a torch.autograd.Function calls the compiled
 forward/backward, whose gradients w.r.t. mu_c, Rc, colors... autograd carries back to means, quats, sh.
 """

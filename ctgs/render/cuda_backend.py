@@ -1,5 +1,5 @@
 """The CUDA backend behind `render(..., backend="cuda")`: device checks, then the shared autograd
-bridge (ctgs.render.rasterize) with the kernels of kernels/cuda. Semantics: docs/renderer.md.
+bridge (ctgs.render.rasterize) with the kernels of kernels/cuda. Semantics: docs/reference/renderer.md.
 """
 
 from __future__ import annotations

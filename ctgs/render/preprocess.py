@@ -1,4 +1,4 @@
-"""Differentiable per-primitive preprocessing for the extension backends (docs/renderer.md, "Per primitive"):
+"""Differentiable per-primitive preprocessing for the extension backends (docs/reference/renderer.md, "Per primitive"):
 world -> camera space and SH -> colour, in PyTorch so autograd carries the kernels' camera-space gradients
 back to means, quats and SH."""
 

@@ -1,4 +1,4 @@
-"""Pure-PyTorch reference renderer for textured 2D Gaussian surfels (docs/renderer.md, exactly).
+"""Pure-PyTorch reference renderer for textured 2D Gaussian surfels (docs/reference/renderer.md, exactly).
 
 Dense: every (pixel, primitive) pair is evaluated with tensor ops, and autograd differentiates it end to
 end. It is the ground truth the C++/CUDA backends are compared against, so it shares NO code with them
@@ -27,7 +27,7 @@ from torch.utils.checkpoint import checkpoint
 from ctgs.render.camera import Camera
 from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
 
-# ---- constants: an independent copy of docs/renderer.md (deliberately not imported from the backend) ----
+# ---- constants: an independent copy of docs/reference/renderer.md (deliberately not imported from the backend) ----
 PARALLEL_EPS = 1e-6  # hit valid iff |n.d| > PARALLEL_EPS * |d|
 FILTER_INV_SQUARE = 2.0  # rho2d = FILTER_INV_SQUARE * |pix - m|^2, pixels^-2
 CUTOFF_RHO = 9.0  # contributes only if rho <= 9 (3 sigma)
@@ -251,7 +251,7 @@ def _render_chunk(px: torch.Tensor, py: torch.Tensor, err: torch.Tensor | None, 
 def render_reference(surfels: SurfelInputs, camera: Camera, *, sh_degree: int | None = None,
                      background: torch.Tensor | None = None, error_image: torch.Tensor | None = None,
                      chunk_pairs: int = DEFAULT_CHUNK_PAIRS) -> RenderOutput:
-    """Render `surfels` from `camera` exactly as docs/renderer.md defines it (dense, autograd).
+    """Render `surfels` from `camera` exactly as docs/reference/renderer.md defines it (dense, autograd).
 
     Args:
         sh_degree: active SH degree (default: the largest that surfels.sh's K allows).

@@ -1,4 +1,4 @@
-"""Typed inputs and outputs of the renderer (see docs/renderer.md for the exact definition)."""
+"""Typed inputs and outputs of the renderer (see docs/reference/renderer.md for the exact definition)."""
 
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ import click
 
 from ctgs.errors import UserError
 
-TARGET_HELP = ("Preset, a measured point of the size-quality curve (benchmarks/results/compress_demo.md): "
+TARGET_HELP = ("Preset, a measured point of the size-quality curve (benchmarks/results/compress_curve/demo_c42d198.md): "
                "lossless-ish, balanced (default; <= 0.1 dB PSNR on the demo), small.")
 
 

@@ -60,7 +60,7 @@ def _table(paths: tuple[str, ...], out: str) -> None:
 @click.option("--device", default=None, help="torch device (default cuda when available, else cpu).")
 @click.option("--lpips/--no-lpips", default=True, show_default=True, help="Compute LPIPS (VGG v0.1).")
 @click.option("--lpips-weights", default=None, type=click.Path(dir_okay=False), envvar="CTGS_VGG16_WEIGHTS",
-              help="VGG16 weights .pth (torchvision layout); see docs/metrics.md for the lookup order.")
+              help="VGG16 weights .pth (torchvision layout); see docs/reference/metrics.md for the lookup order.")
 @click.option("--dataset", default=None, help="Dataset name for --table grouping (default: scene's parent folder).")
 @click.option("--split", type=click.Choice(["test", "train"]), default="test", show_default=True,
               help="Views to evaluate: the test views, or the views the run was trained on (how well it fits its "
@@ -102,9 +102,9 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
         click.echo(f"{worst['name']}: {100 * worst['open']:.1f}% of the pixels open (rendered alpha < {OPEN_ALPHA}: the "
                    f"background shows), PSNR {worst['psnr']:.2f} dB{covered}")
     veiled = max(m["per_image"], key=lambda r: r["veil"])
-    if veiled["veil"] >= VEIL_NOTE:  # one surfel blended in front of the scene: docs/renderer.md, Ordering
+    if veiled["veil"] >= VEIL_NOTE:  # one surfel blended in front of the scene: docs/reference/renderer.md, Ordering
         click.echo(f"{veiled['name']}: one primitive centred outside the view carries {100 * veiled['veil']:.0f}% of "
-                   f"its blending weight (a veil in front of the scene; docs/renderer.md, Ordering), PSNR "
+                   f"its blending weight (a veil in front of the scene; docs/reference/renderer.md, Ordering), PSNR "
                    f"{veiled['psnr']:.2f} dB")
     off = max(m["per_image"], key=lambda r: abs(r["gain"] - 1) if r["gain"] is not None else 0.0)
     if off["gain"] is not None and abs(off["gain"] - 1) >= GAIN_NOTE:

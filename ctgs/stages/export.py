@@ -1,6 +1,6 @@
 """`ctgs export SOURCE [-o OUT] [--format F]`: a trained run (or a model folder) -> a model file or folder.
 
-Formats (docs/model_format.md): `ctgs` (default, lossless: primitives.ply + textures.bin + manifest.json,
+Formats (docs/reference/model_format.md): `ctgs` (default, lossless: primitives.ply + textures.bin + manifest.json,
 plus plain_3dgs.ply), `ply` (3DGS PLY for Gaussian viewers), `splat` (32 bytes per splat, web viewers),
 `spz` (Niantic's compressed Gaussians), `compressed-ply` and `sog` (PlayCanvas's), `glb-splats` (KHR_gaussian_splatting), `glb` (textured quads for Blender and three.js), `web` (the ctgs
 folder plus the bundle `ctgs view` serves, in its web/ subfolder). Adding a format is one entry in FORMATS.
@@ -193,7 +193,7 @@ def default_out(source: str, fmt: str) -> str:
 @click.option("--bake-textures", is_flag=True,
               help="With --format ply, splat, spz, compressed-ply, sog or glb-splats: one small splat per texel instead "
                    "of one per surfel, so Gaussian "
-                   "viewers show the texture detail (many times the splats and bytes; docs/model_format.md).")
+                   "viewers show the texture detail (many times the splats and bytes; docs/reference/model_format.md).")
 @click.option("--bake-max-splats", type=click.IntRange(min=1), default=None,
               help="With --bake-textures: at most this many splats; past it, textures are baked on coarser texels "
                    "(2x2, 4x4... blocks averaged) or folded, the flattest first. spz: at most its readers' 10M "

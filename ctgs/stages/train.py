@@ -23,7 +23,7 @@ def _load_scene(cfg):
 
 
 # Without --preset/--config: the authors' recipe where a GPU is present; on a CPU, the preset that measured
-# best for the time (benchmarks/results/trade_*.md).
+# best for the time (docs/results.md).
 CPU_DEFAULT_PRESET = "fast"
 GPU_DEFAULT_PRESET = "paper"
 
@@ -126,13 +126,13 @@ def _list_keys(ctx, _param, value):
 @click.option("-o", "--output", "run_dir", required=True, type=click.Path(file_okay=False), help="Run folder.")
 @click.option("--preset", type=click.Choice(["preview", "fast", "balanced", "paper"]), default=None,
               help="Recipe: paper = the authors' exactly (default with a GPU); fast (default on a CPU), "
-                   "preview and balanced trade time for quality (docs/training.md).")
+                   "preview and balanced trade time for quality (docs/guide/training.md).")
 @click.option("--time-budget", "time_budget", type=float, default=None, metavar="MINUTES",
               help="Plan the iteration count so the whole run ends within MINUTES on this machine (without it, "
                    "the run says how long its fixed length will take).")
 @click.option("--max-params", "max_params", type=click.IntRange(min=1), default=None, metavar="N",
               help="Size budget: the model ends with at most N parameters (textures coarsened where that loses "
-                   "least, splits stopped where needed; docs/training.md).")
+                   "least, splits stopped where needed; docs/guide/training.md).")
 @click.option("--config", default=None, help="Config overlay: a TOML file or a shipped name (default, 2dgs, ...).")
 @click.option("--iterations", type=int, default=None, help="Override the number of iterations.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")

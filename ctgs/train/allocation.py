@@ -47,7 +47,7 @@ def texel_position_density_by_kind(model, meta: dict) -> dict[str, float]:
     """{kind: allocated texels lying on surfaces of that kind / total area of those surfaces}.
 
     Texel (i, j) of primitive p lies at mean_p + ((i - (W-1)/2) u_p + (j - (H-1)/2) v_p) * texel size (the
-    renderer's uv mapping, docs/renderer.md) and is counted like a primitive centre (within PLANE_TOL of a
+    renderer's uv mapping, docs/reference/renderer.md) and is counted like a primitive centre (within PLANE_TOL of a
     plane, inside its grown rectangle); texels on no surface (floaters, padding in the air) count nowhere.
     Near the demo box (0.9 units across, less than 7x PLANE_TOL) texels of one face also count on the
     perpendicular face next to it.

@@ -34,9 +34,9 @@ from ctgs.train.config import TrainConfig
 # to the end of the routine window (R; the jump at the texture start is calibrated). R in the logs of the
 # herzjesu25 runs: `fast` 1.46 (192 px, median of 27 runs), 1.58 (384 px, 55 runs), 2.16 (768 px, 3 runs);
 # `balanced` 2.0 (192 px) and 2.7 (384 px); demo 1.1. A prior only: the cost is re-fitted at every re-plan.
-# Until session 17 the content-aware prior was a growth of 2.5 from the *untextured* calibration step, which
+# An earlier content-aware prior was a growth of 2.5 from the *untextured* calibration step, which
 # left out the jump: the first plans of `--time-budget` runs were 2.6-3.2x the iterations run (384 px
-# `balanced` and 768 px `fast`); see benchmarks/results/budget_first_plan_vm17.md.
+# `balanced` and 768 px `fast`); see benchmarks/results/budget_first_plan/708b530.md.
 GROWTH_PRIOR = {"content_aware": 2.0, "2dgs": 3.0, "fixed_texture": 4.0}
 # The texture start's jump, when the calibration did not measure it (a run resumed from an older checkpoint).
 TEXTURE_JUMP_PRIOR = 2.4
@@ -343,7 +343,7 @@ class BudgetPlanner:
                 "texture_jump": round(self.jump, 3) if self.cfg.method == "content_aware" else None,
                 # where the textures started, and where the schedule puts them (texture_start / 30000 of the run):
                 # the start is fixed early from the speed measured then, so a load on the machine during the
-                # first minute moves it (docs/training.md)
+                # first minute moves it (docs/guide/training.md)
                 "texture_start_it": self.tex_at,
                 "texture_start_scheduled_fraction": (round(self.cfg.texture_start / schedule.PAPER_ITERATIONS, 5)
                                                      if self.cfg.method == "content_aware"
@@ -360,7 +360,7 @@ class BudgetPlanner:
     def load_state_dict(self, state: dict) -> None:
         self.plan = Plan(**state["plan"])
         self.growth = state["growth"]
-        self.base = state.get("base", state.get("c_step", 0.0))  # c_step: checkpoints before session 17
+        self.base = state.get("base", state.get("c_step", 0.0))  # c_step: checkpoints of an earlier planner
         self.jump, self.tex_at = state.get("jump", self.jump), state.get("tex_at")
         self.n_obs = state.get("n_obs", 10_000)  # older checkpoints: long past the calibration
         self.n_obs_planned = state.get("n_obs_planned", self.n_obs)
@@ -370,4 +370,4 @@ class BudgetPlanner:
         self.t_routine, self.t_eval, self.t_ckpt, self.t_save = (state[k] for k in ("t_routine", "t_eval", "t_ckpt",
                                                                                       "t_save"))
         self.last_replan = state["last_replan"]
-        self.shift = state.get("shift", 0.0)  # checkpoints before session 20: the calendar had no phase shift
+        self.shift = state.get("shift", 0.0)  # older checkpoints: the calendar had no phase shift

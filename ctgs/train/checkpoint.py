@@ -1,6 +1,6 @@
 """Checkpoints with everything needed to resume bit-for-bit on the CPU (written atomically by
 ctgs.io.atomic.torch_save). On a GPU a resumed run is not bit-identical to an uninterrupted one: the CUDA
-backward sums gradients with atomics, in an order that differs from run to run (docs/gpu.md)."""
+backward sums gradients with atomics, in an order that differs from run to run (docs/guide/gpu.md)."""
 
 from __future__ import annotations
 

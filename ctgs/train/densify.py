@@ -81,7 +81,7 @@ def densify_and_prune(model, opt, acc: GradAccumulator, cfg, extent: float, gen:
         model.log_scales.data[s0:] -= torch.log(torch.tensor(SPLIT_SCALE_DIV))
     drop = model.opacities.detach() < cfg.prune_opacity_2dgs
     # World size only: 3DGS/2DGS also test a 2D radius > 20 px, but their densification_postfix has zeroed the radii
-    # by then, so that test prunes nothing in the published code (docs/training.md, baseline overlays).
+    # by then, so that test prunes nothing in the published code (docs/guide/training.md, baseline overlays).
     if prune_big:
         drop |= model.scales.detach().max(1).values > 0.1 * extent
     edit.select(model, opt, torch.nonzero(~drop).flatten())

@@ -116,7 +116,7 @@ def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = N
     of allocating all of 2x its resolution and letting realloc drop the padding: the same final textures and
     moments (realloc finds them at their size), without 4x the upscaled texels at once (on a GPU at the paper's
     scale, 2.4 GB of blocks and most of 6.4 GB of re-laid-out buffers at a routine's peak:
-    benchmarks/results/gpu_probe_h200_s33_memory_after.md). Primitives whose centre no camera sees are not
+    benchmarks/results/gpu_train_probe/memory_after_ba45e3f.md). Primitives whose centre no camera sees are not
     cropped (their k_min follows the other primitives', which the routine's pruning may change)."""
     sel = upscale_selection(model, mask, min_exp)
     if not bool(sel.any()):

@@ -180,7 +180,7 @@ class Trainer:
                                          len(self.train_views), len(self.test_views))
             if state is not None and "planner" in state:
                 self.planner.load_state_dict(state["planner"])
-                if self.textures_started and self.planner.tex_at is None:  # a checkpoint from before session 17
+                if self.textures_started and self.planner.tex_at is None:  # a checkpoint of an earlier planner
                     self.planner.observe_texture_start(min(self.it, schedule.texture_start(self.cfg)))
         elif state is None:
             self.estimator = BudgetPlanner(self.cfg, None, self.start_time, len(self.train_views), len(self.test_views))
@@ -560,7 +560,7 @@ class Trainer:
             kind = schedule.routine_kind(cfg, it, self._shift)
             if kind == "full":
                 # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops;
-                # on a GPU about the lean order's time, 1.5x its peak memory: docs/gpu.md, session 35)
+                # on a GPU about the lean order's time, 1.5x its peak memory: docs/guide/gpu.md)
                 lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
                 gains = None
                 if self.exposure is not None and cfg.exposure_in_E:

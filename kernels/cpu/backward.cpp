@@ -5,7 +5,7 @@
 // with atomics (a float atomic add is a CAS loop: 12 per pair would dominate the backward).
 //
 // Pixels are processed W at a time along the primitive's row spans (lanes.h, lane_math.h): the same
-// alpha as the forward (same functions), then the gradient of docs/renderer.md steps 1-8 per lane (the
+// alpha as the forward (same functions), then the gradient of docs/reference/renderer.md steps 1-8 per lane (the
 // derivative of ctgs/surfel.h's surfel_backward, regrouped: terms that are a per-primitive vector times a
 // per-pixel scalar are summed as scalars and multiplied once per primitive and tile).
 #include <omp.h>

@@ -1,4 +1,4 @@
-// Forward pass of the CPU backend (docs/renderer.md step 8) plus the per-primitive error statistics.
+// Forward pass of the CPU backend (docs/reference/renderer.md step 8) plus the per-primitive error statistics.
 // Per tile, primitives are the outer loop (in blending order) and only the pixels of each one's row
 // spans (spans.h) are visited, W at a time (lanes.h, lane_math.h), with the per-pixel blending state in
 // small per-tile arrays: the same per-pixel front-to-back result as a pixel-outer loop, but the work

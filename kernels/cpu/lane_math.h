@@ -1,4 +1,4 @@
-// docs/renderer.md steps 1-6 for W consecutive pixels of one row at once (lanes.h), as the CPU forward
+// docs/reference/renderer.md steps 1-6 for W consecutive pixels of one row at once (lanes.h), as the CPU forward
 // and backward both evaluate them: everything that depends only on the primitive is computed once per
 // render (LanePrim), everything that depends only on the row once per row (LaneRow), and per pixel
 // only what varies along the row. With d = (dx, dy, 1), the plane hit uses

@@ -14,7 +14,7 @@
 namespace ctgs {
 namespace cpu {
 
-// The scene as the kernels see it (camera space; docs/renderer.md "Per primitive"), shared with the
+// The scene as the kernels see it (camera space; docs/reference/renderer.md "Per primitive"), shared with the
 // other backend: kernels/include/ctgs/scene_args.h.
 template <typename S>
 using SceneArgs = ctgs::SceneArgs<S>;

@@ -2,7 +2,7 @@
 // view-dependent SH colour, forward and backward (the math: kernels/include/ctgs/preprocess.h, shared with
 // the CPU backend's kernels/cpu/camera.cpp and sh.cpp). In PyTorch these were ~150 small kernels per
 // training step and ~11 of 17 ms of a 1M-primitive 1080p forward+backward on an H200
-// (benchmarks/results/cuda_bench_h200_*.md).
+// (benchmarks/results/bench_cuda/).
 #include "common.cuh"
 #include "ctgs/preprocess.h"
 

@@ -1,4 +1,4 @@
-// Forward kernel of the CUDA backend (docs/renderer.md step 8) and the per-primitive error statistics:
+// Forward kernel of the CUDA backend (docs/reference/renderer.md step 8) and the per-primitive error statistics:
 // one 16x16 block per tile, one thread per pixel, front to back over the tile's list, primitives staged
 // in shared memory a batch at a time (3DGS). All per-pixel math is ctgs::surfel_alpha / surfel_color,
 // shared with the CPU backend; the blending, the stop rule and n_contrib follow kernels/cpu/forward.cpp.

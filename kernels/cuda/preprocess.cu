@@ -1,5 +1,5 @@
 // Per-primitive preprocessing of the CUDA backend: camera-space constants (ctgs::load_prim), conservative
-// pixel bounds (ctgs::surfel_pixel_rect, docs/renderer.md "Screen bounds") and tile counts, one thread per
+// pixel bounds (ctgs::surfel_pixel_rect, docs/reference/renderer.md "Screen bounds") and tile counts, one thread per
 // primitive. The culling rule is the CPU backend's (kernels/cpu/binning.cpp), so both bin the same pairs.
 #include "common.cuh"
 

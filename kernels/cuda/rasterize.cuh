@@ -1,6 +1,6 @@
 // Entry points of the CUDA backend (raw device pointers + sizes + a stream, no torch: nvcc compiles this
 // on a machine without torch headers or a GPU; kernels/bindings_cuda.cpp adapts tensors). Same semantics
-// and buffers as the CPU backend (kernels/cpu/rasterize.h, docs/renderer.md); templated on the scalar S
+// and buffers as the CPU backend (kernels/cpu/rasterize.h, docs/reference/renderer.md); templated on the scalar S
 // (float, double), explicit instantiations in the .cu files. Errors throw std::runtime_error.
 #pragma once
 
@@ -17,7 +17,7 @@
 namespace ctgs {
 namespace gpu {
 
-// The scene as the kernels see it (camera space; docs/renderer.md "Per primitive"), shared with the
+// The scene as the kernels see it (camera space; docs/reference/renderer.md "Per primitive"), shared with the
 // other backend: kernels/include/ctgs/scene_args.h.
 template <typename S>
 using SceneArgs = ctgs::SceneArgs<S>;

@@ -13,7 +13,7 @@ from fixture_run import make_run
 from ctgs.cli import main
 from ctgs.metrics.psnr import psnr
 
-# Every metrics.json must carry these keys (docs/metrics.md), with these types (None allowed where listed).
+# Every metrics.json must carry these keys (docs/reference/metrics.md), with these types (None allowed where listed).
 SCHEMA = {
     "schema": str, "schema_version": int, "scene": str, "dataset": str, "run_dir": str, "model_source": str,
     "scene_dir": str, "images": str, "holdout": int, "split": str, "num_views": int, "num_test_views": int, "psnr": float, "ssim": float, "open_pixels": float,

@@ -29,6 +29,6 @@ def test_published_distances_to_three_decimals():
     assert ref.shape == (1, 3, 64, 64) and 0.0 <= float(ref.min()) and float(ref.max()) <= 1.0
     for name, published in PUBLISHED.items():
         # normalize=True maps the [0, 1] pixels to [-1, 1], the convention the published numbers use
-        # (ctgs' eval feeds [0, 1] as 3DGS does; docs/metrics.md).
+        # (ctgs' eval feeds [0, 1] as 3DGS does; docs/reference/metrics.md).
         d = float(net(ref, _image(name), normalize=True)[0])
         assert round(d, 3) == published, (name, d)

@@ -32,5 +32,5 @@ def test_the_seeded_equal_time_means():
 
 def test_an_unknown_run_label_is_named(tmp_path):
     with pytest.raises(SystemExit, match="no run matches"):
-        trade_summary.runs_of(os.path.join(trade_summary.RESULTS, "paired_herzjesu25_balanced_fast_vm10.json"),
+        trade_summary.runs_of(os.path.join(trade_summary.RESULTS, "paired/herzjesu25_balanced_fast_eca05b4.json"),
                               ("paired", "no_such_label"))

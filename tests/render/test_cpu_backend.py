@@ -1,4 +1,4 @@
-"""C++ CPU backend vs the pure-PyTorch reference (docs/renderer.md): forward images, per-primitive error
+"""C++ CPU backend vs the pure-PyTorch reference (docs/reference/renderer.md): forward images, per-primitive error
 statistics and gradients w.r.t. every input with random cotangents."""
 
 from __future__ import annotations

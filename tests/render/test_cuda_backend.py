@@ -9,7 +9,7 @@ Tolerances: the CUDA and CPU kernels call the same header math (kernels/include/
 per-pixel order and nvcc builds with -fmad=false, so they differ only by the last bits of exp() and sqrt()
 (CUDA's are not glibc's) and by the order of atomic sums over pixels. Each tolerance below is the worst
 error observed on an H200 over every case of this file, times 10, rounded up to 1, 2 or 5 x 10^k
-(benchmarks/results/cuda_agreement_h200.md, written by benchmarks/cuda_agreement.py from a run with
+(benchmarks/results/cuda_agreement/aad8882.md, written by benchmarks/cuda_agreement.py from a run with
 CTGS_AGREEMENT_LOG; the table names the case of each worst error).
 """
 
@@ -45,10 +45,10 @@ GPU = "cpu" if DRY_RUN else "cuda"  # device and backend name of the side under 
 needs_cuda = pytest.mark.skipif(not (HAS_CUDA or DRY_RUN),
                                 reason="no CUDA device (torch.cuda.is_available() is False)")
 
-# Observed worst cases in brackets: the larger of session 32's two runs on an H200 (the rasterizer kernels
+# Observed worst cases in brackets: the larger of two runs on an H200 (the rasterizer kernels
 # were the same in both; the second had the preprocessing kernels of kernels/cuda/dense.cu on the GPU side,
 # where the first used PyTorch ops, which is why its means/quats gradients differed more from the CPU's).
-# benchmarks/results/cuda_agreement_h200.md (second run) and cuda_agreement_h200_first.md (first run).
+# benchmarks/results/cuda_agreement/aad8882.md (second run) and cuda_agreement/first_9b2c345.md (first run).
 # Images: max |cuda - cpu| / max(1, |cpu|) per pixel (absolute for rgb and alpha in [0, 1], relative for
 # depths beyond 1, which reach 1e8 in the extremes sweep where float32 rounds them to 8 units).
 ATOL_F64 = 1e-13  # [5.7e-15 depth, 5.0e-15 alpha]

@@ -1,4 +1,4 @@
-"""Tests of the pure-PyTorch reference renderer against docs/renderer.md (analytic cases, finite
+"""Tests of the pure-PyTorch reference renderer against docs/reference/renderer.md (analytic cases, finite
 differences, the world-space texel property, extremes)."""
 
 from __future__ import annotations

@@ -101,7 +101,7 @@ def test_a_texture_start_jump_ends_within_the_budget(monkeypatch, true_jump, mea
 def test_a_calibrated_jump_makes_the_first_plan_close_to_the_run(monkeypatch, true_growth):
     # R (the growth after the texture start) over the range the herzjesu25 logs show, the jump measured:
     # the first plan a user reads is within 30% of the iterations run. Without the jump in the model (its
-    # prior growth counted from the untextured step, as before session 17) the first plan was 2.6-3.2x the run.
+    # prior growth counted from the untextured step, as an earlier planner did) the first plan was 2.6-3.2x the run.
     cfg = load_config(None, preset="fast")
     wall, iterations, initial = simulate(monkeypatch, cfg, 600.0, step0=0.02, growth=true_growth, routine_s=0.5,
                                          jump=2.5, calibrated_jump=2.5)
@@ -217,7 +217,7 @@ def test_planner_state_survives_a_resume_and_reads_older_checkpoints(monkeypatch
     assert resumed.tex_at == 20 and resumed.n_obs == 40 and resumed.measured_plan
     assert resumed.jump == pytest.approx(2.4) and resumed.base == pytest.approx(planner.base)
     assert resumed._solve(40) == planner._solve(40)
-    # A checkpoint written before session 17: "c_step" (recent seconds per step), no jump, no texture start.
+    # A checkpoint written by an earlier planner: "c_step" (recent seconds per step), no jump, no texture start.
     legacy = {k: v for k, v in state.items() if k not in ("base", "jump", "tex_at", "n_obs", "n_obs_planned",
                                                            "routine_seen", "eval_seen", "base_calib")}
     legacy["c_step"] = 0.125
@@ -372,8 +372,8 @@ def _routine_gaps(plans: dict[int, int], shifted: bool) -> list[float]:
 
 
 def test_a_replanned_run_keeps_its_routines_evenly_spaced():
-    """A budget run's plan grows from 6,826 to about 10k in 1% steps (the session-20 `make demo` run): with the
-    phase shift every routine comes about one period after the last; without it (before session 20) the grid moved
+    """A budget run's plan grows from 6,826 to about 10k in 1% steps (a `make demo` run): with the
+    phase shift every routine comes about one period after the last; without it (as before the shift existed) the grid moved
     under the run and some routines came a few iterations after the previous one while others were skipped."""
     import random
 

@@ -2,7 +2,7 @@
 
 The paper's claims (allocation ratios, the default vs 2dgs and fixed_texture) need several 3000-iteration
 trainings: they are a benchmark, `make bench-claims` (benchmarks/claims.py, results in
-benchmarks/results/claims_*.md), not a test.
+benchmarks/results/claims/), not a test.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ ITERATIONS = 400
 # Measured: 16.19 dB test PSNR at 400 iterations of the fast preset on this 96x72 scene (16.50 before it took mult4
 # textures over +-2 sigma: CI and the dev VM agreed on that figure;
 # 1 thread, deterministic); a constant colour scores 13.9 dB. Its two test views are the scene's hardest: the
-# validation views of the same run score 21.96 dB (benchmarks/results/train_findings.md). The floor leaves 1 dB
+# validation views of the same run score 21.96 dB (benchmarks/results/findings/train_findings.md). The floor leaves 1 dB
 # for other CPUs' rounding: it catches a run that stopped learning, not a small regression.
 PSNR_FLOOR = 15.5
 
@@ -52,7 +52,7 @@ def test_short_run_reaches_a_quality_floor_and_runs_every_routine(run):
     # trimmed textures (nothing left to crop), and the last test line scores that model.
     trims = [r for r in log if r["type"] == "routine" and r["kind"] == "trim"]
     assert len(trims) == 1 and trims[0]["texels_after"] == model.num_texels <= trims[0]["texels_before"]
-    # (since session 37 the preset learns the photos' exposures: the learned gains are logged before the last test)
+    # (the preset learns the photos' exposures: the learned gains are logged before the last test)
     assert [r["type"] for r in log[log.index(trims[0]):]] == ["routine", "exposure", "test"]
     gains = next(r for r in log if r["type"] == "exposure")["gains"]
     assert len(gains) > 0 and all(0.5 < g < 2 for gs in gains.values() for g in gs)

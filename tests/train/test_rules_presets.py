@@ -53,7 +53,7 @@ def test_presets_load_and_paper_is_the_authors_recipe():
     its = [load_config(None, preset=p).iterations for p in ("preview", "fast", "balanced")]
     assert its == sorted(its) and len(set(its)) == 3
     assert set(PRESETS) == {"preview", "fast", "balanced", "paper"}
-    # Opacity resets in content-aware runs: only `balanced` took them (session 30, validation views); the paper has none.
+    # Opacity resets in content-aware runs: only `balanced` took them (chosen on validation views); the paper has none.
     assert [load_config(None, preset=p).content_opacity_reset for p in ("preview", "fast", "balanced", "paper")] == \
         [False, False, True, False]
     # A config overlay and --set apply on top of the preset.

@@ -1,4 +1,4 @@
-// Fetch a web bundle (docs/model_format.md, "Web bundle") from `base`: bundle.json, surfels.bin and
+// Fetch a web bundle (docs/reference/model_format.md, "Web bundle") from `base`: bundle.json, surfels.bin and
 // the atlas pages, as typed arrays aliasing the downloaded buffers.
 
 const TYPED = {float32: Float32Array, float16: Uint16Array, uint16: Uint16Array, uint32: Uint32Array,

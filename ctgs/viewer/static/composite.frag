@@ -1,5 +1,5 @@
 #version 300 es
-// Final step of docs/renderer.md: rgb = C + T * background, T = 1 - accumulated alpha, clamped to
+// Final step of docs/reference/renderer.md: rgb = C + T * background, T = 1 - accumulated alpha, clamped to
 // [0, 1] as the 8-bit image `ctgs render` writes.
 precision highp float;
 precision highp sampler2D;

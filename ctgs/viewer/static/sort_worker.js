@@ -1,4 +1,4 @@
-// Depth sort off the main thread. docs/renderer.md blends in increasing centre depth mu_c.z, ties by
+// Depth sort off the main thread. docs/reference/renderer.md blends in increasing centre depth mu_c.z, ties by
 // index; the viewer draws back to front, so it gets that order reversed. Surfels whose centre lies
 // before the near plane are dropped (they contribute nowhere).
 //

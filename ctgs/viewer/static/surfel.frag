@@ -1,5 +1,5 @@
 #version 300 es
-// Per (pixel, surfel): docs/renderer.md steps 1-6, written as kernels/include/ctgs/surfel.h
+// Per (pixel, surfel): docs/reference/renderer.md steps 1-6, written as kernels/include/ctgs/surfel.h
 // (surfel_alpha, surfel_color) and texture.h (texture_taps, texture_fetch) so the browser matches the
 // CPU renderer to float rounding. Output is premultiplied (alpha * c, alpha) for back-to-front blending.
 precision highp float;

@@ -1,5 +1,5 @@
 #version 300 es
-// One instanced quad per surfel (docs/renderer.md, "Per primitive" and "Screen bounds"): camera-space
+// One instanced quad per surfel (docs/reference/renderer.md, "Per primitive" and "Screen bounds"): camera-space
 // frame, SH colour, and the conservative pixel box of the CPU tiler (kernels/include/ctgs/bounds.h):
 // projected 3-sigma corners united with the screen-space fallback disc, one pixel of margin, the whole
 // image when a corner is behind the near plane. The fragment shader does the exact per-pixel test.

@@ -1,4 +1,4 @@
-// Conservative screen bounds of a surfel, in tiles (docs/renderer.md "Screen bounds"): the projected
+// Conservative screen bounds of a surfel, in tiles (docs/reference/renderer.md "Screen bounds"): the projected
 // 3-sigma corners in object space (2DGS fix: a screen-space 3-sigma box misses tiles of long tilted
 // surfels) united with the screen-space fallback box m +- sqrt(CUTOFF_RHO / FILTER_INV_SQUARE) px.
 #pragma once

@@ -1,4 +1,4 @@
-// Magic numbers of the textured 2D Gaussian surfel renderer, each with its reason (docs/renderer.md).
+// Magic numbers of the textured 2D Gaussian surfel renderer, each with its reason (docs/reference/renderer.md).
 // Mirrored with the same names in ctgs/render/constants.py. No torch here: shared by CPU and CUDA.
 #pragma once
 

@@ -1,5 +1,5 @@
 // Per-(pixel, primitive) math of the textured 2D Gaussian surfel renderer, forward and hand-written
-// backward (docs/renderer.md steps 1-7). HOST_DEVICE inline, templated on the scalar (float, double),
+// backward (docs/reference/renderer.md steps 1-7). HOST_DEVICE inline, templated on the scalar (float, double),
 // no torch: the CPU (kernels/cpu) and CUDA (kernels/cuda) backends both call these.
 #pragma once
 

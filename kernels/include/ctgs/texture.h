@@ -1,5 +1,5 @@
 // Bilinear texel fetch on one primitive's jagged texture, forward and hand-written backward.
-// docs/renderer.md step 5: texel centres at integer (uu, vv); taps outside [0, res) read 0; a lookup with
+// docs/reference/renderer.md step 5: texel centres at integer (uu, vv); taps outside [0, res) read 0; a lookup with
 // uu or vv non-finite or outside (-1, res) reads 0 (this also keeps floor() away from int overflow).
 #pragma once
 
