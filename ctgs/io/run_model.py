@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
+import zipfile
 from dataclasses import dataclass
 
 import torch
@@ -45,16 +47,23 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         model = SurfelModel.from_state_dict(ckpt["model"], device=device)
-    except (KeyError, ValueError, RuntimeError, OSError, EOFError, TypeError) as exc:
-        raise UserError(f"{path}: unreadable or incomplete model ({type(exc).__name__}: {exc}); "
-                        "re-run `ctgs train`") from exc
+    except (KeyError, ValueError, RuntimeError, OSError, EOFError, TypeError, pickle.UnpicklingError,
+            zipfile.BadZipFile, AttributeError, IndexError) as exc:
+        # torch.load of random bytes raises UnpicklingError; of a cut file, RuntimeError from its zip reader
+        detail = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+        raise UserError(f"{path}: unreadable or incomplete model ({detail}); it is corrupt: re-run `ctgs train` "
+                        "(or `ctgs train --resume` while its checkpoints are there)") from None
     if not isinstance(ckpt, dict) or "scene_dir" not in ckpt:
         raise UserError(f"{path}: not a ctgs run model (no scene_dir); re-run `ctgs train`")
     summary = None
     spath = os.path.join(run_dir, SUMMARY_FILE)
     if os.path.isfile(spath):
-        with open(spath) as f:
-            summary = json.load(f)
+        try:
+            with open(spath) as f:
+                summary = json.load(f)
+        except ValueError as exc:
+            raise UserError(f"{spath}: corrupt training summary ({exc}); re-run `ctgs train` or delete the file "
+                            "(only the training time comes from it)") from None
     return RunModel(run_dir=os.path.abspath(run_dir), model=model, scene_dir=ckpt["scene_dir"],
                     images=ckpt.get("images", "images"), holdout=int(ckpt.get("holdout", 8)),
                     iteration=int(ckpt.get("iteration", -1)), config=ckpt.get("config") or {},

@@ -6,8 +6,10 @@ has no distortion. Everything else gets a UserError telling the user to run `ctg
 
 from __future__ import annotations
 
+import math
 import os
 import signal
+import struct
 import threading
 from dataclasses import dataclass
 
@@ -87,8 +89,152 @@ def import_pycolmap():
     return pycolmap
 
 
+# Parameters per COLMAP camera model id (colmap/sensor/models.h), for walking cameras.bin.
+_CAMERA_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 6}
+_CAMERA_MODEL_NAMES = {0: "SIMPLE_PINHOLE", 1: "PINHOLE"}
+
+
+class _Corrupt(Exception):
+    pass
+
+
+class _Reader:
+    """Bounds-checked little-endian reads over a file's bytes."""
+
+    def __init__(self, data: bytes):
+        self.data, self.at = data, 0
+
+    def take(self, fmt: str):
+        size = struct.calcsize(fmt)
+        if self.at + size > len(self.data):
+            raise _Corrupt(f"ends at byte {len(self.data)} inside a record (truncated)")
+        values = struct.unpack_from(fmt, self.data, self.at)
+        self.at += size
+        return values
+
+    def skip(self, count: int, size: int) -> None:
+        if count < 0 or self.at + count * size > len(self.data):
+            raise _Corrupt(f"a record claims {count} entries of {size} bytes past the end of the file "
+                           f"({len(self.data)} bytes): truncated or not a COLMAP file")
+        self.at += count * size
+
+    def count(self, min_record: int, what: str) -> int:
+        (n,) = self.take("<Q")
+        if n * min_record > len(self.data) - self.at:
+            raise _Corrupt(f"claims {n} {what}, more than its {len(self.data)} bytes can hold")
+        return n
+
+    def name(self) -> str:
+        end = self.data.find(b"\0", self.at)
+        if end < 0:
+            raise _Corrupt("an image name runs past the end of the file (truncated)")
+        raw = self.data[self.at:end]
+        self.at = end + 1
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise _Corrupt("an image name is not UTF-8 text") from None
+
+    def done(self) -> None:
+        if self.at != len(self.data):
+            raise _Corrupt(f"{len(self.data) - self.at} bytes after the last record")
+
+
+def _check_cameras(r: _Reader) -> None:
+    for _ in range(r.count(24, "cameras")):
+        _cid, model, width, height = r.take("<iiQQ")
+        if model not in _CAMERA_PARAMS:
+            raise _Corrupt(f"camera model id {model} is not a COLMAP camera model")
+        params = r.take(f"<{_CAMERA_PARAMS[model]}d")
+        if not (1 <= width < 2**20 and 1 <= height < 2**20):
+            raise _Corrupt(f"camera size {width}x{height}")
+        if model in _CAMERA_MODEL_NAMES:
+            _check_pinhole(_CAMERA_MODEL_NAMES[model], width, height, params)
+
+
+def _check_pinhole(model: str, width: int, height: int, params) -> None:
+    fx, fy, cx, cy = (params[0], params[0], params[1], params[2]) if model == "SIMPLE_PINHOLE" else params[:4]
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+        raise _Corrupt(f"{model} camera with focal length ({fx:g}, {fy:g}): not finite and positive")
+    # a principal point far outside the image is a cut or overwritten file, not a camera
+    if not (-width <= cx <= 2 * width and -height <= cy <= 2 * height):
+        raise _Corrupt(f"{model} camera {width}x{height} with principal point ({cx:g}, {cy:g}) far outside it")
+
+
+def _check_images(r: _Reader) -> None:
+    for _ in range(r.count(73, "images")):
+        r.take("<I7dI")
+        r.name()
+        (points2d,) = r.take("<Q")
+        r.skip(points2d, 24)
+
+
+def _check_points(r: _Reader) -> None:
+    for _ in range(r.count(51, "points")):
+        r.skip(1, 43)
+        (track,) = r.take("<Q")
+        r.skip(track, 8)
+
+
+def _check_rigs(r: _Reader) -> None:
+    # rigs.bin and frames.bin (COLMAP 3.12+): only their counts are checked against the file size, which keeps a
+    # corrupt count from making pycolmap allocate without bound; pycolmap reads the rest
+    r.count(8, "rigs")
+
+
+def _check_frames(r: _Reader) -> None:
+    r.count(68, "frames")
+
+
+_BINARY_CHECKS = (("cameras", _check_cameras, True), ("images", _check_images, True),
+                  ("points3D", _check_points, True), ("rigs", _check_rigs, False), ("frames", _check_frames, False))
+
+
+def check_binary_model(model_dir: str) -> None:
+    """UserError naming the file when a binary COLMAP model file is cut short or is not one: its records are walked
+    (no values decoded but the cameras'), so that pycolmap never sees a count it would allocate without bound (a
+    points3D.bin of random bytes took 12 GB) and a cut cameras.bin (focal length 0) is caught here, not in training."""
+    for name, check, whole in _BINARY_CHECKS:
+        path = os.path.join(model_dir, f"{name}.bin")
+        if not os.path.isfile(path):
+            continue
+        with open(path, "rb") as f:
+            data = f.read()
+        r = _Reader(data)
+        try:
+            check(r)
+            if whole:
+                r.done()
+        except (_Corrupt, struct.error) as exc:
+            raise UserError(f"{path}: corrupt COLMAP {name} file ({exc}); restore it from a backup or run "
+                            f"`ctgs sfm` again") from None
+
+
+def _check_model_values(model_dir: str, cameras: dict, images: list, points: np.ndarray) -> None:
+    """Values every reader of a model relies on: finite positive focal lengths, finite poses and points."""
+    for camera_id, c in cameras.items():
+        try:
+            _check_pinhole(c.model, c.width, c.height, (c.fx, c.fy, c.cx, c.cy))
+        except _Corrupt as exc:
+            raise UserError(f"{_model_file(model_dir, 'cameras')}: camera {camera_id}: {exc}; fix the file or run "
+                            "`ctgs sfm` again") from None
+    for im in images:
+        if im.camera_id not in cameras:
+            raise UserError(f"{_model_file(model_dir, 'images')}: image {im.name} refers to camera {im.camera_id}, "
+                            f"which {_model_file(model_dir, 'cameras')} does not hold; run `ctgs sfm` again")
+        if not np.isfinite(im.viewmat).all():
+            raise UserError(f"{_model_file(model_dir, 'images')}: image {im.name} has a non-finite pose; fix the file "
+                            "or run `ctgs sfm` again")
+    if points.size and not np.isfinite(points).all():
+        bad = int((~np.isfinite(points).all(1)).sum())
+        raise UserError(f"{_model_file(model_dir, 'points3D')}: {bad} points with non-finite coordinates; fix the file "
+                        "or run `ctgs sfm` again")
+
+
 def read_colmap_model(model_dir: str, *, require_pinhole: bool = True) -> ColmapModel:
-    """Read a COLMAP model folder. Raises UserError on unreadable files or non-pinhole cameras."""
+    """Read a COLMAP model folder. Raises UserError naming the file on unreadable or corrupt files (cut short,
+    focal lengths not finite and positive, non-finite poses or points) or non-pinhole cameras."""
+    check_binary_model(model_dir)
     pycolmap = import_pycolmap()  # heavy import, only where needed
 
     try:
@@ -128,4 +274,5 @@ def read_colmap_model(model_dir: str, *, require_pinhole: bool = True) -> Colmap
     points = np.array([rec.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
     colors = np.array([rec.points3D[i].color for i in point_ids], dtype=np.uint8).reshape(-1, 3)
     errors = np.array([rec.points3D[i].error for i in point_ids], dtype=np.float64).reshape(-1)
+    _check_model_values(model_dir, cameras, images if require_pinhole else [], points)
     return ColmapModel(model_dir, cameras, images, unregistered, points, colors, errors)

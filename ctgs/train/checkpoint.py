@@ -34,8 +34,72 @@ def checkpoint_path(run_dir: str) -> str:
     return os.path.join(run_dir, "checkpoints", CKPT_NAME)
 
 
+def previous_path(run_dir: str) -> str:
+    return os.path.join(run_dir, "checkpoints", PREV_NAME)
+
+
+def has_checkpoint(run_dir: str) -> bool:
+    """Whether `run_dir` holds a checkpoint to resume from (the last, or the one before)."""
+    return os.path.exists(checkpoint_path(run_dir)) or os.path.exists(previous_path(run_dir))
+
+
+def save_checkpoint(run_dir: str, state: dict) -> str:
+    """Write `state` as last.pt (atomically, fsynced); the last.pt it replaces becomes prev.pt. At every moment
+    at least one whole checkpoint is on disk under one of the two names. Returns last.pt's path."""
+    path, prev = checkpoint_path(run_dir), previous_path(run_dir)
+    if os.path.exists(path):
+        # a hard link, then a rename over prev.pt: last.pt stays in place until the new one replaces it
+        link = prev + ".link"
+        if os.path.lexists(link):
+            os.remove(link)
+        try:
+            os.link(path, link)
+            os.replace(link, prev)
+        except OSError:  # a filesystem without hard links: a copy
+            import shutil
+
+            with atomic.atomic_path(prev) as tmp:
+                shutil.copyfile(path, tmp)
+    atomic.torch_save(state, path)
+    return path
+
+
+# What torch.load raises on a cut, empty or foreign file (zip reader, pickle, EOF, the zip central directory).
+_UNREADABLE = (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError, KeyError,
+               AttributeError, TypeError, ImportError, IndexError, OSError)
+
+
+def _read(path: str) -> dict:
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict) or "iteration" not in state or "model" not in state:
+        raise ValueError("not a ctgs training checkpoint")
+    return state
+
+
+def _why(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:160]
+
+
 def load_checkpoint(run_dir: str) -> dict | None:
-    path = checkpoint_path(run_dir)
-    if not os.path.exists(path):
+    """The last checkpoint of `run_dir`; prev.pt (with a note on stderr) when last.pt is missing or unreadable;
+    None when there is neither. UserError naming both files when no checkpoint can be read."""
+    path, prev = checkpoint_path(run_dir), previous_path(run_dir)
+    if not os.path.exists(path) and not os.path.exists(prev):
         return None
-    return torch.load(path, map_location="cpu", weights_only=False)
+    problems = []
+    for candidate in (path, prev):
+        if not os.path.exists(candidate):
+            continue
+        try:
+            state = _read(candidate)
+        except _UNREADABLE as exc:
+            problems.append(f"{candidate} unreadable ({_why(exc)})")
+            continue
+        if candidate == prev:
+            said = problems[0] if problems else f"{path} missing"
+            print(f"ctgs train: {said}; resuming from the checkpoint before it, {prev} (iteration "
+                  f"{int(state['iteration'])})", file=sys.stderr)
+        return state
+    raise UserError(f"{'; '.join(problems)}: no readable checkpoint to resume from; restart the run without "
+                    "--resume into a new folder (-o)")

@@ -160,7 +160,7 @@ def test_loader_unknown_camera_model(tiny_demo):
 def test_loader_corrupt_model_file(tiny_demo):
     with open(os.path.join(tiny_demo, "sparse", "0", "images.bin"), "wb") as f:
         f.write(b"\x01\x02\x03")
-    _one_line_error(lambda: load_scene(tiny_demo), "cannot read the COLMAP model")
+    _one_line_error(lambda: load_scene(tiny_demo), "images.bin: corrupt COLMAP images file")
 
 
 def test_float_images_are_refused_by_sfm(tmp_path):
