@@ -8,7 +8,7 @@ rows and independent of the content: it is timed on a band of `--ref-rows` rows 
 (a camera cropped to those rows: the same pairs the full image would evaluate there) and scaled by
 H / rows. `--ref-full` times it on whole images instead (hours at 512x512/100k on 2 cores).
 
-Writes benchmarks/results/render_cpu_<hostname>.json and .md (machine info included).
+Writes benchmarks/results/bench_render/render_cpu_<commit>.json and .md (machine info inside).
 
     python benchmarks/bench_render.py                 # the full table (~15-30 min on 2 shared cores)
     python benchmarks/bench_render.py --quick         # 256x256/20k only
@@ -32,6 +32,8 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.render import Camera, SurfelInputs, render  # noqa: E402
 from ctgs.render._ext import load_cpu  # noqa: E402
@@ -117,7 +119,7 @@ def main() -> None:
                     help="skip the reference's backward above this many surfels: each checkpointed chunk of its "
                          "backward materialises a dense [T, 3] texel gradient (13+ GB at 100k surfels)")
     ap.add_argument("--quick", action="store_true", help="256x256 / 20k only")
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "bench_render"))
     args = ap.parse_args()
     sizes = [256] if args.quick else [int(v) for v in args.sizes.split(",")]
     counts = [20000] if args.quick else [int(v) for v in args.counts.split(",")]
@@ -155,7 +157,7 @@ def main() -> None:
               "rows": rows}
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    stem = out_dir / f"render_cpu_{info['hostname']}"
+    stem = out_dir / f"render_cpu_{record.commit()}"
     tmp = stem.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(result, indent=2))
     os.replace(tmp, stem.with_suffix(".json"))

@@ -25,6 +25,8 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.scene.demo import make_demo_scene  # noqa: E402
 from ctgs.stages.train import train_main  # noqa: E402
@@ -52,7 +54,7 @@ def main() -> int:
     ap.add_argument("--points", type=int, default=3000)
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--table-only", action="store_true")
-    ap.add_argument("--tag", default=platform.node())
+    ap.add_argument("--tag", default="demo192x144", help="names the record")
     args = ap.parse_args()
     scene = make_demo_scene(os.path.join(args.work, "scene"), num_views=args.views, width=args.width,
                             height=args.height, points=args.points)
@@ -117,7 +119,7 @@ def check(rows: dict) -> dict:
 
 
 def write(rows: dict, verdict: dict, args) -> None:
-    out = os.path.join(ROOT, "benchmarks", "results", f"claims_{args.tag}")
+    out = record.stem("claims", args.tag)
     meta = {"scene": f"demo {args.width}x{args.height}, {args.views} views (every 8th test), {args.points} points",
             "command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"),
             "machine": f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"}

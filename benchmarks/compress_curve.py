@@ -7,7 +7,7 @@ Usage:
 Exports RUN_DIR (raw float32 model folder), then for every point below compresses it, evaluates the
 result on the run's test views with `ctgs eval`'s code (PSNR, SSIM, LPIPS when the VGG weights are
 present) and renders the training views for their PSNR/SSIM (the settings are chosen on those; test
-views only report). Writes benchmarks/results/compress_<name>.{json,md,png}. Points already measured
+views only report). Writes benchmarks/results/compress_curve/<name>_<commit>.{json,md,png}. Points already measured
 with the same spec are reused from WORK/<name>/points/ (delete the folder, or pass --only, to redo).
 
 Points: raw (the export); packed f32 (every value float32, only sorting + xz); texel modes (scalar
@@ -28,6 +28,8 @@ import time
 from dataclasses import asdict, replace
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -156,7 +158,7 @@ def plot(rows: list[dict], path: str, title: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("run_dir")
-    ap.add_argument("--name", required=True, help="result files: benchmarks/results/compress_<name>.*")
+    ap.add_argument("--name", required=True, help="result files: benchmarks/results/compress_curve/<name>_<commit>.*")
     ap.add_argument("--work", default="/work/runs/compress/curve")
     ap.add_argument("--only", nargs="*", default=None, help="re-measure these points (others are reused)")
     ap.add_argument("--points", nargs="*", default=None, help="measure only these points (a partial curve)")
@@ -204,7 +206,7 @@ def main() -> None:
                         "cpu_count": os.cpu_count(), "torch": torch.__version__,
                         "load_average_start": load_start, "load_average_end": os.getloadavg()},
             "summary": summary, "rows": rows}
-    out = os.path.join("benchmarks", "results", f"compress_{args.name}")
+    out = os.path.relpath(record.stem("compress_curve", args.name))
     atomic.write_json(out + ".json", info, indent=1)
     md = [f"# Compression curve: {args.name}", "",
           f"Run `{run.run_dir}` ({run.images}, {run.iteration} iterations, {raw['points']} primitives, "

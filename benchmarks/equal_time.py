@@ -16,7 +16,7 @@ each method may pick its length, on validation views only, among lengths that fi
 Usage: .venv/bin/python benchmarks/equal_time.py --scene /work/data/herzjesu25 --images images_8
        [--preset fast] [--ca-iters 1500 2000 3000] [--2dgs-iters 1000 1500 2000 3000] [--work DIR] [--tag vm]
        [--ca-set KEY=VALUE ...]   (overrides for the content-aware runs only)
-Writes benchmarks/results/equal_time_<tag>.{md,json}. Runs already done in --work are reused (so the 2dgs runs of an
+Writes benchmarks/results/equal_time/<tag>_<commit>.{md,json}. Runs already done in --work are reused (so the 2dgs runs of an
 earlier benchmark with the same scene, preset and seed can be copied in when only the content-aware side changes; the
 content-aware folders carry the --ca-set overrides in their names).
 """
@@ -33,6 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 from trade import ctgs, git_commit  # noqa: E402  (one logged `python -m ctgs` runner for the benchmarks)
 
 
@@ -106,7 +107,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--parallel", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--tag", default=platform.node())
+    ap.add_argument("--tag", default="herzjesu25", help="names the record: scene, resolution, variant")
     ap.add_argument("--ca-set", nargs="*", default=[], help="KEY=VALUE overrides for the content-aware runs")
     args = ap.parse_args()
     args.commit = git_commit()  # at the start: the code the runs train with
@@ -123,7 +124,7 @@ def main() -> None:
 
 
 def write(args, val: list[dict], test: list[dict], limit: float) -> None:
-    out = os.path.join(ROOT, "benchmarks", "results", f"equal_time_{args.tag}")
+    out = record.stem("equal_time", args.tag)
     machine = f"{platform.node()} ({platform.machine()}, {os.cpu_count()} cpus)"
     commit = args.commit  # taken when the runs started (finished runs in --work are reused as they are)
     with open(out + ".json", "w") as fh:

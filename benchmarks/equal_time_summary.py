@@ -2,7 +2,7 @@
 (content-aware - 2dgs), its mean, standard deviation and a paired t statistic.
 
 Usage: .venv/bin/python benchmarks/equal_time_summary.py RESULT.json [RESULT.json ...] --out NAME
-(writes benchmarks/results/NAME.md; reads only the JSON files equal_time.py wrote).
+(writes benchmarks/results/equal_time/NAME_<commit>.md; reads only the JSON files equal_time.py wrote).
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 from paired_stats import paired, sentence  # noqa: E402
 
 
@@ -78,7 +79,7 @@ def main() -> None:
         rest = [statistics.mean(a[k] - b[k] for k in a if k != first) for a, b in views]
         lines += ["", sentence(f"Breakdown, not the measure: the paired difference of the mean over the views other "
                                f"than {first} (content-aware - 2dgs)", paired(rest))]
-    out = os.path.join(ROOT, "benchmarks", "results", args.out + ".md")
+    out = record.stem("equal_time", args.out) + ".md"
     with open(out, "w") as fh:
         fh.write("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -18,7 +18,7 @@ A diagnostic row renders the exact model with its SH cut to the DC band: the par
 loss that comes from dropping view dependence rather than from the format itself.
 
 Usage: .venv/bin/python benchmarks/export_formats.py RUN_DIR [--work DIR] [--tag NAME]
-Writes benchmarks/results/export_formats_<tag>.{json,md}.
+Writes benchmarks/results/export_formats/<tag>_<commit>.{json,md}.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests", "io"))
 
 from ctgs.io.model_format import read_model  # noqa: E402
 from ctgs.io.run_model import load_run  # noqa: E402
-from record import write_record  # noqa: E402 (benchmarks/record.py)
+import record  # noqa: E402 (benchmarks/record.py)
+from record import write_record  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
 from ctgs.scene import load_scene  # noqa: E402
@@ -208,8 +209,8 @@ def main() -> None:
         "num_primitives": exact.num_primitives, "num_texels": exact.num_texels,
         "export_seconds": export_s, "rows": rows, "seconds": time.time() - t0,
     }
-    out = os.path.join(HERE, "results", f"export_formats_{args.tag}")
-    write_record(os.path.basename(out), result, markdown)
+    out = record.stem("export_formats", args.tag)
+    write_record(out, result, markdown)
 
 
 def markdown(r: dict) -> str:

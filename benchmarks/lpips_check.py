@@ -1,5 +1,5 @@
 """ctgs' LPIPS against the LPIPS authors' published distances (the check tests/eval/test_lpips_reference.py makes),
-written as a record: results/lpips_reference_<host>.md + .json.
+written as a record: results/lpips_check/reference_<commit>.md + .json.
 
 Usage: .venv/bin/python benchmarks/lpips_check.py
 """
@@ -14,11 +14,16 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 DATA = os.path.join(ROOT, "tests", "eval", "lpips_reference")
 PUBLISHED = {"ex_p0.png": 0.569, "ex_p1.png": 0.422}  # the LPIPS README (net='vgg', v0.1, inputs in [-1, 1])
 
 
 def main() -> None:
+    import argparse
+
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     import torch
 
     from ctgs.io.images import read_image
@@ -33,7 +38,7 @@ def main() -> None:
 
     ref = image("ex_ref.png")
     rows = [{"image": n, "published": p, "ctgs": float(net(ref, image(n), normalize=True)[0])} for n, p in PUBLISHED.items()]
-    out = os.path.join(ROOT, "benchmarks", "results", f"lpips_reference_{platform.node()}")
+    out = record.stem("lpips_check", "reference")
     rec = {"command": "python benchmarks/lpips_check.py", "date": time.strftime("%Y-%m-%d %H:%M"),
            "machine": {"host": platform.node(), "machine": platform.machine(), "cpus": os.cpu_count()},
            "weights": status.detail, "rows": rows}

@@ -11,7 +11,7 @@ seed and per view, with the paired difference A - B, its standard deviation, pai
 Usage: .venv/bin/python benchmarks/paired.py --scene /work/data/herzjesu25 --images images_8 \\
          --a balanced --b fast --seeds 0 1 2 3 --work /work/runs/paired --tag NAME
        [--a-set KEY=VALUE ...] [--b-set KEY=VALUE ...] [--a-config 2dgs] [--b-config 2dgs]
-Writes benchmarks/results/paired_NAME.{md,json}. Finished runs in --work are reused (a killed benchmark resumes).
+Writes benchmarks/results/paired/NAME_<commit>.{md,json}. Finished runs in --work are reused (a killed benchmark resumes).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paired_stats import paired, sentence  # noqa: E402
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 from trade import ctgs, git_commit  # noqa: E402
 
 
@@ -127,7 +128,7 @@ def main() -> None:
         stats["lpips"] = paired([a["lpips"] - b["lpips"] for _, a, b in pairs])
     views = sorted(pairs[0][1]["per_view_psnr"])
     per_view = {v: paired([a["per_view_psnr"][v] - b["per_view_psnr"][v] for _, a, b in pairs]) for v in views}
-    with open(os.path.join(ROOT, "benchmarks", "results", f"paired_{args.tag}.json"), "w") as fh:
+    with open(record.stem("paired", args.tag) + ".json", "w") as fh:
         json.dump({"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
                    "reused_run_commits": run_commits, "other_run_commits": other_commits,
                    "reused_runs": [f"{r['label']}_s{r['seed']}" for r in reused],
@@ -175,7 +176,7 @@ def main() -> None:
         st = per_view[v]
         lo, hi = st["ci95"]
         lines.append(f"| {v} | {st['mean']:+.2f} dB | {st['sd']:.2f} | {st['p']:.3f} | [{lo:+.2f}, {hi:+.2f}] |")
-    out = os.path.join(ROOT, "benchmarks", "results", f"paired_{args.tag}.md")
+    out = record.stem("paired", args.tag) + ".md"
     with open(out, "w") as fh:
         fh.write("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -30,7 +30,7 @@ other jobs on a shared machine); the result files then end in _cpu.
 
 Timings are inclusive; a phase's children are listed under it ("a/b"). Every figure is seconds per
 iteration over the window (routines too: their total over the window / window). Results go to
-benchmarks/results/profile_<tag>_<label>.{json,md}; --label names the code state (e.g. before, after).
+benchmarks/results/profile_train/profile_<tag>_<label>.{json,md}; --label names the code state (e.g. before, after).
 """
 
 from __future__ import annotations
@@ -288,7 +288,7 @@ def main() -> None:
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="wall-clock time, or process CPU time (load-robust with one thread)")
     ap.add_argument("--work", default="/tmp/ctgs_prof")
-    ap.add_argument("--out", default=os.path.join(REPO, "benchmarks", "results"))
+    ap.add_argument("--out", default=os.path.join(REPO, "benchmarks", "results", "profile_train"))
     ap.add_argument("--make-snapshot", action="store_true", help="(internal) only write the snapshot")
     ap.add_argument("--new-snapshot", action="store_true", help="retrain the snapshot even if it exists")
     args = ap.parse_args()

@@ -1,4 +1,4 @@
-"""Write results/rule_table.md: every scene-relative rule (ctgs/train/rules.py, ctgs/train/schedule.py) with
+"""Write results/rule_table/rules_<commit>.md: every scene-relative rule (ctgs/train/rules.py, ctgs/train/schedule.py) with
 its value at the paper's scale and at 200 px wide images, for the paper's recipe and the fast preset.
 
 Usage: .venv/bin/python benchmarks/rule_table.py
@@ -11,6 +11,8 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.train.config import TrainConfig, load_config  # noqa: E402
 from ctgs.train.rules import rule_table  # noqa: E402
@@ -27,6 +29,9 @@ def fmt(v) -> str:
 
 
 def main() -> None:
+    import argparse
+
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     lines = ["# Scene-relative settings: rule -> value", "",
              "Written by `benchmarks/rule_table.py` from ctgs/train/rules.py and ctgs/train/schedule.py (no "
              "measurement: the rules themselves). Iteration counts are fractions of the run; pixel and texel "
@@ -43,7 +48,7 @@ def main() -> None:
             vals = [fmt(r["values"].get(c, "")) for c in cols]
             lines.append(f"| {r['setting']} | {r['unit']} | {r['rule']} | {fmt(r['paper'])} | " + " | ".join(vals) + " |")
         lines.append("")
-    out = os.path.join(ROOT, "benchmarks", "results", "rule_table.md")
+    out = record.stem("rule_table", "rules") + ".md"
     with open(out, "w") as fh:
         fh.write("\n".join(lines))
     print(out)

@@ -8,7 +8,7 @@ the input image folder). GT_DIR: one `NAME.camera` per input image NAME (K 3x3, 
 camera-to-world R 3x3, centre C, width height; /work/shared/data/README.md). Images and GT files are matched
 by name.
 
-What it reports (written to PREFIX.json and PREFIX.md; default benchmarks/results/sfm_<scene>_<hostname>):
+What it reports (written to PREFIX.json and PREFIX.md; default benchmarks/results/sfm_accuracy/<scene>_<commit>):
 - registered / given images, and images with no GT file;
 - camera centres: the similarity (Umeyama, with scale) that best maps the estimated centres onto the GT
   centres, then each camera's centre error in GT units, mean and max, also as a percentage of the camera
@@ -42,6 +42,8 @@ import numpy as np
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
+sys.path.insert(0, os.path.join(REPO, "benchmarks"))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.errors import UserError  # noqa: E402
 from ctgs.scene.align import align_cameras, camera_poses, rotation_vectors  # noqa: E402
@@ -346,7 +348,7 @@ def main() -> int:
     ap.add_argument("--sfm-command", default="", help="how SCENE_DIR was made, recorded verbatim")
     ap.add_argument("--time-log", help="`/usr/bin/time -v` output of the `ctgs sfm` run, recorded")
     ap.add_argument("--note", action="append", default=[], help="a line recorded in the results (repeatable)")
-    ap.add_argument("--out", help="output prefix (default benchmarks/results/sfm_<scene>_<hostname>)")
+    ap.add_argument("--out", help="output prefix (default benchmarks/results/sfm_accuracy/<scene>_<commit>)")
     args = ap.parse_args()
     try:
         result = evaluate(args)
@@ -354,7 +356,7 @@ def main() -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     scene_name = os.path.basename(os.path.abspath(args.scene_dir))
-    prefix = args.out or os.path.join(REPO, "benchmarks", "results", f"sfm_{scene_name}_{socket.gethostname()}")
+    prefix = args.out or record.stem("sfm_accuracy", scene_name)
     os.makedirs(os.path.dirname(os.path.abspath(prefix)), exist_ok=True)
     write_atomic(prefix + ".json", json.dumps(result, indent=1) + "\n")
     md = markdown(result)

@@ -10,7 +10,7 @@ Spark's defaults in headless Chromium (SwiftShader WebGL2, no GPU), and scores t
 and against our renderer's image of the same file (read back by ctgs's reader; black background as in the page).
 
 Usage: .venv/bin/python benchmarks/spark_view.py RUN_DIR FILE.spz|.ply|.splat|.compressed.ply|.sog [FILE ...] [--tag NAME] [--work DIR]
-Writes benchmarks/results/spark_view_<tag>.{json,md,jpg} (the jpg: photo and Spark's image of each file, per view). Needs node, npm (the registry) and Chromium.
+Writes benchmarks/results/spark_view/<tag>_<commit>.{json,md,jpg} (the jpg: photo and Spark's image of each file, per view). Needs node, npm (the registry) and Chromium.
 """
 
 from __future__ import annotations
@@ -35,7 +35,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
 from ctgs.io.run_model import load_run  # noqa: E402
-from record import write_record  # noqa: E402 (benchmarks/record.py)
+import record  # noqa: E402 (benchmarks/record.py)
+from record import write_record  # noqa: E402
 from ctgs.io.readers import read_gaussian_file  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
@@ -235,14 +236,14 @@ def main() -> None:
         "run_dir": os.path.abspath(args.run_dir),
         "test_views": [v.name for v in views], "page_errors": errors, "rows": rows, "seconds": time.time() - t0,
     }
-    out = os.path.join(HERE, "results", f"spark_view_{args.tag}")
+    out = record.stem("spark_view", args.tag)
     import cv2
 
     sheet = torch.cat([torch.cat(row, 1) for row in shots.values()], 0).numpy()  # rows: views; columns: photo, files
     # JPEG: a sheet of 384 px photos is 2 MB as PNG; the figures come from the lossless screenshots, not from it.
     cv2.imwrite(out + ".jpg", (sheet[..., ::-1] * 255).round().astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 85])
     result["contact_sheet"] = os.path.relpath(out + ".jpg", os.path.dirname(HERE))
-    write_record(os.path.basename(out), result, markdown)
+    write_record(out, result, markdown)
 
 
 def markdown(r: dict) -> str:

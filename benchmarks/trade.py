@@ -28,6 +28,8 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 # Two image scales per scene: (label, demo size | herzjesu image folder).
 DEMO_SCALES = [("192x144", (192, 144)), ("384x288", (384, 288))]
@@ -154,7 +156,7 @@ def main() -> None:
     ap.add_argument("--table-only", action="store_true")
     ap.add_argument("--re-eval-missing-lpips", action="store_true",
                     help="evaluate finished runs again whose records have no LPIPS (weights were missing)")
-    ap.add_argument("--tag", default=platform.node())
+    ap.add_argument("--tag", default="herzjesu25_demo", help="names the record")
     args = ap.parse_args()
     try:
         import matplotlib  # noqa: F401  (the plots: checked before hours of training, not after them)
@@ -187,7 +189,7 @@ def main() -> None:
 
 
 def write(rows: list[dict], args) -> None:
-    out = os.path.join(ROOT, "benchmarks", "results", f"trade_{args.tag}")
+    out = record.stem("trade", args.tag)
     machine = {"host": platform.node(), "machine": platform.machine(), "cpus": os.cpu_count(),
                "python": platform.python_version(), "load_avg_end": os.getloadavg()}
     with open(out + ".json", "w") as fh:

@@ -8,7 +8,7 @@ views are left out entirely; `final_test_psnr` is then the validation views' mea
 Usage: .venv/bin/python benchmarks/validation_pairs.py --work DIR --a-prefix new --b-prefix old \\
          --presets fast balanced --seeds 0 1 2 3 --max-loss 0.10 --out NAME [--note TEXT]
 Runs are DIR/{prefix}_{preset}_s{seed}; pairs missing either run are skipped (and listed). Writes
-benchmarks/results/validation_pairs_NAME.{md,json}: per preset and seed, A and B validation PSNR / SSIM, params, primitives,
+benchmarks/results/validation_pairs/NAME_<commit>.{md,json}: per preset and seed, A and B validation PSNR / SSIM, params, primitives,
 train seconds, and the mean difference A - B against the registered --max-loss (A passes a preset if its mean is not
 lower than B's by more than it).
 """
@@ -26,6 +26,7 @@ import tomllib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import record  # noqa: E402
 from record import write_record  # noqa: E402
 
 
@@ -78,7 +79,7 @@ def main() -> None:
         result["presets"][preset] = {"rows": rows, "mean_diff": mean, "ahead": sum(d > 0 for d in diffs),
                                      "sd": statistics.stdev(diffs) if len(diffs) > 1 else 0.0,
                                      "passes": mean >= -args.max_loss}
-    write_record(f"validation_pairs_{args.out}", result, markdown)
+    write_record(record.stem("validation_pairs", args.out), result, markdown)
 
 
 def markdown(r: dict) -> str:

@@ -16,7 +16,7 @@ one-sided capture (herzjesu25) their outer edges are seen by one or two views, l
 validation views cannot stand in for; a run that leaves them open does not fit its own training data there.
 
 Usage: .venv/bin/python benchmarks/validation_runs.py --group NAME=RUN_DIR[,RUN_DIR...] [--group ...] --out NAME
-Writes benchmarks/results/validation_<NAME>.md. The first group is the reference; runs pair by their seed.
+Writes benchmarks/results/validation_runs/<NAME>_<commit>.md. The first group is the reference; runs pair by their seed.
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from ctgs.train.shell import far_mask, scene_sphere
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paired_stats import group_specs  # noqa: E402
+import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -201,7 +202,7 @@ def main() -> None:
     lines += ["", f"Check: these PSNR means differ from the runs' own validation PSNR (train_summary.json) by at most "
               f"{worst:.3f} dB.", "", "Runs: " + "; ".join(f"{name}: " + ", ".join(r["run"] for r in runs)
                                                           for name, runs in groups)]
-    out = os.path.join(ROOT, "benchmarks", "results", f"validation_{args.out}.md")
+    out = record.stem("validation_runs", args.out) + ".md"
     with open(out, "w") as fh:
         fh.write("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -1,6 +1,6 @@
 """The web viewer in headless Chromium: per-view PSNR against `ctgs render`, where the difference comes
-from, frame times, bundle bytes; a screenshot of the viewer. Results: benchmarks/results/viewer_<host>.{md,json}
-and benchmarks/results/viewer_bench/demo_screenshot_5043fcf.png.
+from, frame times, bundle bytes; a screenshot of the viewer.
+Results: benchmarks/results/viewer_bench/demo_<commit>.{md,json} and demo_screenshot_<commit>.png beside them.
 
 Usage: .venv/bin/python benchmarks/viewer_bench.py [--run RUN_DIR] [--work /tmp/ctgs_viewer_bench]
        [--frames 20] [--big-surfels 200000] [--size 1280x720] [--skip-big]
@@ -40,7 +40,7 @@ from ctgs.viewer.headless import Browser, find_chromium  # noqa: E402
 from ctgs.viewer.server import ViewerServer  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-RESULTS = os.path.join(REPO, "benchmarks", "results")
+RESULTS = os.path.join(REPO, "benchmarks", "results", "viewer_bench")
 DEMO_SCENE = dict(num_views=24, width=96, height=72, points=1500)
 # The paper's texels per primitive range from 30.8 (bonsai) to 450.5 (bicycle), 214 on average over
 # Mip-NeRF 360 (46.6M texels / 218K points): the big model draws each surfel's count uniformly from
@@ -338,8 +338,10 @@ def main() -> None:
     info = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "command": " ".join(sys.argv),
             "machine": machine(), "gl": "GPU (ANGLE/Vulkan)" if args.gpu else "software (SwiftShader)"}
     t0 = time.time()
-    host = platform.node()
-    base = os.path.join(RESULTS, f"viewer_{host}{args.tag}")
+    os.makedirs(RESULTS, exist_ok=True)
+    commit = subprocess.run(["git", "rev-parse", "--short=7", "HEAD"], cwd=REPO, capture_output=True,
+                            text=True).stdout.strip() or "nogit"
+    base = os.path.join(RESULTS, f"demo{args.tag}_{commit}")
 
     def stage(name: str) -> None:  # progress, and the figures so far (a crash keeps them)
         info.setdefault("stage_seconds", {})[name] = round(time.time() - t0, 1)
@@ -407,7 +409,7 @@ def main() -> None:
         os.remove(base + ".partial.json")
     with open(base + ".json", "w") as f:
         json.dump(json_safe(info), f, indent=1)
-    shot = os.path.join(RESULTS, f"viewer_demo_screenshot{args.tag}.png")
+    shot = os.path.join(RESULTS, f"demo_screenshot{args.tag}_{commit}.png")
     shutil.copyfile(os.path.join(args.work, "screenshot.png"), shot)
     with open(base + ".md", "w") as f:
         f.write(markdown(info))

@@ -15,6 +15,10 @@ import sys
 import time
 from pathlib import Path
 
+import argparse  # noqa: E402
+
+argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                        formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
 os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
 os.environ.setdefault("CUDA_HOME", "/usr/local/cuda")
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
