@@ -1,16 +1,26 @@
 """Checkpoints with everything needed to resume bit-for-bit on the CPU (written atomically by
 ctgs.io.atomic.torch_save). On a GPU a resumed run is not bit-identical to an uninterrupted one: the CUDA
-backward sums gradients with atomics, in an order that differs from run to run (docs/guide/gpu.md)."""
+backward sums gradients with atomics, in an order that differs from run to run (docs/guide/gpu.md).
+
+The checkpoint before the last is kept as prev.pt: a last.pt that cannot be read (a disk error, a file cut by a
+copy, a filesystem that lost its last writes in a power cut) falls back to it, with a note saying so."""
 
 from __future__ import annotations
 
 import os
+import pickle
 import random
+import sys
+import zipfile
 
 import numpy as np
 import torch
 
+from ctgs.errors import UserError
+from ctgs.io import atomic
+
 CKPT_NAME = "last.pt"
+PREV_NAME = "prev.pt"
 
 
 def rng_state(gen: torch.Generator) -> dict:
