@@ -129,11 +129,11 @@ def main() -> None:
     views = sorted(pairs[0][1]["per_view_psnr"])
     per_view = {v: paired([a["per_view_psnr"][v] - b["per_view_psnr"][v] for _, a, b in pairs]) for v in views}
     with open(record.stem("paired", args.tag) + ".json", "w") as fh:
-        json.dump({"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
-                   "reused_run_commits": run_commits, "other_run_commits": other_commits,
-                   "reused_runs": [f"{r['label']}_s{r['seed']}" for r in reused],
-                   "machine": machine, "a": la, "b": lb, "runs": recs, "stats": stats, "per_view": per_view}, fh,
-                  indent=1)
+        fh.write(record.portable(json.dumps(
+            {"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
+             "reused_run_commits": run_commits, "other_run_commits": other_commits,
+             "reused_runs": [f"{r['label']}_s{r['seed']}" for r in reused],
+             "machine": machine, "a": la, "b": lb, "runs": recs, "stats": stats, "per_view": per_view}, indent=1)))
 
     def mean(label: str, key: str) -> float:
         return statistics.mean(r[key] for r in recs if r["label"] == label)
@@ -178,7 +178,7 @@ def main() -> None:
         lines.append(f"| {v} | {st['mean']:+.2f} dB | {st['sd']:.2f} | {st['p']:.3f} | [{lo:+.2f}, {hi:+.2f}] |")
     out = record.stem("paired", args.tag) + ".md"
     with open(out, "w") as fh:
-        fh.write("\n".join(lines) + "\n")
+        fh.write(record.portable("\n".join(lines) + "\n"))
     print("\n".join(lines))
 
 

@@ -36,12 +36,17 @@ def stem(tool: str, name: str) -> str:
     return os.path.join(folder, name)
 
 
+def portable(text: str) -> str:
+    """Paths inside this checkout made relative to it, the home folder as ~: a record names no machine's paths."""
+    return text.replace(ROOT + os.sep, "").replace(os.path.expanduser("~") + os.sep, "~" + os.sep)
+
+
 def write_record(path_stem: str, result: dict, markdown: Callable[[dict], str]) -> str:
     """Write <path_stem>.json and .md (path_stem from `stem`) and print the table; returns path_stem."""
     os.makedirs(os.path.dirname(path_stem), exist_ok=True)
     with open(path_stem + ".json", "w") as f:
-        json.dump(result, f, indent=2)
-    text = markdown(result)
+        f.write(portable(json.dumps(result, indent=2)))
+    text = portable(markdown(result))
     with open(path_stem + ".md", "w") as f:
         f.write(text)
     print(text)
