@@ -89,7 +89,9 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         return run_with_progress(trainer, quiet=quiet)
     except BaseException as exc:
         # Nothing half-written: a run folder this invocation created goes if no checkpoint made it resumable.
-        resumable = os.path.exists(os.path.join(run_dir, "checkpoints", "last.pt"))
+        from ctgs.train.checkpoint import has_checkpoint
+
+        resumable = has_checkpoint(run_dir)
         if created and not resumable:
             shutil.rmtree(run_dir, ignore_errors=True)
         if isinstance(exc, (KeyboardInterrupt, Terminated)):  # Ctrl-C, or SIGTERM through the CLI

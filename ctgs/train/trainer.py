@@ -18,7 +18,6 @@ import torch
 
 from ctgs import fused
 from ctgs.errors import UserError
-from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.train import checkpoint as ckpt
@@ -234,9 +233,7 @@ class Trainer:
 
     def _save_checkpoint(self) -> str:
         self._check_finite(None, full=True)
-        path = ckpt.checkpoint_path(self.run_dir)
-        atomic.torch_save(self._state(), path)
-        return path
+        return ckpt.save_checkpoint(self.run_dir, self._state())  # the one before stays as prev.pt
 
     def _log(self, record: dict) -> None:
         with open(self.log_path, "a") as fh:
