@@ -8,8 +8,13 @@ every platform, CPU or CUDA torch alike), the extension is compiled against the 
 Build folder: `$TORCH_EXTENSIONS_DIR/<name>` when that is set (torch's own variable), else the per-user
 cache `<CTGS_CACHE_DIR or ~/.cache/ctgs>/torch_extensions/<name>-<key>`, never inside the package (which
 may be a read-only site-packages). The key hashes every kernel source and header, the flags, the compiler,
-torch's and Python's versions: checkouts or installs with different kernels never share (or fight over)
-a build, and a header change rebuilds. A one-line message on stderr says when a build starts.
+torch's and Python's versions, and where the kernels, torch and Python's headers are: checkouts or installs with
+different kernels never share (or fight over) a build, and a header change rebuilds. Neither do two checkouts or
+venvs with the same kernels: torch writes absolute source and include paths into the folder's build.ninja, so one
+folder shared by two of them was rebuilt (a minute) at every switch between them.
+
+A one-line message on stderr says when a build starts; when torch recompiles a folder that was built before (its
+sources' timestamps changed, e.g. by a git checkout) the same line comes once the load has taken BUILD_NOTE_S.
 """
 
 from __future__ import annotations
@@ -37,6 +42,9 @@ CPU_LDFLAGS = ["-fopenmp"]
 KEYED_SUFFIXES = (".cpp", ".h", ".cu", ".cuh")
 KEY_CHARS = 16  # hex digits of the sha256 kept in the folder name: 64 bits, no collisions in practice
 BUILT_MARKER = ".ctgs-built"  # holds the key of the last successful build in that folder
+# Loading an up-to-date build takes about a second (torch runs ninja, which finds nothing to do); longer, and it is
+# compiling: say so rather than sit silent for a minute.
+BUILD_NOTE_S = 5.0
 
 _lock = threading.Lock()
 _cpu_module: ModuleType | None = None
@@ -85,9 +93,20 @@ def build_key(name: str, flags: dict) -> str:
 
     h = hash_kernel_sources(hashlib.sha256())
     context = [name, sorted((k, list(v)) for k, v in flags.items()), compiler(), torch.__version__,
-               torch.version.cuda, sys.version_info[:2], platform.machine()]
+               torch.version.cuda, sys.version_info[:2], platform.machine(), *build_paths()]
     h.update(repr(context).encode())
     return h.hexdigest()[:KEY_CHARS]
+
+
+def build_paths() -> list[str]:
+    """The absolute paths torch writes into a build's build.ninja: the kernel sources' folder, torch's own
+    (its headers and libraries) and Python's headers. Part of the build key (see the module docstring)."""
+    import sysconfig
+
+    import torch
+
+    return [str(kernels_dir().resolve()), os.path.realpath(os.path.dirname(torch.__file__)),
+            os.path.realpath(sysconfig.get_paths().get("include", ""))]
 
 
 def build_dir(name: str, key: str) -> Path:
@@ -120,9 +139,16 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
     except OSError as exc:
         raise UserError(f"{folder}: cannot create the extension build folder ({exc.strerror}); set "
                         f"CTGS_CACHE_DIR to a writable folder, or pass --backend {fallback}") from exc
+    note = f"ctgs: building the {what} renderer extension (first use, {first_use}) in {folder} ..."
+    late = None
     if fresh:
-        print(f"ctgs: building the {what} renderer extension (first use, {first_use}) in {folder} ...",
-              file=sys.stderr, flush=True)
+        print(note, file=sys.stderr, flush=True)
+    else:  # built before: torch may still recompile (sources touched since); say so if it takes a while
+        late = threading.Timer(BUILD_NOTE_S, lambda: print(
+            f"ctgs: recompiling the {what} renderer extension (its sources changed on disk since the last build, "
+            f"{first_use}) in {folder} ...", file=sys.stderr, flush=True))
+        late.daemon = True
+        late.start()
     try:
         module = cpp_extension.load(
             name=name,
@@ -135,9 +161,13 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
             **{k: list(v) for k, v in flags.items()},
         )
     except (RuntimeError, OSError, ImportError) as exc:
+        if late is not None:
+            late.cancel()
         last = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
         raise UserError(f"building the {what} renderer extension ({kernels}) failed: {last}; rerun with "
                         f"CTGS_VERBOSE_BUILD=1 for the compiler output, or pass --backend {fallback}") from exc
+    if late is not None:
+        late.cancel()
     if fresh:
         marker.write_text(key + "\n")
     return module

@@ -83,6 +83,49 @@ def test_one_line_message_only_when_a_build_starts(cache, monkeypatch, capsys):
     assert capsys.readouterr().err == ""  # built before: loading says nothing
 
 
+def test_two_checkouts_with_the_same_kernels_never_share_a_build(monkeypatch, tmp_path):
+    # torch writes absolute paths into build.ninja: a folder shared by two checkouts (or venvs) was rebuilt at every
+    # switch between them. The same kernels at another path get another key; the same path keeps its key.
+    keys = {}
+    for where in ("a", "b"):
+        copy = tmp_path / where / "kernels"
+        shutil.copytree(resources.kernels_dir(), copy, ignore=shutil.ignore_patterns("__pycache__"))
+        monkeypatch.setattr(ext, "kernels_dir", lambda copy=copy: copy)
+        keys[where] = ext.build_key("ctgs_cpu", CPU_FLAGS)
+        assert ext.build_key("ctgs_cpu", CPU_FLAGS) == keys[where]
+    assert keys["a"] != keys["b"]
+    import torch
+
+    monkeypatch.setattr(torch, "__file__", str(tmp_path / "other-venv" / "torch" / "__init__.py"))
+    assert ext.build_key("ctgs_cpu", CPU_FLAGS) != keys["b"]  # another torch install: its own build
+
+
+def test_a_recompile_of_a_built_folder_is_announced(cache, monkeypatch, capsys):
+    import time
+
+    from torch.utils import cpp_extension
+
+    delay = {"s": 0.0}
+
+    def fake_load(**kwargs):
+        time.sleep(delay["s"])
+        return types.ModuleType(kwargs["name"])
+
+    monkeypatch.setattr(cpp_extension, "load", fake_load)
+    monkeypatch.setattr(ext, "BUILD_NOTE_S", 0.05)
+    build = lambda: ext.jit_build("ctgs_cpu", ext.CPU_SOURCES, what="CPU", fallback="reference",  # noqa: E731
+                                  verbose=False, first_use="~1 min", **CPU_FLAGS)
+    build()
+    assert "building the CPU renderer extension" in capsys.readouterr().err
+    build()  # up to date: quick and silent
+    time.sleep(0.1)
+    assert capsys.readouterr().err == ""
+    delay["s"] = 0.3  # torch found the sources touched and compiles again
+    build()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "recompiling the CPU renderer extension" in err
+
+
 def test_failed_build_leaves_no_marker(cache, monkeypatch, capsys):
     from torch.utils import cpp_extension
 
