@@ -165,6 +165,16 @@ def write_text(path: str, text: str, *, fsync: bool = False) -> None:
         fh.write(text)
 
 
+def append_text(path: str, text: str) -> None:
+    """Append to a log (not atomic: a log grows line by line); an OSError names `path` (a full disk's write
+    names no file)."""
+    try:
+        with open(path, "a") as fh:
+            fh.write(text)
+    except OSError as exc:
+        raise _named(exc, path) from None
+
+
 def write_json(path: str, obj, *, indent: int | None = 2) -> None:
     write_text(path, json.dumps(obj, indent=indent) + "\n")
 

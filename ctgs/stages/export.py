@@ -9,6 +9,7 @@ folder plus the bundle `ctgs view` serves, in its web/ subfolder). Adding a form
 from __future__ import annotations
 
 import os
+import shutil
 from dataclasses import dataclass
 from typing import Callable
 
@@ -121,7 +122,11 @@ def _web(e: Export) -> str:
     scene = e.source.get("scene_dir")
     cameras = scene_cameras(scene, e.source.get("images", "images"), int(e.source.get("holdout", 8))) \
         if scene and os.path.isdir(scene) else []
-    web = write_web_bundle(e.model, os.path.join(e.out, WEB_SUBDIR), cameras, texel_bits=e.texel_bits)
+    try:
+        web = write_web_bundle(e.model, os.path.join(e.out, WEB_SUBDIR), cameras, texel_bits=e.texel_bits)
+    except BaseException:
+        shutil.rmtree(e.out, ignore_errors=True)  # the folder without its bundle is not what was asked for
+        raise
     return (f"{summary}; {WEB_SUBDIR}/: web bundle, {web['bytes_per_surfel']:.0f} B/surfel, "
             f"{web['bytes_per_texel']:.2f} B/texel, {len(cameras)} cameras (`ctgs view {e.out}`)")
 

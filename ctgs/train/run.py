@@ -53,10 +53,6 @@ def eval_peak(log_path: str) -> dict | None:
 
 def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     cfg, model = trainer.cfg, trainer.model
-    atomic.torch_save({"model": model.state_dict(), "scene_dir": cfg.scene_dir, "images": cfg.images,
-                       "holdout": cfg.holdout, "iteration": trainer.it, "config": trainer.user_cfg.to_dict(),
-                       "resolved_config": cfg.to_dict(), "world_origin": trainer.world_origin},
-                      os.path.join(trainer.run_dir, "model.pt"))
     backend = cfg.backend
     if backend == "auto":
         backend = "cuda" if trainer.device.type == "cuda" else "cpu"
@@ -80,6 +76,16 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
         summary.update(trainer.planner.summary())
     elif trainer.estimator is not None:
         summary.update(trainer.estimator.summary())
-    atomic.write_json(os.path.join(trainer.run_dir, "train_summary.json"), summary)
+    summary_path = os.path.join(trainer.run_dir, "train_summary.json")
+    atomic.write_json(summary_path, summary)
+    # model.pt last: it marks a finished run, so a failed write (a full disk) leaves a run that --resume finishes
+    try:
+        atomic.torch_save({"model": model.state_dict(), "scene_dir": cfg.scene_dir, "images": cfg.images,
+                           "holdout": cfg.holdout, "iteration": trainer.it, "config": trainer.user_cfg.to_dict(),
+                           "resolved_config": cfg.to_dict(), "world_origin": trainer.world_origin},
+                          os.path.join(trainer.run_dir, "model.pt"))
+    except BaseException:
+        os.remove(summary_path)
+        raise
     return summary
 

@@ -18,6 +18,7 @@ import torch
 
 from ctgs import fused
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.train import checkpoint as ckpt
@@ -236,8 +237,7 @@ class Trainer:
         return ckpt.save_checkpoint(self.run_dir, self._state())  # the one before stays as prev.pt
 
     def _log(self, record: dict) -> None:
-        with open(self.log_path, "a") as fh:
-            fh.write(json.dumps(record) + "\n")
+        atomic.append_text(self.log_path, json.dumps(record) + "\n")  # a full disk: OSError naming the log
         self.log_lines += 1
 
     # ---- rendering -------------------------------------------------------------------------------

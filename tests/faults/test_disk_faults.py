@@ -1,0 +1,128 @@
+"""Faults of the machine at every stage that writes: a full disk (a real small filesystem filled to several points,
+and an ENOSPC injected at each atomic write) and a read-only output folder. Each case: one line naming the path and
+the fix, exit 74, nothing half-written under a final name, no temporary left.
+
+The small filesystem is a tmpfs (root only, as on the CI machine); the injected cases run everywhere.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import subprocess
+from contextlib import contextmanager
+
+import pytest
+
+from ctgs.errors import OS_ERROR_EXIT
+from ctgs.io import atomic
+from fault_helpers import (assert_nothing_half_written, assert_one_line_failure, can_mount, cli, fill, small_fs,
+                           stage_commands)
+
+STAGES = list(stage_commands({k: "" for k in ("scene", "run", "model")}, "").keys())
+MOUNT = can_mount()
+needs_mount = pytest.mark.skipif(not MOUNT, reason="mounting a tmpfs needs root (the injected cases still run)")
+# How much room the disk has left, as a fraction of what the stage writes: nothing, and two points part-way.
+ROOM = (0.0, 0.35, 0.7)
+
+
+def _used(folder: str) -> int:
+    st = os.statvfs(folder)
+    return (st.f_blocks - st.f_bfree) * st.f_frsize
+
+
+def _clear(folder: str) -> None:
+    for name in os.listdir(folder):
+        path = os.path.join(folder, name)
+        shutil.rmtree(path) if os.path.isdir(path) and not os.path.islink(path) else os.remove(path)
+
+
+@needs_mount
+@pytest.mark.parametrize("stage", STAGES)
+def test_full_disk(stage, pipeline):
+    with small_fs(4096) as fs:
+        args, out = stage_commands(pipeline, fs)[stage]
+        before = _used(fs)
+        result = cli(args)
+        assert result.exit_code == 0, result.stderr
+        need = _used(fs) - before  # what the stage writes, at least
+        _clear(fs)
+        for room in ROOM:
+            filler = fill(fs, int(room * need))
+            line = assert_one_line_failure(cli(args), codes=(OS_ERROR_EXIT,), needles=("no space left",))
+            assert fs in line, line  # names the file on the full disk
+            os.remove(filler)
+            assert_nothing_half_written(stage, out, fs)
+            _clear(fs)
+
+
+@contextmanager
+def _read_only(folder: str):
+    """`folder` read-only as the kernel enforces it even for root: a read-only mount, else (not root) mode 0555."""
+    if MOUNT:
+        with small_fs(256) as fs:
+            subprocess.run(["mount", "-o", "remount,ro", fs], check=True)
+            try:
+                yield fs
+            finally:
+                subprocess.run(["mount", "-o", "remount,rw", fs], check=True)
+        return
+    os.makedirs(folder)
+    os.chmod(folder, 0o555)
+    try:
+        yield folder
+    finally:
+        os.chmod(folder, 0o755)
+
+
+@pytest.mark.parametrize("stage", STAGES)
+def test_read_only_output_folder(stage, pipeline, tmp_path):
+    if os.geteuid() == 0 and not MOUNT:
+        pytest.skip("root ignores folder modes and cannot mount here")
+    with _read_only(str(tmp_path / "ro")) as ro:
+        args, out = stage_commands(pipeline, ro)[stage]
+        line = assert_one_line_failure(cli(args), codes=(OS_ERROR_EXIT,))
+        assert ro in line and ("read-only" in line or "permission denied" in line), line
+        assert os.listdir(ro) == []
+
+
+def _inject(monkeypatch, fail_at: int | None) -> list[int]:
+    """Count the atomic writes; fail_at=N: the N-th raises ENOSPC once its temporary is written, as a write on a
+    full disk does (an OSError naming no file)."""
+    calls = [0]
+
+    def wrap(original):
+        @contextmanager
+        def wrapped(*args, **kwargs):
+            calls[0] += 1
+            n = calls[0]
+            with original(*args, **kwargs) as tmp:
+                yield tmp
+                if n == fail_at:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        return wrapped
+
+    monkeypatch.setattr(atomic, "atomic_path", wrap(atomic.atomic_path))
+    monkeypatch.setattr(atomic, "atomic_dir", wrap(atomic.atomic_dir))
+    return calls
+
+
+@pytest.mark.parametrize("stage", STAGES)
+def test_enospc_injected_at_each_write(stage, pipeline, tmp_path, monkeypatch):
+    with monkeypatch.context() as m:
+        calls = _inject(m, None)
+        assert cli(stage_commands(pipeline, str(tmp_path / "count"))[stage][0]).exit_code == 0
+    total = calls[0]
+    assert total >= 1
+    # the first, a middle and the last write (every one would make the suite slow: render writes one per view)
+    for k in sorted({1, (total + 1) // 2, total}):
+        dest = str(tmp_path / f"write{k}")
+        os.makedirs(dest)
+        args, out = stage_commands(pipeline, dest)[stage]
+        with monkeypatch.context() as m:
+            _inject(m, k)
+            line = assert_one_line_failure(cli(args), codes=(OS_ERROR_EXIT,), needles=("no space left",))
+        assert dest in line, line
+        assert_nothing_half_written(stage, out, dest)
