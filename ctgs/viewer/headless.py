@@ -187,10 +187,17 @@ class Browser:
             self.page("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y, button=button)
         self.page("Input.dispatchMouseEvent", type="mouseReleased", x=x1, y=y1, button=button, clickCount=1)
 
-    def key(self, key: str, kind: str) -> None:
-        """kind: "keyDown" or "keyUp" of a printable key such as "w"."""
-        self.page("Input.dispatchKeyEvent", type=kind, key=key, text=key if kind == "keyDown" else "",
-                  code=f"Key{key.upper()}" if key.isalpha() else "")
+    def key(self, key: str, kind: str, *, shift: bool = False) -> None:
+        """kind: "keyDown" or "keyUp" of a printable key such as "w" or "]" (shift: with Shift held; pass the
+        shifted character, e.g. "T")."""
+        code = f"Key{key.upper()}" if key.isalpha() else {"[": "BracketLeft", "]": "BracketRight"}.get(key, "")
+        self.page("Input.dispatchKeyEvent", type=kind, key=key, text=key if kind == "keyDown" else "", code=code,
+                  modifiers=8 if shift else 0)
+
+    def press(self, key: str, *, shift: bool = False) -> None:
+        """keyDown then keyUp of `key`."""
+        self.key(key, "keyDown", shift=shift)
+        self.key(key, "keyUp", shift=shift)
 
     def console_messages(self) -> list[str]:
         return [" ".join(str(a.get("value", a.get("description", ""))) for a in ev["params"].get("args", []))

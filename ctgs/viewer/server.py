@@ -1,6 +1,8 @@
 """The viewer's static HTTP server: the page and its scripts from the package, the bundle from disk.
 
-Bound to 127.0.0.1 only. Nothing is fetched from the internet: every script is in ctgs/viewer/static.
+Bound to 127.0.0.1 only, and answering only requests addressed to it (the Host header: a page elsewhere cannot reach
+it through DNS rebinding); a malformed path gets 400. Nothing is fetched from the internet: every script is in
+ctgs/viewer/static.
 URL layout: /  -> static/index.html and its assets; /bundle/<file> -> the web bundle folder, with
 bundle.json's cameras replaced when the server was given other cameras (`ctgs view --scene`).
 """
@@ -41,6 +43,24 @@ class _Handler(SimpleHTTPRequestHandler):
         self.send_header("Cache-Control", "no-store")
         super().end_headers()
 
+    def _refused(self) -> bool:
+        """Answer what the server must not serve; True when it answered. A Host other than this server's own
+        (127.0.0.1:PORT or localhost:PORT) is a page elsewhere reaching it through DNS rebinding: refused. A path
+        that cannot name a file (a NUL, bad percent escapes) gets 400, never a traceback in the user's terminal."""
+        port = self.server.server_address[1]
+        host = (self.headers.get("Host") or "").strip().lower()
+        if host not in {f"{HOST}:{port}", f"localhost:{port}"}:
+            self.send_error(HTTPStatus.MISDIRECTED_REQUEST, "this viewer answers only to its own address")
+            return True
+        try:
+            path = unquote(urlsplit(self.path).path, errors="strict")
+        except (UnicodeDecodeError, ValueError):
+            path = None
+        if path is None or not path.startswith("/") or any(ord(ch) < 32 or ch == "\x7f" for ch in path) or "\\" in path:
+            self.send_error(HTTPStatus.BAD_REQUEST, "malformed path")
+            return True
+        return False
+
     def translate_path(self, path):
         rel = unquote(urlsplit(path).path)
         if rel.startswith("/bundle/"):
@@ -50,7 +70,14 @@ class _Handler(SimpleHTTPRequestHandler):
             return os.path.join(self.bundle_dir, name)
         return super().translate_path(path)
 
+    def do_HEAD(self):
+        if self._refused():
+            return
+        super().do_HEAD()
+
     def do_GET(self):
+        if self._refused():
+            return
         if urlsplit(self.path).path == "/bundle/" + BUNDLE_JSON:
             self.send_response(HTTPStatus.OK)
             self.send_header("Content-Type", "application/json")

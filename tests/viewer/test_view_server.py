@@ -132,3 +132,39 @@ def test_export_format_web_writes_model_and_bundle_with_the_scene_cameras(tmp_pa
     assert {(c["width"], c["height"]) for c in bundle["cameras"]} == {(40, 32)}
     result = CliRunner().invoke(main, ["export", str(run), "-o", str(tmp_path / "plain")])
     assert result.exit_code == 0 and not (tmp_path / "plain" / "web").exists()
+
+
+def _raw_get(port: int, path: str, host: str | None = None) -> int:
+    import http.client
+
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    conn.putrequest("GET", path, skip_host=True, skip_accept_encoding=True)
+    conn.putheader("Host", f"127.0.0.1:{port}" if host is None else host)
+    conn.endheaders()
+    status = conn.getresponse().status
+    conn.close()
+    return status
+
+
+def test_malformed_paths_get_400_and_other_hosts_are_refused(bundle_dir, capfd):
+    with ViewerServer(bundle_dir) as srv:
+        for path in ("/bundle/%00", "/%00", "/bundle/%ff", "/bundle/a%0ab", "/bundle%5c..%5cx"):
+            assert _raw_get(srv.port, path) == 400, path
+        assert _raw_get(srv.port, "/bundle/bundle.json") == 200
+        assert _raw_get(srv.port, "/", host=f"localhost:{srv.port}") == 200
+        # DNS rebinding: a page on evil.example resolving to 127.0.0.1 sends its own name as the Host
+        for host in (f"evil.example:{srv.port}", "127.0.0.1", f"127.0.0.1:{srv.port + 1}", ""):
+            assert _raw_get(srv.port, "/bundle/bundle.json", host=host) == 421, host
+    assert "Traceback" not in capfd.readouterr().err  # nothing printed in the user's terminal
+
+
+def test_bundle_is_readable_by_others_like_every_output(tmp_path):
+    # The bundle folder and its files get the modes of every other output (0755 / 0644), not mkdtemp's 0700,
+    # also when an earlier bundle is replaced.
+    out = str(tmp_path / "web")
+    for _ in range(2):
+        write_web_bundle(textured_model(n=12), out, [])
+        assert os.stat(out).st_mode & 0o777 == 0o755
+        for name in os.listdir(out):
+            assert os.stat(os.path.join(out, name)).st_mode & 0o777 == 0o644, name
+        assert sorted(os.listdir(tmp_path)) == ["web"]  # no temporary left beside it

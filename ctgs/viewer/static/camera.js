@@ -67,6 +67,10 @@ export function lookAt(eye, target, up) {
   return {rot: [x[0], y[0], z[0], x[1], y[1], z[1], x[2], y[2], z[2]], pos: eye.slice()};
 }
 
+// Fly keys by physical key (KeyboardEvent.code) -> the letter update() reads.
+export const MOVE_CODES = new Map([["KeyW", "w"], ["KeyA", "a"], ["KeyS", "s"], ["KeyD", "d"], ["KeyQ", "q"],
+  ["KeyE", "e"]]);
+
 // Orbit: drag rotates about `target` (yaw about world up, pitch about the camera's x axis), wheel
 // dollies, right/shift drag pans. Fly: W A S D move, Q E down/up, drag looks around, wheel sets speed.
 export class Controls {
@@ -94,12 +98,21 @@ export class Controls {
       if (this.mode === "orbit") this.dolly(Math.exp(e.deltaY * 0.001));
       else this.speed *= Math.exp(-e.deltaY * 0.001);
     }, {passive: false});
+    // Only the movement keys are held (by physical key: Shift or a layout change between press and release must
+    // not leave one stuck); any other key, `[` `]` included, is a shortcut and not a camera motion.
     window.addEventListener("keydown", (e) => {
-      if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
-      this.keys.add(e.key.toLowerCase());
+      const el = e.target;
+      const typing = el instanceof HTMLTextAreaElement || (el instanceof HTMLInputElement &&
+        !["checkbox", "radio", "button", "range", "submit", "reset"].includes(el.type));
+      if (!typing && !e.ctrlKey && !e.metaKey && !e.altKey && MOVE_CODES.has(e.code)) this.keys.add(MOVE_CODES.get(e.code));
     });
-    window.addEventListener("keyup", (e) => this.keys.delete(e.key.toLowerCase()));
+    window.addEventListener("keyup", (e) => { if (MOVE_CODES.has(e.code)) this.keys.delete(MOVE_CODES.get(e.code)); });
     window.addEventListener("blur", () => this.keys.clear());
+  }
+
+  // Whether a held key is moving the camera now (fly mode; orbit mode ignores them).
+  moving() {
+    return this.mode === "fly" && this.keys.size > 0;
   }
 
   rotate(dx, dy) {

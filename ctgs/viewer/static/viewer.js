@@ -2,7 +2,7 @@
 // scripting interface the tests use (ready, show, benchmark, info).
 
 import {loadBundle} from "./bundle.js";
-import {Controls, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm, column} from "./camera.js";
+import {Controls, MOVE_CODES, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm, column} from "./camera.js";
 import {Renderer} from "./renderer.js";
 
 const $ = (id) => document.getElementById(id);
@@ -10,6 +10,27 @@ const SHADERS = {surfelVert: "surfel.vert", surfelFrag: "surfel.frag", composite
   compositeFrag: "composite.frag"};
 // Smoothing of the frame-time readout (exponential moving average weight of a new frame).
 const READOUT_EMA = 0.2;
+
+// `?bundle=` names a folder on this server only: the page runs on 127.0.0.1 next to the user's files, so a link
+// must not make it load (and display) a bundle from anywhere else.
+function sameOriginBase(param) {
+  let url;
+  try {
+    url = new URL(param, location.href);
+  } catch (err) {
+    throw new Error(`?bundle=${param}: not a valid address`);
+  }
+  if (url.origin !== location.origin) {
+    throw new Error(`?bundle=${param}: the viewer only loads bundles served by its own server (${location.origin})`);
+  }
+  return url.pathname.replace(/\/+$/, "");
+}
+
+// Keys typed into these go to the control, not to the viewer's shortcuts.
+function typesText(el) {
+  if (el instanceof HTMLTextAreaElement || (el instanceof HTMLElement && el.isContentEditable)) return true;
+  return el instanceof HTMLInputElement && !["checkbox", "radio", "button", "range", "submit", "reset"].includes(el.type);
+}
 
 async function fetchText(url) {
   const r = await fetch(url);
@@ -41,7 +62,7 @@ class Viewer {
   }
 
   async start() {
-    const bundleBase = this.params.get("bundle") || "bundle";
+    const bundleBase = sameOriginBase(this.params.get("bundle") || "bundle");
     const canvas = $("canvas");
     this.renderer = new Renderer(canvas, this.params.get("accum") || "auto");
     const status = (s) => { $("status").textContent = s; };
@@ -106,7 +127,7 @@ class Viewer {
   }
 
   cameraMoved() {
-    if (this.controls && (this.controls.drag || this.controls.keys.size) && this.camIndex >= 0) {
+    if (this.controls && (this.controls.drag || this.controls.moving()) && this.camIndex >= 0) {
       this.camIndex = -1;  // left the recorded camera
       $("camera").value = "-1";
     }
@@ -325,22 +346,34 @@ class Viewer {
       r.checked = r.value === (this.params.get("mode") || "orbit");
     }
     this.controls.mode = this.params.get("mode") === "fly" ? "fly" : "orbit";
+    // Shortcuts work wherever the focus is (a clicked checkbox, the camera list), except in a text field; Shift
+    // does not change them. Handled keys do nothing else (the camera list would jump to an option's first letter).
     window.addEventListener("keydown", (e) => {
-      if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
-      if (e.key === "t") { $("textures").click(); }
-      if (e.key === "f") {
+      if (typesText(e.target) || e.ctrlKey || e.metaKey || e.altKey) return;
+      const key = e.key.toLowerCase();
+      if (key === "t") $("textures").click();
+      else if (key === "f") {
         const next = this.controls.mode === "orbit" ? "fly" : "orbit";
         document.querySelector(`input[name=mode][value=${next}]`).click();
-      }
-      if (e.key === "]") step(1);
-      if (e.key === "[") step(-1);
+      } else if (key === "]") step(1);
+      else if (key === "[") step(-1);
+      else if (!(this.controls.mode === "fly" && MOVE_CODES.has(e.code))) return;
+      e.preventDefault();
     });
-    const mb = (x) => (x / 1e6).toFixed(1);
-    $("stats").innerHTML =
-      `${b.num_surfels.toLocaleString()} surfels · ${b.num_texels.toLocaleString()} texels<br>` +
-      `SH degree ${b.sh_degree} · atlas ${b.atlas.pages.length} × ${b.atlas.page_size}² ${b.atlas.texel_format}<br>` +
-      `bundle ${mb(b.surfels.bytes + b.atlas.bytes)} MB<br>` +
-      `<span class="dim">${this.renderer.glRenderer}<br>accumulation ${this.renderer.accumFormat.name}</span>`;
+    // Every value from bundle.json goes in as text, never as HTML: a crafted bundle cannot run script here.
+    const mb = (x) => (Number(x) / 1e6).toFixed(1);
+    const stats = $("stats"), dim = document.createElement("span");
+    dim.className = "dim";
+    const lines = (el, texts) => texts.forEach((t, i) => {
+      if (i) el.appendChild(document.createElement("br"));
+      el.appendChild(document.createTextNode(t));
+    });
+    stats.replaceChildren();
+    lines(stats, [`${Number(b.num_surfels).toLocaleString()} surfels · ${Number(b.num_texels).toLocaleString()} texels`,
+      `SH degree ${b.sh_degree} · atlas ${b.atlas.pages.length} × ${b.atlas.page_size}² ${b.atlas.texel_format}`,
+      `bundle ${mb(b.surfels.bytes + b.atlas.bytes)} MB`, ""]);
+    lines(dim, [String(this.renderer.glRenderer), `accumulation ${this.renderer.accumFormat.name}`]);
+    stats.appendChild(dim);
   }
 }
 
