@@ -144,7 +144,7 @@ bench-paired: $(STAMP) lpips-weights
 	$(PY) benchmarks/paired.py --scene out/herzjesu25 --images images_8 --a balanced --b fast --seeds 0 1 2 3 \
 		--work out/paired --tag $$(hostname)
 
-# The documentation site (mkdocs.yml): strict, so a broken link, a missing page or a stale config-keys page fails.
+# The documentation site (mkdocs.yml) into site/: strict, so a broken link or a page missing from nav fails.
 .PHONY: docs
 docs: $(STAMP)
 	$(PY) -m pip install -q -e ".[docs]"

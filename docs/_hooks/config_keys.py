@@ -1,10 +1,7 @@
-"""docs/reference/config.md from configs/default.toml: every key, its default and the comment above it.
+"""The config-keys page (reference/config.md) from configs/default.toml: every key, its default and the comment above
+it. The docs build makes the page from the TOML every time (an mkdocs hook), so it cannot drift from it.
 
-    python docs/_hooks/config_keys.py          # rewrite the page
-    python docs/_hooks/config_keys.py --check  # exit 1 if the page differs from what the TOML gives
-
-mkdocs.yml runs it as a hook: the site build fails when the committed page has drifted from the TOML
-(tests/test_docs_config_keys.py checks the same without building the site).
+    python docs/_hooks/config_keys.py [OUT.md]   # print the page (or write it to OUT.md) to read it outside the site
 """
 
 from __future__ import annotations
@@ -15,7 +12,7 @@ import tomllib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DEFAULT_TOML = os.path.join(ROOT, "configs", "default.toml")
-PAGE = os.path.join(ROOT, "docs", "reference", "config.md")
+PAGE = "reference/config.md"  # where the page sits in the site
 
 HEADER = """# Config keys
 
@@ -25,8 +22,7 @@ A preset (`--preset fast`) or an overlay (`--config 2dgs`) is a TOML file listin
 the same list. Values in pixels, texels and iterations are at the paper's scale and are resolved per run
 ([Training](../guide/training.md#scene-relative-settings)).
 
-This page is generated from `configs/default.toml` by `docs/_hooks/config_keys.py`; the docs build fails if it
-is out of date.
+The docs build makes this page from `configs/default.toml` (`docs/_hooks/config_keys.py`).
 
 | key | default | what it does |
 | --- | --- | --- |
@@ -58,25 +54,17 @@ def render(toml_path: str = DEFAULT_TOML) -> str:
     return HEADER + "\n".join(rows) + "\n"
 
 
-def main(argv: list[str]) -> int:
-    text = render()
-    if "--check" in argv:
-        with open(PAGE, encoding="utf-8") as fh:
-            current = fh.read()
-        if current != text:
-            print(f"{PAGE} is out of date with {DEFAULT_TOML}: run python docs/_hooks/config_keys.py")
-            return 1
-        return 0
-    with open(PAGE, "w", encoding="utf-8") as fh:
-        fh.write(text)
-    print(f"wrote {PAGE}")
-    return 0
+def on_files(files, config, **kwargs):  # mkdocs hook: the page joins the site as a generated file
+    from mkdocs.structure.files import File
 
-
-def on_pre_build(config, **kwargs):  # mkdocs hook
-    if main(["--check"]):
-        raise SystemExit(1)
+    files.append(File.generated(config, PAGE, content=render()))
+    return files
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    text = render()
+    if len(sys.argv) > 1:
+        with open(sys.argv[1], "w", encoding="utf-8") as fh:
+            fh.write(text)
+    else:
+        sys.stdout.write(text)
