@@ -118,10 +118,10 @@ def _glb(e: Export) -> str:
 def _web(e: Export) -> str:
     from ctgs.io.web_bundle import WEB_SUBDIR, scene_cameras, write_web_bundle
 
-    summary = _ctgs(e)
     scene = e.source.get("scene_dir")
     cameras = scene_cameras(scene, e.source.get("images", "images"), int(e.source.get("holdout", 8))) \
-        if scene and os.path.isdir(scene) else []
+        if scene and os.path.isdir(scene) else []  # first: a scene that cannot be read leaves nothing written
+    summary = _ctgs(e)
     try:
         web = write_web_bundle(e.model, os.path.join(e.out, WEB_SUBDIR), cameras, texel_bits=e.texel_bits)
     except BaseException:

@@ -1,0 +1,130 @@
+"""Every file a stage reads, cut in half, emptied, or replaced by random bytes of the same length: the stage exits
+2 (or 74) with one line naming that file, and writes nothing. Resuming from a damaged checkpoint falls back to the
+one before it, and says so."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import random
+import shutil
+
+import pytest
+
+from fault_helpers import TRAIN_OPTS, assert_nothing_half_written, assert_one_line_failure, cli
+
+VARIANTS = ("cut", "empty", "random")
+SPARSE = "scene/sparse/0/"
+
+
+def _commands(p: dict, dest: str) -> dict[str, list[str]]:
+    return {
+        "train": ["train", p["scene"], "-o", f"{dest}/out", *TRAIN_OPTS],
+        "export": ["export", p["run"], "-o", f"{dest}/out"],
+        "export-web": ["export", p["run"], "--format", "web", "-o", f"{dest}/out"],
+        "compress": ["compress", p["model"], "-o", f"{dest}/out"],
+        "eval": ["eval", p["run"], "--no-lpips", "-o", f"{dest}/out"],
+        "eval-compressed": ["eval", p["run"], "--model", p["small"], "--no-lpips", "-o", f"{dest}/out"],
+        "render": ["render", p["run"], "-o", f"{dest}/out"],
+        "render-model": ["render", p["run"], "--model", p["model"], "-o", f"{dest}/out"],
+    }
+
+
+# (stage, file under the pipeline's root that it reads)
+CASES = [
+    *[("train", SPARSE + f"{name}.bin") for name in ("cameras", "images", "points3D", "frames", "rigs")],
+    ("train", "scene/images/003.png"),
+    ("export", "run/model.pt"),
+    ("export-web", SPARSE + "cameras.bin"),
+    ("compress", "run/model/manifest.json"),
+    ("compress", "run/model/primitives.ply"),
+    ("compress", "run/model/textures.bin"),
+    ("eval", "run/model.pt"),
+    ("eval", "run/train_summary.json"),
+    ("eval", "scene/images/000.png"),
+    ("eval", SPARSE + "images.bin"),
+    ("eval-compressed", "run/small/manifest.json"),
+    ("eval-compressed", "run/small/model.bin"),
+    ("render", "run/model.pt"),
+    ("render", SPARSE + "points3D.bin"),
+    ("render-model", "run/model/primitives.ply"),
+    ("render-model", "run/model/textures.bin"),
+]
+
+
+def _damage(data: bytes, variant: str, seed: int) -> bytes:
+    if variant == "cut":
+        return data[: len(data) // 2]
+    if variant == "empty":
+        return b""
+    return random.Random(seed).randbytes(len(data))
+
+
+@contextlib.contextmanager
+def damaged(path: str, variant: str, seed: int = 0):
+    """`path` damaged for the block, restored after."""
+    with open(path, "rb") as f:
+        original = f.read()
+    try:
+        with open(path, "wb") as f:
+            f.write(_damage(original, variant, seed))
+        yield
+    finally:
+        with open(path, "wb") as f:
+            f.write(original)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize(("stage", "rel"), CASES, ids=[f"{s}-{os.path.basename(r)}" for s, r in CASES])
+def test_damaged_input_is_named(stage, rel, variant, pipeline, tmp_path):
+    dest = str(tmp_path)
+    path = os.path.join(pipeline["root"], rel)
+    with damaged(path, variant, seed=len(rel)):
+        result = cli(_commands(pipeline, dest)[stage])
+    assert_one_line_failure(result, needles=(os.path.basename(rel),))
+    assert_nothing_half_written(stage, f"{dest}/out", dest)
+
+
+def _stopped_run(pipeline: dict, where: str) -> str:
+    """A copy of the pipeline's run as a kill would leave it: checkpoints (last.pt at iteration 30, prev.pt at 20)
+    and no finished model."""
+    run = shutil.copytree(pipeline["run"], where, ignore=shutil.ignore_patterns("model", "small"))
+    for name in ("model.pt", "train_summary.json"):
+        os.remove(os.path.join(run, name))
+    return run
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_resume_falls_back_to_the_previous_checkpoint(variant, pipeline, tmp_path):
+    run = _stopped_run(pipeline, str(tmp_path / "run"))
+    last = os.path.join(run, "checkpoints", "last.pt")
+    with open(last, "rb") as f:
+        data = f.read()
+    with open(last, "wb") as f:
+        f.write(_damage(data, variant, 1))
+    result = cli(["train", pipeline["scene"], "-o", run, *TRAIN_OPTS, "--resume"])
+    assert result.exit_code == 0, result.stderr
+    note = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(note) == 1 and "last.pt unreadable" in note[0] and "prev.pt" in note[0], result.stderr
+    assert os.path.isfile(os.path.join(run, "model.pt"))
+
+
+def test_resume_with_no_readable_checkpoint_is_one_line(pipeline, tmp_path):
+    run = _stopped_run(pipeline, str(tmp_path / "run"))
+    for name in ("last.pt", "prev.pt"):
+        with open(os.path.join(run, "checkpoints", name), "r+b") as f:
+            f.truncate(100)
+    result = cli(["train", pipeline["scene"], "-o", run, *TRAIN_OPTS, "--resume"])
+    line = assert_one_line_failure(result, codes=(2,), needles=("last.pt", "prev.pt", "without --resume"))
+    assert "Traceback" not in line
+    assert not os.path.exists(os.path.join(run, "model.pt"))
+
+
+def test_a_model_of_random_bytes_is_named(pipeline, tmp_path):
+    # the issue's case: a model.pt of random bytes gave pickle.UnpicklingError's traceback
+    run = shutil.copytree(pipeline["run"], str(tmp_path / "run"), ignore=shutil.ignore_patterns("model", "small"))
+    with open(os.path.join(run, "model.pt"), "wb") as f:
+        f.write(random.Random(5).randbytes(4096))
+    assert_one_line_failure(cli(["export", run, "-o", str(tmp_path / "out")]), codes=(2,),
+                            needles=("model.pt", "corrupt"))
+    assert not os.path.exists(tmp_path / "out")

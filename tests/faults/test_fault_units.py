@@ -1,0 +1,148 @@
+"""The pieces the fault suite's end-to-end cases rest on, each alone: the one-line description of an OSError, the
+sweep of dead writers' temporaries (and never a live one's), an image write that fails silently inside
+OpenImageIO, and the checkpoint kept before the last."""
+
+from __future__ import annotations
+
+import errno
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from ctgs.errors import OS_ERROR_EXIT, UserError, describe_os_error
+from ctgs.io import atomic, images
+from ctgs.train import checkpoint as ckpt
+
+
+@pytest.mark.parametrize(("code", "words"), [
+    (errno.ENOSPC, "no space left on the device; free space there"),
+    (errno.EROFS, "read-only filesystem; write the output to a writable folder"),
+    (errno.EACCES, "permission denied; check its permissions"),
+    (errno.EIO, "input/output error"),
+    (errno.ENODEV, "no such device"),
+])
+def test_os_errors_are_one_line_naming_the_path_and_the_fix(code, words):
+    line = describe_os_error(OSError(code, os.strerror(code), "/data/out/model.pt"))
+    assert line.startswith("/data/out/model.pt: ") and words in line and "\n" not in line
+    # a library's own detail is kept, the path still first
+    line = describe_os_error(OSError(code, "3 MiB free, need 9 MiB", "/data"))
+    assert line.startswith("/data: ") and "(3 MiB free, need 9 MiB)" in line
+
+
+def test_cli_prints_one_line_and_exits_74_or_shows_the_traceback_when_asked(monkeypatch):
+    import click
+    from click.testing import CliRunner
+
+    import ctgs.cli as cli_mod
+
+    @click.command(name="boom")
+    def boom():
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/full/disk/out.png")
+
+    monkeypatch.setitem(cli_mod.STAGES, "boom", ("fake", "a stage that hits a full disk"))
+    monkeypatch.setattr(cli_mod.LazyGroup, "get_command", lambda self, ctx, name: boom if name == "boom" else None)
+    result = CliRunner().invoke(cli_mod.main, ["boom"])
+    assert result.exit_code == OS_ERROR_EXIT
+    assert result.stderr.strip().splitlines() == [
+        "error: /full/disk/out.png: no space left on the device; free space there or write the output elsewhere (-o)"]
+    monkeypatch.setenv("CTGS_TRACEBACK", "1")
+    assert isinstance(CliRunner().invoke(cli_mod.main, ["boom"]).exception, OSError)
+
+
+def _dead_pid() -> int:
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_sweep_removes_dead_writers_temporaries_only(tmp_path):
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        dead = _dead_pid()
+        names = {
+            f".model.tmp-{dead}-abcd1234": "dir",  # a folder a killed export was building
+            f".a.png.tmp-{dead}-zz_9zz9z.png": "file",  # a killed image write
+            f".b.png.tmp-{live.pid}-abcdefgh.png": "file",  # another run writing right now: kept
+            f".c.json.tmp-{os.getpid()}-abcdefgh.json": "file",  # ours: kept
+            ".old.json.tmp-abcdefgh.json": "old",  # named before ids, two days old: removed
+            ".new.json.tmp-abcdefgh.json": "file",  # named before ids, recent: kept (its writer may be alive)
+            ".bashrc.tmp-notours": "old",  # not a name the helpers make: never touched
+            "report.json": "old",
+        }
+        for name, kind in names.items():
+            path = tmp_path / name
+            if kind == "dir":
+                path.mkdir()
+                (path / "manifest.json").write_text("{}")
+            else:
+                path.write_text("x")
+            if kind == "old":
+                os.utime(path, (time.time() - 2 * 86400,) * 2)
+        removed = atomic.sweep_temps(str(tmp_path))
+        assert sorted(removed) == sorted([f".model.tmp-{dead}-abcd1234", f".a.png.tmp-{dead}-zz_9zz9z.png",
+                                          ".old.json.tmp-abcdefgh.json"])
+        assert sorted(os.listdir(tmp_path)) == sorted(set(names) - set(removed))
+        # the next write into the folder sweeps too
+        (tmp_path / f".d.txt.tmp-{dead}-abcdefgh.txt").write_text("half")
+        atomic.write_text(str(tmp_path / "d.txt"), "whole")
+        assert f".d.txt.tmp-{dead}-abcdefgh.txt" not in os.listdir(tmp_path)
+    finally:
+        live.kill()
+        live.wait()
+
+
+class _SilentlyFailingOutput:
+    """An ImageOutput that reports success at every step and writes nothing (OpenImageIO on a full disk)."""
+
+    def open(self, *args):
+        return True
+
+    def write_image(self, *args):
+        return True
+
+    def geterror(self):
+        return ""
+
+    def close(self):
+        return True
+
+
+def test_an_image_write_that_failed_silently_is_an_oserror_and_leaves_nothing(tmp_path, monkeypatch):
+    monkeypatch.setattr(images.oiio.ImageOutput, "create", staticmethod(lambda path: _SilentlyFailingOutput()))
+    with pytest.raises(OSError) as err:
+        images.write_image(str(tmp_path / "view.png"), np.zeros((8, 8, 3), np.float32))
+    assert err.value.filename == str(tmp_path / "view.png")
+    assert os.listdir(tmp_path) == []
+
+
+def test_image_writes_are_read_back_whole(tmp_path):
+    for name in ("a.png", "b.jpg", "c.exr", "d.tif"):
+        images.write_image(str(tmp_path / name), np.random.default_rng(0).random((9, 7, 3)).astype(np.float32))
+        assert images.read_image(str(tmp_path / name)).shape == (9, 7, 3)
+    assert sorted(os.listdir(tmp_path)) == ["a.png", "b.jpg", "c.exr", "d.tif"]
+
+
+def test_checkpoints_keep_the_one_before_and_fall_back_to_it(tmp_path, capsys):
+    run = str(tmp_path)
+    os.makedirs(os.path.join(run, "checkpoints"))
+    assert ckpt.load_checkpoint(run) is None and not ckpt.has_checkpoint(run)
+    for it in (10, 20, 30):
+        ckpt.save_checkpoint(run, {"iteration": it, "model": {"x": torch.arange(it)}})
+    assert torch.load(ckpt.previous_path(run), weights_only=False)["iteration"] == 20
+    assert ckpt.load_checkpoint(run)["iteration"] == 30 and capsys.readouterr().err == ""
+    with open(ckpt.checkpoint_path(run), "r+b") as f:
+        f.truncate(64)
+    assert ckpt.load_checkpoint(run)["iteration"] == 20
+    assert "resuming from the checkpoint before it" in capsys.readouterr().err
+    os.remove(ckpt.checkpoint_path(run))  # killed between the two renames: prev.pt alone
+    assert ckpt.has_checkpoint(run) and ckpt.load_checkpoint(run)["iteration"] == 20
+    with open(ckpt.previous_path(run), "wb") as f:
+        f.write(b"\x80\x04garbage")
+    with pytest.raises(UserError, match="prev.pt unreadable.*no readable checkpoint"):
+        ckpt.load_checkpoint(run)
+    assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["prev.pt"]
