@@ -1,22 +1,31 @@
-"""Structure from motion with pycolmap (CPU): images -> undistorted PINHOLE COLMAP scene.
+"""Structure from motion with pycolmap: images -> undistorted PINHOLE COLMAP scene.
 
-Steps: SIFT extraction -> exhaustive or sequential matching -> incremental mapping -> undistortion ->
-image pyramid (images_2/4/8) -> report. Work happens in a sibling folder `.NAME.sfm-work` with one
-marker per finished step, so an interrupted run resumes where it stopped; the finished scene is then
-moved into SCENE_DIR in one rename (or entry by entry when SCENE_DIR already exists, e.g. because it
-holds the input images), so SCENE_DIR is never half-written. pycolmap 4.x API.
+Steps: SIFT extraction -> matching (every pair, or the pairs of a retrieval / sequential pairing for large
+captures) -> incremental or global mapping -> undistortion -> image pyramid (images_2/4/8) -> report. Work
+happens in a sibling folder `.NAME.sfm-work` with one marker per finished step, so an interrupted run resumes
+where it stopped; the finished scene is then moved into SCENE_DIR in one rename (or entry by entry when
+SCENE_DIR already exists, e.g. because it holds the input images), so SCENE_DIR is never half-written.
+
+Each long pycolmap call runs in a child process (ctgs.scene.sfm_worker): COLMAP ends its process with a native
+stack dump on a failed check (SQLite's "database or disk is full" among them); here that ends the child, and
+`ctgs sfm` says what happened in one line. The parent meanwhile reports progress (photos extracted, pairs
+matched, photos registered) from the database and the worker's progress file. pycolmap 4.x API.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import signal
+import sqlite3
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 from ctgs.errors import UserError
 from ctgs.io import atomic
@@ -34,14 +43,49 @@ STEPS = ("features", "matches", "mapping", "undistort", "pyramid")
 # What COLMAP's image reader decodes; float formats (EXR/HDR) must be tone-mapped to 8/16 bit first.
 SFM_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
+MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
+MAPPERS = ("auto", "incremental", "global")
+# --matcher auto: every pair up to this many photos (cheap there, and the most robust), retrieval above.
+EXHAUSTIVE_MAX_IMAGES = 100
+# --mapper auto: incremental mapping up to this many photos, the global mapper above.
+GLOBAL_MIN_IMAGES = 100
+# Retrieval pairing: each photo with its most similar photos, and its next ones in name order.
+RETRIEVAL_NEIGHBOURS = 20
+RETRIEVAL_OVERLAP = 3
+# Sequential pairing: COLMAP's default overlap (quadratic), and loop closure by retrieval.
+SEQUENTIAL_OVERLAP = 10
+LOOP_NEIGHBOURS = 5
+# SIFT features per photo (COLMAP's default).
+DEFAULT_MAX_FEATURES = 8192
+# Free space needed before starting, per photo feature (keypoint 24 B + descriptor 128 B) and per matched
+# pair (matches and inlier matches, ~2,000 of 8 B each), plus the undistorted images and the pyramid (about
+# 1.6x the input files).
+BYTES_PER_FEATURE = 152
+BYTES_PER_PAIR = 32_000
+IMAGE_BYTES_FACTOR = 1.6
+# Below this much free space a failed COLMAP call is taken for a full disk.
+LOW_SPACE_BYTES = 64 << 20
+
 
 @dataclass
 class SfmOptions:
-    matcher: str = "exhaustive"  # "exhaustive" | "sequential" (video frames, in name order)
+    matcher: str = "auto"  # "auto" | "exhaustive" | "sequential" (video frames, in name order) | "retrieval"
+    mapper: str = "auto"  # "auto" | "incremental" | "global"
+    max_features: int = DEFAULT_MAX_FEATURES  # SIFT features per photo
     max_image_size: int = 3200  # pixels, longest side seen by SIFT (COLMAP's default)
     threads: int = -1  # -1: all cores
     force: bool = False  # redo every step even if finished
     seed: int = 0  # mapper RANSAC seed, for reproducible runs
+    device: str = "auto"  # "auto": SIFT extraction and matching on the GPU when pycolmap was built with CUDA
+
+
+def resolve_modes(opts: SfmOptions, num_images: int) -> tuple[str, str]:
+    """(matcher, mapper) that "auto" stands for with this many photos."""
+    matcher = opts.matcher if opts.matcher != "auto" else (
+        "exhaustive" if num_images <= EXHAUSTIVE_MAX_IMAGES else "retrieval")
+    mapper = opts.mapper if opts.mapper != "auto" else (
+        "incremental" if num_images < GLOBAL_MIN_IMAGES else "global")
+    return matcher, mapper
 
 
 @dataclass
@@ -64,6 +108,11 @@ class SfmReport:
     unregistered: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
     pycolmap_version: str = ""
+    cpu_seconds: dict[str, float] = field(default_factory=dict)  # this process and its workers, per step
+    mapper: str = "incremental"
+    max_features: int = DEFAULT_MAX_FEATURES
+    pairs: int = 0  # image pairs matched
+    inputs_digest: str = ""  # of the photos' names, sizes and first bytes: which photos made this scene
 
 
 StatusFn = Callable[[str], None]
@@ -111,8 +160,16 @@ def _done(work: str, step: str) -> bool:
     return os.path.isfile(os.path.join(work, f"{step}.done"))
 
 
-def _mark(work: str, step: str, seconds: float) -> None:
-    atomic.write_text(os.path.join(work, f"{step}.done"), f"{seconds:.3f}\n")
+def _mark(work: str, step: str, seconds: float, cpu_seconds: float = 0.0) -> None:
+    atomic.write_text(os.path.join(work, f"{step}.done"), f"{seconds:.3f} {cpu_seconds:.3f}\n")
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process and of its finished children (the workers)."""
+    import resource
+
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def _invalidate_from(work: str, step: str) -> None:
@@ -122,96 +179,285 @@ def _invalidate_from(work: str, step: str) -> None:
             os.remove(marker)
 
 
-def _inputs_fingerprint(images_dir: str, names: list[str], opts: SfmOptions) -> dict:
+class SfmStopped(UserError):
+    """A pycolmap step ended its process (a full disk, a failed COLMAP check): the work folder is kept, so that the
+    same command resumes from the finished steps once the cause is fixed."""
+
+    keep_work = True
+
+
+def _inputs_digest(images_dir: str, names: list[str]) -> str:
+    """Which photos these are: their names, byte sizes and first 64 KiB (not their dates: a copied folder is the
+    same capture)."""
+    h = hashlib.sha256()
+    for name in names:
+        path = os.path.join(images_dir, name)
+        h.update(f"{name}\0{os.path.getsize(path)}\0".encode())
+        with open(path, "rb") as f:
+            h.update(f.read(1 << 16))
+    return h.hexdigest()
+
+
+def _inputs_fingerprint(images_dir: str, names: list[str], opts: SfmOptions, matcher: str, mapper: str) -> dict:
+    """What each step's result depends on; a step is redone when its part (or an earlier one) changed."""
     files = [[n, os.path.getsize(os.path.join(images_dir, n)), int(os.path.getmtime(os.path.join(images_dir, n)))]
              for n in names]
-    return {"images_dir": images_dir, "files": files, "max_image_size": opts.max_image_size, "matcher": opts.matcher}
+    return {"images_dir": images_dir, "files": files, "max_image_size": opts.max_image_size,
+            "max_features": opts.max_features, "matcher": matcher, "mapper": mapper}
+
+
+# The fingerprint keys each step depends on first (later steps depend on everything before them).
+_STEP_KEYS = (("features", ("images_dir", "files", "max_image_size", "max_features")),
+              ("matches", ("matcher",)), ("mapping", ("mapper",)))
 
 
 def _prepare_work(work: str, fingerprint: dict, force: bool) -> None:
-    """Reuse a previous run's work folder only if it was made from the same inputs and options."""
+    """Reuse a previous run's work folder only for the steps whose inputs and options are unchanged."""
     path = os.path.join(work, "inputs.json")
     if os.path.isdir(work) and not force and os.path.isfile(path):
         with open(path) as f:
             previous = json.load(f)
         if previous == fingerprint:
             return
-        same_features = previous.get("files") == fingerprint["files"] and \
-            previous.get("max_image_size") == fingerprint["max_image_size"]
-        _invalidate_from(work, "matches" if same_features else "features")
-        if not same_features and os.path.exists(os.path.join(work, "database.db")):
-            os.remove(os.path.join(work, "database.db"))
+        for step, keys in _STEP_KEYS:
+            if any(previous.get(k) != fingerprint[k] for k in keys):
+                _invalidate_from(work, step)
+                if step == "features" and os.path.exists(os.path.join(work, "database.db")):
+                    os.remove(os.path.join(work, "database.db"))
+                break
     else:
         shutil.rmtree(work, ignore_errors=True)
         os.makedirs(work)
     atomic.write_json(path, fingerprint, indent=None)
 
 
-def _extract(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> None:
-    pycolmap = import_pycolmap()
+def check_free_space(work: str, images_dir: str, names: list[str], opts: SfmOptions, pairs: int) -> None:
+    """UserError when the disk that holds the work folder has clearly too little room for this capture."""
+    features = len(names) * opts.max_features * BYTES_PER_FEATURE
+    images = IMAGE_BYTES_FACTOR * sum(os.path.getsize(os.path.join(images_dir, n)) for n in names)
+    need = int(features + pairs * BYTES_PER_PAIR + images)
+    free = shutil.disk_usage(work).free
+    if free < need:
+        raise UserError(f"{os.path.dirname(work)}: {free / 1e9:.2f} GB free, but sfm needs about {need / 1e9:.2f} GB "
+                        f"for {len(names)} photos (SIFT database, undistorted images, images_2/4/8); free space "
+                        f"there or write the scene elsewhere (-o)")
 
+
+ProgressFn = Callable[[str, int, "int | None", str], None]  # (step, done, total or None, note)
+
+
+def _no_progress(step: str, done: int, total: int | None, note: str) -> None:
+    pass
+
+
+def _count_rows(database: str, table: str) -> int | None:
+    """Rows of a table of the (WAL-mode) database a worker is writing, or None while it cannot be read."""
+    try:
+        con = sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=0.05)
+        try:
+            return int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return None
+
+
+def _die_with_parent() -> None:  # pragma: no cover (runs in the child between fork and exec)
+    """The worker ends when `ctgs sfm` does (SIGTERM ends the parent at once, see run_sfm)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _worker_command(job_path: str) -> list[str]:
+    return [sys.executable, "-m", "ctgs.scene.sfm_worker", job_path]
+
+
+def _tail(path: str, size: int = 1 << 16) -> str:
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, os.path.getsize(path) - size))
+            return f.read().decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _worker_failure(step: str, log: str, work: str, code: int) -> SfmStopped:
+    text = _tail(log)
+    try:
+        free = shutil.disk_usage(work).free
+    except OSError:
+        free = 0
+    if "disk is full" in text or "No space left" in text or free < LOW_SPACE_BYTES:
+        return SfmStopped(f"{work}: the disk is full ({free / 1e6:.0f} MB free) during {step}; free space on it "
+                          f"and run the same command again: it resumes after the finished steps")
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    marks = ("Check failed", "FATAL", "Error", "error", "Exception", "exception")
+    cause = next((line for line in reversed(lines) if any(m in line for m in marks)), lines[-1] if lines else "")
+    cause = " ".join(cause.split())[-200:]
+    how = f"signal {-code}" if code < 0 else f"exit {code}"
+    return SfmStopped(f"{log}: COLMAP stopped during {step} ({how}: {cause or 'no message'}); see this log, fix "
+                      f"the cause and run the same command again (it resumes after the finished steps)")
+
+
+def _run_worker(work: str, call: str, job: dict, poll: Callable[[], None] | None = None,
+                verbose: bool = False) -> dict:
+    """Run one pycolmap call in a child process (ctgs.scene.sfm_worker), calling `poll` twice a second; its
+    result dict, or SfmStopped when the child failed (a native abort included)."""
+    job = {**job, "call": call, "result": os.path.join(work, f"{call}.result.json"),
+           "progress": os.path.join(work, f"{call}.progress.json"), "log_level": 0}
+    for stale in (job["result"], job["progress"]):
+        if os.path.exists(stale):
+            os.remove(stale)
+    job_path = os.path.join(work, f"{call}.job.json")
+    atomic.write_json(job_path, job, indent=None)
+    log = os.path.join(work, f"{call}.log")
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(_worker_command(job_path), stdin=subprocess.DEVNULL, stdout=None if verbose else out,
+                                stderr=None if verbose else out, preexec_fn=_die_with_parent)
+        try:
+            while proc.poll() is None:
+                if poll is not None:
+                    poll()
+                try:
+                    proc.wait(0.5)
+                except subprocess.TimeoutExpired:
+                    pass
+        except BaseException:
+            proc.kill()
+            proc.wait()
+            raise
+    if proc.returncode != 0 or not os.path.isfile(job["result"]):
+        raise _worker_failure(call, log, work, proc.returncode)
+    with open(job["result"]) as f:
+        return json.load(f)
+
+
+def _read_json(path: str) -> dict:
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return {}
+
+
+def _extract(work: str, images_dir: str, names: list[str], opts: SfmOptions, progress: ProgressFn = _no_progress,
+             verbose: bool = False) -> None:
     db = os.path.join(work, "database.db")
     if os.path.exists(db):
         os.remove(db)
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = opts.max_image_size
-    extraction.num_threads = opts.threads
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "SIMPLE_RADIAL"  # one radial term: enough for most lenses, undistorted later
-    pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    total = len(names)
+
+    def poll() -> None:
+        done = _count_rows(db, "keypoints")
+        if done is not None:
+            progress("features", done, total, "photos")
+
+    _run_worker(work, "extract", {"database": db, "images_dir": images_dir, "names": names,
+                                  "max_image_size": opts.max_image_size, "max_features": opts.max_features,
+                                  "threads": opts.threads, "device": opts.device}, poll, verbose)
+    progress("features", total, total, "photos")
 
 
-def _match(work: str, opts: SfmOptions) -> None:
+def _match(work: str, opts: SfmOptions, matcher: str = "exhaustive", progress: ProgressFn = _no_progress,
+           verbose: bool = False) -> int:
+    """Match the pairs of `matcher`; returns the number of pairs."""
     pycolmap = import_pycolmap()
 
     db = os.path.join(work, "database.db")
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = opts.threads
     database = pycolmap.Database.open(db)
     try:  # matching again (e.g. another --matcher) must not stack on old matches
         database.clear_matches()
         database.clear_two_view_geometries()
+        n = database.num_images()
     finally:
         database.close()
-    if opts.matcher == "sequential":
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.num_threads = opts.threads
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+    pairs_file = ""
+    if matcher == "exhaustive":
+        total = n * (n - 1) // 2
     else:
-        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+        from ctgs.scene import sfm_pairs
+
+        progress("matches", 0, None, f"choosing pairs ({matcher})")
+        names, pairs, _ = sfm_pairs.make_pairs(db, matcher, neighbours=RETRIEVAL_NEIGHBOURS,
+                                               overlap=RETRIEVAL_OVERLAP if matcher == "retrieval" else
+                                               SEQUENTIAL_OVERLAP, loop_neighbours=LOOP_NEIGHBOURS, seed=opts.seed)
+        pairs_file = os.path.join(work, "pairs.txt")
+        sfm_pairs.write_pairs(pairs_file, names, pairs)
+        total = len(pairs)
+
+    def poll() -> None:
+        done = _count_rows(db, "two_view_geometries")
+        if done is not None:
+            progress("matches", min(done, total), total, "pairs")
+
+    _run_worker(work, "match", {"database": db, "pairs_file": pairs_file, "threads": opts.threads,
+                                "device": opts.device}, poll, verbose)
+    progress("matches", total, total, "pairs")
+    return total
 
 
-def _map(work: str, images_dir: str, names: list[str], opts: SfmOptions) -> None:
-    pycolmap = import_pycolmap()
+# Phases of the global mapper, as its log names them (the last one seen is shown while it runs).
+GLOBAL_PHASES = (("rotation averaging", "rotation averaging"), ("track establishment", "tracks"),
+                 ("global positioning", "global positioning"), ("bundle adjustment", "bundle adjustment"),
+                 ("retriangulation", "retriangulation"))
 
+
+def _global_phase(log: str) -> str:
+    text = _tail(log, 1 << 14).lower()
+    best, where = "", -1
+    for needle, label in GLOBAL_PHASES:
+        at = text.rfind(needle)
+        if at > where:
+            best, where = label, at
+    return best
+
+
+def _map(work: str, images_dir: str, names: list[str], opts: SfmOptions, mapper: str = "incremental",
+         progress: ProgressFn = _no_progress, verbose: bool = False) -> None:
     out = os.path.join(work, "distorted")
     shutil.rmtree(out, ignore_errors=True)
     os.makedirs(out)
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = opts.threads
-    options.random_seed = opts.seed
-    models = pycolmap.incremental_mapping(os.path.join(work, "database.db"), images_dir, out, options=options)
-    if not models:
+    total = len(names)
+    call = "map_global" if mapper == "global" else "map_incremental"
+    log = os.path.join(work, f"{call}.log")
+
+    def poll() -> None:
+        if mapper == "global":
+            progress("mapping", 0, None, _global_phase(log))
+        else:
+            done = _read_json(os.path.join(work, f"{call}.progress.json")).get("registered")
+            if done is not None:
+                progress("mapping", min(int(done), total), total, "photos registered")
+
+    result = _run_worker(work, call, {"database": os.path.join(work, "database.db"), "images_dir": images_dir,
+                                      "output": out, "threads": opts.threads, "seed": opts.seed}, poll, verbose)
+    registered = int(result.get("registered", 0))
+    if not result.get("models"):
         raise UserError(f"{images_dir}: SfM could not register any image pair (too little overlap or texture); "
                         f"take more overlapping photos, or try --matcher exhaustive")
-    best = max(models.values(), key=lambda rec: rec.num_reg_images())
-    registered = best.num_reg_images()
     if registered < max(MIN_IMAGES, MIN_REGISTERED_FRACTION * len(names)):
         raise UserError(f"{images_dir}: SfM registered only {registered} of {len(names)} images; take more "
                         f"overlapping, textured photos (or try --matcher exhaustive / a larger --max-image-size)")
-    final = os.path.join(work, "distorted", "best")
-    os.makedirs(final, exist_ok=True)
-    best.write_binary(final)
+    progress("mapping", registered, total, "photos registered")
 
 
-def _undistort(work: str, images_dir: str, opts: SfmOptions) -> None:
-    pycolmap = import_pycolmap()
-
+def _undistort(work: str, images_dir: str, opts: SfmOptions, progress: ProgressFn = _no_progress,
+               verbose: bool = False) -> None:
     out = os.path.join(work, "scene")
     shutil.rmtree(out, ignore_errors=True)
-    pycolmap.undistort_images(out, os.path.join(work, "distorted", "best"), images_dir, output_type="COLMAP",
-                              num_threads=opts.threads)
+    total = len(list_images(images_dir))
+
+    def poll() -> None:
+        folder = os.path.join(out, "images")
+        done = len(os.listdir(folder)) if os.path.isdir(folder) else 0
+        progress("undistort", min(done, total), total, "photos")
+
+    _run_worker(work, "undistort", {"output": out, "model": os.path.join(work, "distorted", "best"),
+                                    "images_dir": images_dir, "threads": opts.threads}, poll, verbose)
     # pycolmap writes the model straight into sparse/; training and 3DGS tools expect sparse/0/.
     sparse, sparse0 = os.path.join(out, "sparse"), os.path.join(out, "sparse", "0")
     os.makedirs(sparse0, exist_ok=True)
@@ -224,20 +470,32 @@ def _undistort(work: str, images_dir: str, opts: SfmOptions) -> None:
             shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
 
 
-def build_pyramid(scene_dir: str, factors=PYRAMID_FACTORS) -> None:
-    """scene_dir/images_F for each factor F: every image shrunk by F (antialiased, OpenImageIO)."""
+def _shrink_one(src: str, scene_dir: str, name: str, factors) -> None:
+    path = os.path.join(src, name)
+    bits = 16 if image_info(path).format == "uint16" else 8
+    pixels = read_image(path)
+    h, w = pixels.shape[:2]
+    for f in factors:
+        small = resize_image(pixels, max(1, round(w / f)), max(1, round(h / f)))
+        write_image(os.path.join(scene_dir, f"images_{f}", name), small, bits=bits)
+
+
+def build_pyramid(scene_dir: str, factors=PYRAMID_FACTORS, threads: int = 1,
+                  progress: ProgressFn = _no_progress) -> None:
+    """scene_dir/images_F for each factor F: every image shrunk by F (antialiased, OpenImageIO), `threads` images
+    at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
     src = os.path.join(scene_dir, "images")
-    for name in list_images(src):
-        path = os.path.join(src, name)
-        bits = 16 if image_info(path).format == "uint16" else 8
-        pixels = read_image(path)
-        h, w = pixels.shape[:2]
-        for f in factors:
-            small = resize_image(pixels, max(1, round(w / f)), max(1, round(h / f)))
-            write_image(os.path.join(scene_dir, f"images_{f}", name), small, bits=bits)
+    names = list_images(src)
+    workers = max(1, threads if threads > 0 else (os.cpu_count() or 1))
+    with ThreadPoolExecutor(workers) as pool:
+        for done, _ in enumerate(pool.map(lambda n: _shrink_one(src, scene_dir, n, factors), names), 1):
+            progress("pyramid", done, len(names), "photos")
 
 
-def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions) -> SfmReport:
+def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions, matcher: str,
+            mapper: str) -> SfmReport:
     pycolmap = import_pycolmap()
 
     rec = pycolmap.Reconstruction(os.path.join(work, "scene", "sparse", "0"))
@@ -245,16 +503,20 @@ def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: 
     cam = next(iter(rec.cameras.values()))
     p = [float(v) for v in cam.params]
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if cam.model.name == "SIMPLE_PINHOLE" else p[:4]
-    seconds = {}
+    seconds, cpu_seconds = {}, {}
     for step in STEPS:
         with open(os.path.join(work, f"{step}.done")) as f:
-            seconds[step] = float(f.read())
+            figures = f.read().split()
+        seconds[step] = float(figures[0])
+        cpu_seconds[step] = float(figures[1]) if len(figures) > 1 else float("nan")
+    pairs = _count_rows(os.path.join(work, "database.db"), "two_view_geometries") or 0
     return SfmReport(
         images_dir=images_dir, scene_dir=scene_dir, given=len(names), registered=len(registered),
         points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
         mean_track_length=float(rec.compute_mean_track_length()), camera_model=cam.model.name,
-        width=int(cam.width), height=int(cam.height), fx=fx, fy=fy, cx=cx, cy=cy, matcher=opts.matcher,
+        width=int(cam.width), height=int(cam.height), fx=fx, fy=fy, cx=cx, cy=cy, matcher=matcher,
         unregistered=sorted(set(names) - registered), seconds=seconds, pycolmap_version=pycolmap.__version__,
+        cpu_seconds=cpu_seconds, mapper=mapper, max_features=opts.max_features, pairs=pairs, inputs_digest=_inputs_digest(images_dir, names),
     )
 
 
@@ -280,16 +542,37 @@ def read_report(scene_dir: str) -> SfmReport | None:
     if not os.path.isfile(path):
         return None
     with open(path) as f:
-        return SfmReport(**json.load(f))
+        data = json.load(f)
+    known = {f.name for f in fields(SfmReport)}
+    return SfmReport(**{k: v for k, v in data.items() if k in known})
+
+
+def _check_same_photos(existing: SfmReport, images_dir: str, scene_dir: str) -> None:
+    """A finished scene is reused only for the photos it was made from (UserError otherwise)."""
+    if not os.path.isdir(images_dir):
+        return  # check_input_images says so
+    names = [n for n in list_images(images_dir) if os.path.splitext(n)[1].lower() in SFM_EXTENSIONS]
+    same = existing.inputs_digest == _inputs_digest(images_dir, names) if existing.inputs_digest else \
+        existing.given == len(names)  # a report written before the digest was recorded: the count only
+    if not same:
+        raise UserError(f"{scene_dir}: holds a finished scene made from other photos ({existing.given} photos from "
+                        f"{existing.images_dir}); write this one elsewhere (-o), or pass --force to replace it")
 
 
 def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
-            status: StatusFn = lambda message: None, quiet: bool = True) -> tuple[SfmReport, bool]:
+            status: StatusFn = lambda message: None, quiet: bool = True,
+            progress: ProgressFn = _no_progress) -> tuple[SfmReport, bool]:
     """Run (or resume) SfM; returns (report, True) or (existing report, False) when already done.
-    `quiet` hides COLMAP's INFO/WARNING log lines (errors still show)."""
+    `quiet` hides COLMAP's log lines (they go to a log file in the work folder); `progress(step, done, total,
+    note)` is called as each step advances (total None while unknown)."""
     opts = opts or SfmOptions()
-    if opts.matcher not in ("exhaustive", "sequential"):
-        raise UserError(f"--matcher {opts.matcher}: unknown matcher; use exhaustive or sequential")
+    if opts.matcher not in MATCHERS:
+        raise UserError(f"--matcher {opts.matcher}: unknown matcher; use one of {', '.join(MATCHERS)}")
+    if opts.mapper not in MAPPERS:
+        raise UserError(f"--mapper {opts.mapper}: unknown mapper; use one of {', '.join(MAPPERS)}")
+    if opts.max_features < 64:
+        raise UserError(f"--max-features {opts.max_features}: too few for SfM; use 1024 or more (default "
+                        f"{DEFAULT_MAX_FEATURES})")
     images_dir, scene_dir = os.path.abspath(images_dir), os.path.abspath(scene_dir)
     if scene_dir == images_dir:
         raise UserError(f"{scene_dir}: SCENE_DIR must differ from IMAGES_DIR (it gets its own images/ folder)")
@@ -298,6 +581,7 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
                         f"photos to {os.path.join(scene_dir, 'input')} (3DGS layout) and pass that folder")
     existing = read_report(scene_dir)
     if existing is not None and not opts.force:
+        _check_same_photos(existing, images_dir, scene_dir)
         return existing, False
     if os.path.isdir(scene_dir) and os.listdir(scene_dir) and not opts.force and \
             not images_dir.startswith(scene_dir + os.sep):
@@ -306,53 +590,51 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
 
     status("checking images")
     names = check_input_images(images_dir)
-    pycolmap = import_pycolmap()
-
-    # COLMAP's glog lines (one per image and step, and its own failure lines) would bury the spinner, the
-    # report and our one-line errors.
-    # logtostderr: glog would otherwise also leave log files in /tmp on every run.
-    previous = pycolmap.logging.minloglevel, pycolmap.logging.logtostderr
-    pycolmap.logging.minloglevel = 3 if quiet else previous[0]  # 3: FATAL only; our errors explain
-    pycolmap.logging.logtostderr = True
     # SIGTERM ends `ctgs sfm` at once, even inside a long pycolmap call (a Python handler would wait for the call to
-    # return): every step is resumable from the work folder and the scene is installed only at the end.
+    # return): every step is resumable from the work folder, the scene is installed only at the end, and the
+    # worker process ends with its parent (PR_SET_PDEATHSIG).
     main = threading.current_thread() is threading.main_thread()
     term = signal.signal(signal.SIGTERM, signal.SIG_DFL) if main else None
     try:
-        return _run_steps(images_dir, scene_dir, names, opts, status)
+        return _run_steps(images_dir, scene_dir, names, opts, status, progress, not quiet)
     finally:
-        pycolmap.logging.minloglevel, pycolmap.logging.logtostderr = previous
         if main:
             signal.signal(signal.SIGTERM, term)
 
 
-def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions,
-               status: StatusFn) -> tuple[SfmReport, bool]:
+def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions, status: StatusFn,
+               progress: ProgressFn, verbose: bool) -> tuple[SfmReport, bool]:
+    matcher, mapper = resolve_modes(opts, len(names))
     work = _work_dir(scene_dir)
     os.makedirs(os.path.dirname(work), exist_ok=True)
-    _prepare_work(work, _inputs_fingerprint(images_dir, names, opts), opts.force)
+    _prepare_work(work, _inputs_fingerprint(images_dir, names, opts, matcher, mapper), opts.force)
+    n = len(names)
+    pairs = n * (n - 1) // 2 if matcher == "exhaustive" else n * (RETRIEVAL_NEIGHBOURS + SEQUENTIAL_OVERLAP)
     try:
+        if not _done(work, "pyramid"):
+            check_free_space(work, images_dir, names, opts, pairs)
         for step, message, fn in (
-            ("features", f"extracting SIFT features ({len(names)} images)", lambda: _extract(work, images_dir,
-                                                                                              names, opts)),
-            ("matches", f"{opts.matcher} matching", lambda: _match(work, opts)),
-            ("mapping", "incremental mapping", lambda: _map(work, images_dir, names, opts)),
-            ("undistort", "undistorting to PINHOLE", lambda: _undistort(work, images_dir, opts)),
-            ("pyramid", "writing images_2/4/8", lambda: build_pyramid(os.path.join(work, "scene"))),
+            ("features", "SIFT features",
+             lambda: _extract(work, images_dir, names, opts, progress, verbose)),
+            ("matches", f"matching: {matcher}", lambda: _match(work, opts, matcher, progress, verbose)),
+            ("mapping", f"mapping: {mapper}", lambda: _map(work, images_dir, names, opts, mapper, progress, verbose)),
+            ("undistort", "undistorting", lambda: _undistort(work, images_dir, opts, progress, verbose)),
+            ("pyramid", "images_2/4/8",
+             lambda: build_pyramid(os.path.join(work, "scene"), threads=opts.threads, progress=progress)),
         ):
             if _done(work, step):
                 continue
             _invalidate_from(work, step)
             status(message)
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), _cpu_seconds()
             fn()
-            _mark(work, step, time.perf_counter() - start)
-        report = _report(work, images_dir, scene_dir, names, opts)
+            _mark(work, step, time.perf_counter() - start, _cpu_seconds() - cpu)
+        report = _report(work, images_dir, scene_dir, names, opts, matcher, mapper)
         atomic.write_json(os.path.join(work, "scene", REPORT_NAME), asdict(report), indent=1)
         _install(os.path.join(work, "scene"), scene_dir)
-    except UserError:
-        shutil.rmtree(work, ignore_errors=True)  # the same input would fail the same way: nothing to resume
+    except UserError as exc:
+        if not getattr(exc, "keep_work", False):
+            shutil.rmtree(work, ignore_errors=True)  # the same input would fail the same way: nothing to resume
         raise
     shutil.rmtree(work, ignore_errors=True)
     return report, True
-

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -133,3 +135,122 @@ def test_sigterm_ends_sfm_at_once_during_its_steps_and_is_restored_after(tmp_pat
         assert signal.getsignal(signal.SIGTERM) is handler
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.mark.slow
+def test_retrieval_pairs_and_global_mapper_reconstruct_the_demo_scene(tmp_path, demo24):
+    """The large-capture path on a small one: retrieval pairing (the capture's own vocabulary) and the global
+    mapper register the arc, with the same report and layout; progress reaches every step's total."""
+    seen: dict[str, list] = {}
+    report, ran = sfm.run_sfm(os.path.join(demo24, "images"), str(tmp_path / "big"),
+                              sfm.SfmOptions(matcher="retrieval", mapper="global", threads=2),
+                              progress=lambda step, done, total, note: seen.setdefault(step, []).append((done, total)))
+    assert ran and report.matcher == "retrieval" and report.mapper == "global"
+    n = VIEWS
+    assert 0 < report.pairs < n * (n - 1) // 2  # fewer pairs than exhaustive
+    assert report.registered >= 0.9 * n and report.mean_reprojection_error_px < 1.0
+    assert {"images", "images_2", "images_4", "images_8", "sparse", "sfm_report.json"} <= set(os.listdir(tmp_path / "big"))
+    assert seen["features"][-1] == (n, n) and seen["matches"][-1] == (report.pairs, report.pairs)
+    assert seen["mapping"][-1] == (report.registered, n) and seen["pyramid"][-1] == (n, n)
+    for step, calls in seen.items():
+        done = [d for d, _ in calls]
+        assert done == sorted(done), (step, done)
+    truth = _centers(read_colmap_model(os.path.join(demo24, "sparse", "0")))
+    estimate = _centers(read_colmap_model(str(tmp_path / "big" / "sparse" / "0")))
+    names = sorted(set(truth) & set(estimate))
+    src, dst = np.stack([estimate[n] for n in names]), np.stack([truth[n] for n in names])
+    s, R, t = umeyama(src, dst)
+    spread = np.linalg.norm(dst - dst.mean(0), axis=1).max()
+    assert np.linalg.norm(s * src @ R.T + t - dst, axis=1).max() < MAX_ALIGNED_ERROR * spread
+
+
+def test_auto_modes_follow_the_number_of_photos():
+    small, large = sfm.EXHAUSTIVE_MAX_IMAGES, sfm.EXHAUSTIVE_MAX_IMAGES + 1
+    assert sfm.resolve_modes(sfm.SfmOptions(), small)[0] == "exhaustive"
+    assert sfm.resolve_modes(sfm.SfmOptions(), large)[0] == "retrieval"
+    assert sfm.resolve_modes(sfm.SfmOptions(), sfm.GLOBAL_MIN_IMAGES - 1)[1] == "incremental"
+    assert sfm.resolve_modes(sfm.SfmOptions(), sfm.GLOBAL_MIN_IMAGES)[1] == "global"
+    assert sfm.resolve_modes(sfm.SfmOptions(matcher="sequential", mapper="incremental"), 10**4) == \
+        ("sequential", "incremental")
+
+
+def test_pairings():
+    from ctgs.scene import sfm_pairs
+
+    assert sfm_pairs.name_order_pairs(4, 2, quadratic=False) == {(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)}
+    # Quadratic overlap: also 2^k ahead (k < overlap), as COLMAP's sequential pairing.
+    assert (0, 8) in sfm_pairs.name_order_pairs(20, 4, quadratic=True)
+    # Similarity: photos 0 and 5 look alike (a loop), the rest in name order.
+    n = 6
+    sim = np.full((n, n), 0.1)
+    for i in range(n - 1):
+        sim[i, i + 1] = sim[i + 1, i] = 0.5
+    sim[0, 5] = sim[5, 0] = 0.9
+    np.fill_diagonal(sim, -np.inf)
+    assert sfm_pairs.retrieval_pairs(sim, 1) == {(0, 5), (0, 1), (1, 2), (2, 3), (3, 4)}
+    loops = sfm_pairs.loop_pairs(sim, 1, window=2)
+    assert (0, 5) in loops and all(j - i > 2 for i, j in loops)  # the loop, and nothing inside the window
+    assert {i for pair in loops for i in pair} == set(range(n))  # every photo gets a loop candidate
+
+
+def _finished_scene(tmp_path, photos: int, digest: str = "") -> str:
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    report = sfm.SfmReport(images_dir="/elsewhere/photos", scene_dir=str(scene), given=photos, registered=photos,
+                           points=100, mean_reprojection_error_px=0.5, mean_track_length=3.0, camera_model="PINHOLE",
+                           width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0, matcher="exhaustive",
+                           inputs_digest=digest)
+    (scene / "sfm_report.json").write_text(json.dumps(vars(report)))
+    return str(scene)
+
+
+@pytest.mark.parametrize("recorded", ["digest", "count only"])
+def test_a_finished_scene_made_from_other_photos_is_refused(tmp_path, tiny_demo_master, recorded):
+    images = os.path.join(tiny_demo_master, "images")
+    photos = len(os.listdir(images))
+    scene = _finished_scene(tmp_path, photos + 1 if recorded == "count only" else photos,
+                            digest="0" * 64 if recorded == "digest" else "")
+    before = open(os.path.join(scene, "sfm_report.json")).read()
+    result = CliRunner().invoke(main, ["sfm", images, "-o", scene])
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert scene in lines[0] and "other photos" in lines[0] and "--force" in lines[0]
+    assert open(os.path.join(scene, "sfm_report.json")).read() == before
+
+
+def test_a_finished_scene_of_the_same_photos_is_reused(tmp_path, tiny_demo_master):
+    images = os.path.join(tiny_demo_master, "images")
+    names = sorted(os.listdir(images))
+    copy = shutil.copytree(images, tmp_path / "copied")  # another folder, new dates: the same photos
+    scene = _finished_scene(tmp_path, len(names), digest=sfm._inputs_digest(images, names))
+    result = CliRunner().invoke(main, ["sfm", str(copy), "-o", scene])
+    assert result.exit_code == 0 and "already reconstructed" in " ".join(result.output.split())
+
+
+def _sfm_lines(images, scene) -> tuple[int, list[str]]:
+    result = CliRunner().invoke(main, ["sfm", images, "-o", scene, "--threads", "1"])
+    return result.exit_code, [line for line in result.stderr.splitlines() if line.strip()]
+
+
+def test_too_little_free_space_is_said_before_starting(tmp_path, monkeypatch, tiny_demo_master):
+    monkeypatch.setattr(sfm.shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(10**9, 10**9 - 10**5, 10**5))
+    code, lines = _sfm_lines(os.path.join(tiny_demo_master, "images"), str(tmp_path / "out"))
+    assert code == 2 and len(lines) == 1 and "GB free" in lines[0] and str(tmp_path) in lines[0], lines
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("fault", ["disk full", "failed check"])
+def test_a_colmap_abort_is_one_line_and_the_work_is_kept(tmp_path, monkeypatch, tiny_demo_master, fault):
+    """COLMAP ends its process (SIGABRT, a native stack dump) when SQLite says the disk is full or a check fails: the
+    worker dies, `ctgs sfm` prints one line, exits 2, installs nothing and keeps the work folder to resume."""
+    message = "SQLite error: database or disk is full" if fault == "disk full" else "Check failed: num_images > 0"
+    script = (f"import os, sys; sys.stderr.write('F20261127 database.cc:42] {message}\\n*** Check failure stack "
+              f"trace: ***\\n    @ 0x7f colmap::Database::Open\\n'); sys.stderr.flush(); os.abort()")
+    monkeypatch.setattr(sfm, "_worker_command", lambda job: [sys.executable, "-c", script])
+    code, lines = _sfm_lines(os.path.join(tiny_demo_master, "images"), str(tmp_path / "out"))
+    assert code == 2 and len(lines) == 1, lines
+    if fault == "disk full":
+        assert "disk is full" in lines[0] and "run the same command again" in lines[0]
+    else:
+        assert "Check failed: num_images > 0" in lines[0] and "signal 6" in lines[0] and "extract.log" in lines[0]
+    assert not (tmp_path / "out").exists() and (tmp_path / ".out.sfm-work").is_dir()

@@ -1,0 +1,115 @@
+"""One pycolmap call of `ctgs sfm`, in a process of its own: `python -m ctgs.scene.sfm_worker JOB.json`.
+
+`ctgs.scene.sfm` runs each long pycolmap call here so that (1) a native abort (COLMAP ends the process with a
+stack dump when SQLite reports "database or disk is full", or on any failed CHECK) ends this process only, and
+the parent prints one line about it; (2) the parent stays free to draw progress bars while the call runs.
+
+JOB.json holds {"call": NAME, "result": PATH, "progress": PATH, "log_level": N, ...the call's arguments}.
+The call's figures go to `result` (JSON, written at the end); the incremental mapper's registered-image count
+goes to `progress` as it grows. COLMAP's log goes to stderr (the parent points it at a file).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+
+def _write_json(path: str, obj) -> None:
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(obj, f)
+    os.replace(tmp, path)
+
+
+def _device(pycolmap, name: str):
+    return {"auto": pycolmap.Device.auto, "cpu": pycolmap.Device.cpu, "cuda": pycolmap.Device.cuda}[name]
+
+
+def extract(pycolmap, job: dict) -> dict:
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = job["max_image_size"]
+    extraction.num_threads = job["threads"]
+    extraction.sift.max_num_features = job["max_features"]
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "SIMPLE_RADIAL"  # one radial term: enough for most lenses, undistorted later
+    pycolmap.extract_features(job["database"], job["images_dir"], image_names=job["names"],
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=_device(pycolmap, job["device"]))
+    return {}
+
+
+def match(pycolmap, job: dict) -> dict:
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = job["threads"]
+    device = _device(pycolmap, job["device"])
+    if job["pairs_file"]:
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = job["pairs_file"]
+        pycolmap.match_image_pairs(job["database"], matching_options=matching, pairing_options=pairing,
+                                   device=device)
+    else:
+        pycolmap.match_exhaustive(job["database"], matching_options=matching, device=device)
+    return {}
+
+
+def map_incremental(pycolmap, job: dict) -> dict:
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = job["threads"]
+    options.random_seed = job["seed"]
+    registered = [0]
+
+    def one_more(count: int = 1) -> None:
+        registered[0] += count
+        _write_json(job["progress"], {"registered": registered[0]})
+
+    models = pycolmap.incremental_mapping(job["database"], job["images_dir"], job["output"], options=options,
+                                          initial_image_pair_callback=lambda: one_more(2),
+                                          next_image_callback=one_more)
+    return _keep_best(models, job)
+
+
+def map_global(pycolmap, job: dict) -> dict:
+    options = pycolmap.GlobalPipelineOptions()
+    options.num_threads = job["threads"]
+    options.random_seed = job["seed"]
+    models = pycolmap.global_mapping(job["database"], job["images_dir"], job["output"], options=options)
+    return _keep_best(models, job)
+
+
+def _keep_best(models: dict, job: dict) -> dict:
+    """The model with the most registered images goes to OUTPUT/best."""
+    if not models:
+        return {"registered": 0, "models": 0}
+    best = max(models.values(), key=lambda rec: rec.num_reg_images())
+    final = os.path.join(job["output"], "best")
+    os.makedirs(final, exist_ok=True)
+    best.write_binary(final)
+    return {"registered": int(best.num_reg_images()), "models": len(models)}
+
+
+def undistort(pycolmap, job: dict) -> dict:
+    pycolmap.undistort_images(job["output"], job["model"], job["images_dir"], output_type="COLMAP",
+                              num_threads=job["threads"])
+    return {}
+
+
+CALLS = {"extract": extract, "match": match, "map_incremental": map_incremental, "map_global": map_global,
+         "undistort": undistort}
+
+
+def main(argv: list[str]) -> int:
+    with open(argv[1]) as f:
+        job = json.load(f)
+    import pycolmap
+
+    pycolmap.logging.logtostderr = True  # no glog files in /tmp
+    pycolmap.logging.minloglevel = job["log_level"]
+    result = CALLS[job["call"]](pycolmap, job)
+    _write_json(job["result"], result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
