@@ -44,8 +44,12 @@ RESULTS = os.path.join(REPO, "benchmarks", "results", "sfm")
 
 
 def _commit() -> str:
-    out = subprocess.run(["git", "-C", REPO, "describe", "--always", "--dirty"], capture_output=True, text=True)
-    return out.stdout.strip() or "unknown"
+    """The checkout's commit, "+" when ctgs's sfm code differs from it (others' uncommitted work elsewhere in the
+    shared checkout does not count)."""
+    out = subprocess.run(["git", "-C", REPO, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    changed = subprocess.run(["git", "-C", REPO, "status", "--porcelain", "ctgs/scene", "ctgs/stages/sfm.py"],
+                             capture_output=True, text=True).stdout.strip()
+    return (out.stdout.strip() or "unknown") + ("+" if changed else "")
 
 
 def machine() -> dict:

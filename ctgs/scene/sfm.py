@@ -285,7 +285,12 @@ def _tail(path: str, size: int = 1 << 16) -> str:
         return ""
 
 
-def _worker_failure(step: str, log: str, work: str, code: int) -> SfmStopped:
+_CALL_NAMES = {"extract": "SIFT extraction", "match": "matching", "map_incremental": "incremental mapping",
+               "map_global": "global mapping", "undistort": "undistortion"}
+
+
+def _worker_failure(call: str, log: str, work: str, code: int) -> SfmStopped:
+    step = _CALL_NAMES.get(call, call)
     text = _tail(log)
     try:
         free = shutil.disk_usage(work).free

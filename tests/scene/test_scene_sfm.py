@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
 import sys
 
 import numpy as np
@@ -254,3 +255,21 @@ def test_a_colmap_abort_is_one_line_and_the_work_is_kept(tmp_path, monkeypatch, 
     else:
         assert "Check failed: num_images > 0" in lines[0] and "signal 6" in lines[0] and "extract.log" in lines[0]
     assert not (tmp_path / "out").exists() and (tmp_path / ".out.sfm-work").is_dir()
+
+
+def test_a_really_full_disk_is_one_line(tmp_path, monkeypatch, tiny_demo_master):
+    """A 600 KiB tmpfs (root only): SQLite reports "database or disk is full" inside COLMAP's SIFT extraction,
+    which aborts its process; `ctgs sfm` says so in one line (the free-space check is bypassed to get there)."""
+    small = tmp_path / "small"
+    small.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(small)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("mounting a small tmpfs needs root")
+    try:
+        monkeypatch.setattr(sfm, "check_free_space", lambda *args, **kwargs: None)
+        code, lines = _sfm_lines(os.path.join(tiny_demo_master, "images"), str(small / "out"))
+        assert code == 2 and len(lines) == 1, lines
+        assert "the disk is full" in lines[0] and "SIFT extraction" in lines[0] and str(small) in lines[0]
+        assert not (small / "out").exists()
+    finally:
+        subprocess.run(["umount", str(small)], check=True)
