@@ -258,7 +258,29 @@ def read_bundle_json(bundle_dir: str) -> dict:
     if bundle.get("version") != BUNDLE_VERSION:
         raise UserError(f"{path}: web bundle version {bundle.get('version')}, this ctgs reads {BUNDLE_VERSION}; "
                         "re-export with `ctgs export --format web`")
+    _check_bundle_files(bundle_dir, bundle, path)
     return bundle
+
+
+def _check_bundle_files(bundle_dir: str, bundle: dict, path: str) -> None:
+    """UserError naming the file when a data file is missing, or not the size bundle.json gives it (cut short, or
+    from another export): the browser would otherwise fail on it with a message the user never sees."""
+    try:
+        files = [(bundle["surfels"]["file"], int(bundle["surfels"]["bytes"]))]
+        files += [(p["file"], int(p["bytes"])) for p in bundle["atlas"]["pages"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{path}: incomplete bundle description ({type(exc).__name__}: {exc}); re-export with "
+                        "`ctgs export --format web`") from None
+    for name, size in files:
+        if not isinstance(name, str) or os.path.basename(name) != name or name.startswith("."):
+            raise UserError(f"{path}: names the data file {name!r}, not a file of the bundle folder; re-export with "
+                            "`ctgs export --format web`")
+        file = os.path.join(bundle_dir, name)
+        if not os.path.isfile(file):
+            raise UserError(f"{file}: missing from the web bundle; re-export with `ctgs export --format web`")
+        if os.path.getsize(file) != size:
+            raise UserError(f"{file}: {os.path.getsize(file)} bytes, {BUNDLE_JSON} says {size}: cut short or from "
+                            "another export; re-export with `ctgs export --format web`")
 
 
 def read_web_bundle(bundle_dir: str) -> tuple[SurfelInputs, dict]:

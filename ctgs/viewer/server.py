@@ -18,7 +18,7 @@ from http import HTTPStatus
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import unquote, urlsplit
 
-from ctgs.io.web_bundle import BUNDLE_JSON
+from ctgs.io.web_bundle import BUNDLE_JSON, read_bundle_json
 
 STATIC_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "static")
 HOST = "127.0.0.1"
@@ -97,8 +97,7 @@ class ViewerServer:
     call serve_forever(); `url` is the page's address."""
 
     def __init__(self, bundle_dir: str, *, port: int = 0, cameras: list[dict] | None = None, quiet: bool = True):
-        with open(os.path.join(bundle_dir, BUNDLE_JSON)) as f:
-            bundle = json.load(f)
+        bundle = read_bundle_json(bundle_dir)  # UserError naming the file when the bundle is damaged
         if cameras is not None:
             bundle["cameras"] = cameras
         handler = partial(_Handler, bundle_dir=os.path.abspath(bundle_dir),
