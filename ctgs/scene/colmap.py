@@ -69,7 +69,7 @@ def _has_model(folder: str) -> bool:
     )
 
 
-def _model_file(model_dir: str, name: str) -> str:
+def model_file(model_dir: str, name: str) -> str:
     binary = os.path.join(model_dir, f"{name}.bin")
     return binary if os.path.isfile(binary) else os.path.join(model_dir, f"{name}.txt")
 
@@ -210,39 +210,158 @@ def check_binary_model(model_dir: str) -> None:
                             f"`ctgs sfm` again") from None
 
 
+def _floats(fields: list[str], what: str) -> list[float]:
+    try:
+        return [float(f) for f in fields]
+    except ValueError:
+        raise _Corrupt(f"{what}: {' '.join(fields)[:60]!r} is not a list of numbers") from None
+
+
+def _ints(fields: list[str], what: str) -> list[int]:
+    try:
+        return [int(f) for f in fields]
+    except ValueError:
+        raise _Corrupt(f"{what}: {' '.join(fields)[:60]!r} is not a list of whole numbers") from None
+
+
+def _check_cameras_text(lines: list[str]) -> None:
+    for n, line in lines:
+        f = line.split()
+        if len(f) < 5:
+            raise _Corrupt(f"line {n} has {len(f)} fields, a camera needs id, model, width, height and parameters")
+        _ints(f[:1] + f[2:4], f"line {n}")
+        params = _floats(f[4:], f"line {n}")
+        width, height = int(f[2]), int(f[3])
+        if not (1 <= width < 2**20 and 1 <= height < 2**20):
+            raise _Corrupt(f"line {n}: camera size {width}x{height}")
+        if f[1] in _CAMERA_MODEL_NAMES.values():
+            if len(params) != _CAMERA_PARAMS[{v: k for k, v in _CAMERA_MODEL_NAMES.items()}[f[1]]]:
+                raise _Corrupt(f"line {n}: {f[1]} with {len(params)} parameters")
+            _check_pinhole(f[1], width, height, params)
+
+
+def _check_images_text(raw_lines: list[str]) -> None:
+    # COLMAP's own reading: a data line, then the next line whatever it holds (the image's 2D points, maybe none)
+    i = 0
+    while i < len(raw_lines):
+        line = raw_lines[i].strip()
+        i += 1
+        if not line or line.startswith("#"):
+            continue
+        f = line.split()
+        if len(f) < 10:
+            raise _Corrupt(f"line {i} has {len(f)} fields, an image needs id, pose (7 numbers), camera id and name")
+        _ints([f[0], f[8]], f"line {i}")
+        _floats(f[1:8], f"line {i}")
+        points = raw_lines[i].split() if i < len(raw_lines) else []
+        if len(points) % 3:
+            raise _Corrupt(f"line {i + 1}: {len(points)} numbers, not (x, y, point id) triples")
+        i += 1
+
+
+def _check_points_text(lines: list[str]) -> None:
+    for n, line in lines:
+        f = line.split()
+        if len(f) < 8 or (len(f) - 8) % 2:
+            raise _Corrupt(f"line {n} has {len(f)} fields, a point needs id, x y z, r g b, error and "
+                           "(image id, point index) pairs")
+        _ints(f[:1] + f[4:7], f"line {n}")
+        _floats(f[1:4] + f[7:8], f"line {n}")
+
+
+_TEXT_CHECKS = (("cameras", _check_cameras_text), ("images", None), ("points3D", _check_points_text))
+
+
+def check_text_model(model_dir: str) -> None:
+    """UserError naming the file when a text COLMAP model file (read where no .bin file is) is not one: each
+    line's fields are counted and parsed, as COLMAP reads them. pycolmap's own message names only the folder."""
+    for name, check in _TEXT_CHECKS:
+        if os.path.isfile(os.path.join(model_dir, f"{name}.bin")):
+            continue
+        path = os.path.join(model_dir, f"{name}.txt")
+        if not os.path.isfile(path):
+            continue
+        try:
+            with open(path, "rb") as f:
+                text = f.read().decode("utf-8")
+        except UnicodeDecodeError:
+            raise UserError(f"{path}: corrupt COLMAP {name} file (not text); restore it from a backup or run "
+                            "`ctgs sfm` again") from None
+        raw = text.splitlines()
+        try:
+            if check is None:
+                _check_images_text(raw)
+            else:
+                check([(n, line.strip()) for n, line in enumerate(raw, 1)
+                       if line.strip() and not line.lstrip().startswith("#")])
+        except _Corrupt as exc:
+            raise UserError(f"{path}: corrupt COLMAP {name} file ({exc}); restore it from a backup or run "
+                            f"`ctgs sfm` again") from None
+    # COLMAP 3.12+ text models: every image belongs to a frame of a rig; none at all is a cut or emptied file
+    if _has_records(os.path.join(model_dir, "images.txt")):
+        for name in ("rigs", "frames"):
+            path = os.path.join(model_dir, f"{name}.txt")
+            if not os.path.isfile(os.path.join(model_dir, f"{name}.bin")) and os.path.isfile(path) \
+                    and not _has_records(path):
+                raise UserError(f"{path}: corrupt COLMAP {name} file (no {name}, but images.txt holds images); "
+                                "restore it from a backup or run `ctgs sfm` again")
+
+
+def _has_records(path: str) -> bool:
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            return any(line.strip() and not line.lstrip().startswith("#") for line in f)
+    except OSError:
+        return False
+
+
 def _check_model_values(model_dir: str, cameras: dict, images: list, points: np.ndarray) -> None:
     """Values every reader of a model relies on: finite positive focal lengths, finite poses and points."""
     for camera_id, c in cameras.items():
         try:
             _check_pinhole(c.model, c.width, c.height, (c.fx, c.fy, c.cx, c.cy))
         except _Corrupt as exc:
-            raise UserError(f"{_model_file(model_dir, 'cameras')}: camera {camera_id}: {exc}; fix the file or run "
+            raise UserError(f"{model_file(model_dir, 'cameras')}: camera {camera_id}: {exc}; fix the file or run "
                             "`ctgs sfm` again") from None
     for im in images:
         if im.camera_id not in cameras:
-            raise UserError(f"{_model_file(model_dir, 'images')}: image {im.name} refers to camera {im.camera_id}, "
-                            f"which {_model_file(model_dir, 'cameras')} does not hold; run `ctgs sfm` again")
+            raise UserError(f"{model_file(model_dir, 'images')}: image {im.name} refers to camera {im.camera_id}, "
+                            f"which {model_file(model_dir, 'cameras')} does not hold; run `ctgs sfm` again")
         if not np.isfinite(im.viewmat).all():
-            raise UserError(f"{_model_file(model_dir, 'images')}: image {im.name} has a non-finite pose; fix the file "
+            raise UserError(f"{model_file(model_dir, 'images')}: image {im.name} has a non-finite pose; fix the file "
                             "or run `ctgs sfm` again")
     if points.size and not np.isfinite(points).all():
         bad = int((~np.isfinite(points).all(1)).sum())
-        raise UserError(f"{_model_file(model_dir, 'points3D')}: {bad} points with non-finite coordinates; fix the file "
+        raise UserError(f"{model_file(model_dir, 'points3D')}: {bad} points with non-finite coordinates; fix the file "
                         "or run `ctgs sfm` again")
+
+
+def _blamed_file(model_dir: str, detail: str) -> str:
+    """The model file a pycolmap error message points at (its checks name records, not files), else the folder."""
+    d = detail.lower()
+    for name, words in (("frames", ("frame", "rig_from_world")), ("cameras", ("camera",)), ("rigs", ("rig",)),
+                        ("images", ("image",)), ("points3D", ("point3d",))):
+        if any(w in d for w in words):
+            path = model_file(model_dir, name)
+            if os.path.isfile(path):
+                return path
+    return model_dir
 
 
 def read_colmap_model(model_dir: str, *, require_pinhole: bool = True) -> ColmapModel:
     """Read a COLMAP model folder. Raises UserError naming the file on unreadable or corrupt files (cut short,
     focal lengths not finite and positive, non-finite poses or points) or non-pinhole cameras."""
     check_binary_model(model_dir)
+    check_text_model(model_dir)
     pycolmap = import_pycolmap()  # heavy import, only where needed
 
     try:
         rec = pycolmap.Reconstruction(model_dir)
     except Exception as exc:  # pycolmap raises plain ValueError/RuntimeError on corrupt files
         detail = " ".join(str(exc).split())[:200]
+        where = _blamed_file(model_dir, detail)
         raise UserError(
-            f"{model_dir}: cannot read the COLMAP model ({detail}); re-export it or run `ctgs sfm` again"
+            f"{where}: cannot read the COLMAP model ({detail}); restore the file from a backup or run `ctgs sfm` again"
         ) from None
 
     cameras: dict[int, Intrinsics] = {}
@@ -251,7 +370,7 @@ def read_colmap_model(model_dir: str, *, require_pinhole: bool = True) -> Colmap
         if model not in PINHOLE_MODELS:
             if require_pinhole:
                 raise UserError(
-                    f"{_model_file(model_dir, 'cameras')}: camera {camera_id} uses the {model} model, but training "
+                    f"{model_file(model_dir, 'cameras')}: camera {camera_id} uses the {model} model, but training "
                     f"needs undistorted PINHOLE/SIMPLE_PINHOLE cameras; run `ctgs sfm` (it undistorts the images)"
                 )
             continue

@@ -24,7 +24,7 @@ import torch
 from ctgs.errors import UserError
 from ctgs.io.images import IMAGE_EXTENSIONS, image_info, read_rgb, stderr_silenced
 from ctgs.render.camera import Camera
-from ctgs.scene.colmap import ColmapModel, ModelImage, find_model_dir, read_colmap_model
+from ctgs.scene.colmap import ColmapModel, ModelImage, model_file, find_model_dir, read_colmap_model
 from ctgs.scene.types import Scene, View
 
 # Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
@@ -140,10 +140,11 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
 
     model = read_colmap_model(find_model_dir(scene_dir))
     if not model.images:
-        raise UserError(f"{model.path}: the COLMAP model has no registered images; run `ctgs sfm` again")
+        raise UserError(f"{model_file(model.path, 'images')}: the COLMAP model has no registered images; run "
+                        "`ctgs sfm` again")
     if len(model.points) == 0:
-        raise UserError(f"{model.path}: the COLMAP model has zero 3D points (training initialises from them); "
-                        f"run `ctgs sfm` again or use a model with triangulated points")
+        raise UserError(f"{model_file(model.path, 'points3D')}: the COLMAP model has zero 3D points (training "
+                        f"initialises from them); run `ctgs sfm` again or use a model with triangulated points")
 
     paths = []
     for image in model.images:

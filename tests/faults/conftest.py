@@ -4,6 +4,7 @@ a few seconds to make. Cases that damage a file restore it (fault_helpers.damage
 from __future__ import annotations
 
 import os
+import shutil
 
 import pytest
 
@@ -26,4 +27,13 @@ def pipeline(tmp_path_factory) -> dict:
     _ok(["export", p["run"], "-o", p["model"]])
     _ok(["compress", p["model"], "-o", p["small"]])
     _ok(["export", p["run"], "--format", "web", "-o", f"{root}/run/webmodel"])
+    # the scene again with its COLMAP model as text files (what other tools often ship)
+    from ctgs.scene.colmap import import_pycolmap
+
+    p["textscene"] = shutil.copytree(p["scene"], f"{root}/textscene")
+    sparse = f"{root}/textscene/sparse/0"
+    import_pycolmap().Reconstruction(sparse).write_text(sparse)
+    for name in os.listdir(sparse):
+        if name.endswith(".bin"):
+            os.remove(os.path.join(sparse, name))
     return p
