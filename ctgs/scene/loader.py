@@ -24,7 +24,7 @@ import torch
 from ctgs.errors import UserError
 from ctgs.io.images import IMAGE_EXTENSIONS, image_info, read_rgb, stderr_silenced
 from ctgs.render.camera import Camera
-from ctgs.scene.colmap import ColmapModel, ModelImage, model_file, find_model_dir, read_colmap_model
+from ctgs.scene.colmap import ColmapModel, ModelImage, find_model_dir, model_file, read_colmap_model
 from ctgs.scene.types import Scene, View
 
 # Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
