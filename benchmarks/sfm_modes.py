@@ -138,7 +138,8 @@ def run_mode(args, mode: str, reference: dict, ref_focal: float, ref_source: str
     cmd = [*ctgs, "sfm", args.images_dir, "-o", out, *options, "--threads", str(args.threads), "--force"]
     load_start, date = list(os.getloadavg()), time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     start, cpu = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    # Run from the work folder: `python -m ctgs` would otherwise import the checkout's ctgs from the current folder.
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=args.work)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_s = (after.ru_utime + after.ru_stime) - (cpu.ru_utime + cpu.ru_stime)
