@@ -82,11 +82,22 @@ def sweep_temps(folder: str) -> list[str]:
     return removed
 
 
-def _named(exc: OSError, path: str) -> OSError:
-    """`exc` with `path` as its filename when it names none (`fh.write` on a full disk names no file)."""
-    if exc.filename is not None or exc.errno is None:
+def _named(exc: OSError, path: str, tmp: str | None = None) -> OSError:
+    """`exc` naming `path`: when it names no file (`fh.write` on a full disk), or a file inside the temporary `tmp`
+    (the user knows the final name, not the hidden one)."""
+    if exc.errno is None:
         return exc
-    new = type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), path)
+    name = exc.filename
+    if name is None or (isinstance(name, str) and os.path.basename(name).startswith(_tmp_prefix(path))):
+        name = path  # no file named, or the temporary itself (its creation failed: a read-only folder)
+    elif tmp is not None and isinstance(name, str):
+        if name == tmp:
+            name = path
+        elif name.startswith(tmp + os.sep):
+            name = os.path.join(path, name[len(tmp) + 1:])
+    if name == exc.filename:
+        return exc
+    new = type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), name)
     new.__cause__ = exc
     return new
 
@@ -140,7 +151,7 @@ def atomic_path(path: str, *, fsync: bool = False) -> Iterator[str]:
     except BaseException as exc:
         _remove_quietly(tmp)
         if isinstance(exc, OSError):
-            raise _named(exc, path) from None
+            raise _named(exc, path, tmp) from None
         raise
 
 
@@ -261,7 +272,7 @@ def atomic_dir(out_dir: str, *, replace: bool = True) -> Iterator[str]:
     except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
         if isinstance(exc, OSError) and not isinstance(exc, FileExistsError):
-            raise _named(exc, out_dir) from None
+            raise _named(exc, out_dir, tmp) from None
         raise
 
 

@@ -58,6 +58,7 @@ def assert_one_line_failure(result, codes=(2, OS_ERROR_EXIT), needles=()) -> str
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.exit_code in codes, (result.exit_code, result.stderr)
     assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert not TEMP.search(lines[0]), f"names a hidden temporary, not the file the user asked for: {lines[0]}"
     for needle in needles:
         assert needle in lines[0], (needle, lines[0])
     return lines[0]
