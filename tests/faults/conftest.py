@@ -23,6 +23,9 @@ def pipeline(tmp_path_factory) -> dict:
          "small": f"{root}/run/small", "web": f"{root}/run/webmodel/web"}
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     _ok(["demo-scene", p["scene"], *SCENE_OPTS])
+    # photos for sfm: 12 views of 128x96 (what tests/test_cli_chain.py reconstructs; ~3 s of SfM)
+    _ok(["demo-scene", f"{root}/photos", "--views", "12", "--width", "128", "--height", "96", "--points", "500"])
+    p["photos"] = f"{root}/photos/images"
     _ok(["train", p["scene"], "-o", p["run"], *TRAIN_OPTS])
     _ok(["export", p["run"], "-o", p["model"]])
     _ok(["compress", p["model"], "-o", p["small"]])

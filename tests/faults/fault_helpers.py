@@ -21,7 +21,9 @@ from click.testing import CliRunner
 from ctgs.cli import main
 from ctgs.errors import OS_ERROR_EXIT
 
-TEMP = re.compile(r"\.tmp-|\.sfm-work")  # the atomic helpers' temporaries (ctgs.io.atomic)
+TEMP = re.compile(r"\.tmp-")  # the atomic helpers' temporaries (ctgs.io.atomic)
+# sfm's work folder: kept on a failure (the same command resumes from it), gone after a successful run
+SFM_WORK = re.compile(r"\.sfm-work$")
 # The tiny pipeline: a 64x48 demo scene of 10 views, 30 iterations of the fast preset (a few seconds).
 SCENE_OPTS = ["--views", "10", "--width", "64", "--height", "48", "--points", "600", "--supersample", "1"]
 TRAIN_OPTS = ["--preset", "fast", "--iterations", "30", "-q", "--set", "threads=1", "--set", "checkpoint_every=10",
@@ -32,6 +34,7 @@ def stage_commands(p: dict, dest: str) -> dict[str, tuple[list[str], str]]:
     """Every stage that writes, as (ctgs arguments, its output path), reading the pipeline `p` and writing
     under `dest`."""
     return {
+        "sfm": (["sfm", p["photos"], "-o", f"{dest}/sfmscene", "--threads", "1"], f"{dest}/sfmscene"),
         "demo-scene": (["demo-scene", f"{dest}/scene", *SCENE_OPTS], f"{dest}/scene"),
         "train": (["train", p["scene"], "-o", f"{dest}/run", *TRAIN_OPTS], f"{dest}/run"),
         "export": (["export", p["run"], "-o", f"{dest}/model"], f"{dest}/model"),
@@ -64,18 +67,19 @@ def assert_one_line_failure(result, codes=(2, OS_ERROR_EXIT), needles=()) -> str
     return lines[0]
 
 
-def temporaries(root: str) -> list[str]:
-    """Every temporary left anywhere under `root`."""
+def temporaries(root: str, *, work: bool = True) -> list[str]:
+    """Every temporary left anywhere under `root` (work: sfm's work folder counts as one)."""
     found = []
     for folder, dirs, files in os.walk(root):
-        found += [os.path.join(folder, n) for n in dirs + files if TEMP.search(n)]
+        found += [os.path.join(folder, n) for n in dirs + files
+                  if TEMP.search(n) or (work and SFM_WORK.search(n))]
     return found
 
 
 def assert_nothing_half_written(stage: str, out: str, root: str) -> None:
     """No temporary under `root`, and `out` absent, or (train) a run folder a checkpoint made resumable and
     without a finished model."""
-    assert temporaries(root) == [], temporaries(root)
+    assert temporaries(root, work=False) == [], temporaries(root, work=False)
     if stage == "train" and os.path.exists(out):
         names = set(os.listdir(out))
         ckpts = os.listdir(os.path.join(out, "checkpoints")) if "checkpoints" in names else []

@@ -19,6 +19,7 @@ SPARSE = "scene/sparse/0/"
 
 def _commands(p: dict, dest: str) -> dict[str, list[str]]:
     return {
+        "sfm": ["sfm", p["photos"], "-o", f"{dest}/out", "--threads", "1"],
         "train": ["train", p["scene"], "-o", f"{dest}/out", *TRAIN_OPTS],
         "train-text": ["train", p["textscene"], "-o", f"{dest}/out", *TRAIN_OPTS],
         "export": ["export", p["run"], "-o", f"{dest}/out"],
@@ -35,6 +36,7 @@ def _commands(p: dict, dest: str) -> dict[str, list[str]]:
 
 # (stage, file under the pipeline's root that it reads)
 CASES = [
+    ("sfm", "photos/images/005.png"),
     *[("train", SPARSE + f"{name}.bin") for name in ("cameras", "images", "points3D", "frames", "rigs")],
     ("train", "scene/images/003.png"),
     *[("train-text", f"textscene/sparse/0/{name}.txt") for name in ("cameras", "images", "points3D", "frames", "rigs")],
