@@ -146,3 +146,13 @@ def test_checkpoints_keep_the_one_before_and_fall_back_to_it(tmp_path, capsys):
     with pytest.raises(UserError, match="prev.pt unreadable.*no readable checkpoint"):
         ckpt.load_checkpoint(run)
     assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["prev.pt"]
+
+
+def test_two_writers_of_one_path_never_share_a_temporary(tmp_path):
+    # spz once wrote through a fixed OUT.spz.tmp: two exports to one path wrote into the same file
+    path = str(tmp_path / "m.spz")
+    with atomic.atomic_path(path) as a, atomic.atomic_path(path) as b:
+        assert a != b and os.path.dirname(a) == os.path.dirname(b) == str(tmp_path)
+        open(a, "wb").write(b"first")
+        open(b, "wb").write(b"second")
+    assert open(path, "rb").read() == b"first" and os.listdir(tmp_path) == ["m.spz"]
