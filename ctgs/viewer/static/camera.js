@@ -67,6 +67,12 @@ export function lookAt(eye, target, up) {
   return {rot: [x[0], y[0], z[0], x[1], y[1], z[1], x[2], y[2], z[2]], pos: eye.slice()};
 }
 
+// Whether keys typed into element `el` go to it (a text field), not to the viewer's keys.
+export function typesText(el) {
+  if (el instanceof HTMLTextAreaElement || (el instanceof HTMLElement && el.isContentEditable)) return true;
+  return el instanceof HTMLInputElement && !["checkbox", "radio", "button", "range", "submit", "reset"].includes(el.type);
+}
+
 // Fly keys by physical key (KeyboardEvent.code) -> the letter update() reads.
 export const MOVE_CODES = new Map([["KeyW", "w"], ["KeyA", "a"], ["KeyS", "s"], ["KeyD", "d"], ["KeyQ", "q"],
   ["KeyE", "e"]]);
@@ -101,10 +107,7 @@ export class Controls {
     // Only the movement keys are held (by physical key: Shift or a layout change between press and release must
     // not leave one stuck); any other key, `[` `]` included, is a shortcut and not a camera motion.
     window.addEventListener("keydown", (e) => {
-      const el = e.target;
-      const typing = el instanceof HTMLTextAreaElement || (el instanceof HTMLInputElement &&
-        !["checkbox", "radio", "button", "range", "submit", "reset"].includes(el.type));
-      if (!typing && !e.ctrlKey && !e.metaKey && !e.altKey && MOVE_CODES.has(e.code)) this.keys.add(MOVE_CODES.get(e.code));
+      if (!typesText(e.target) && !e.ctrlKey && !e.metaKey && !e.altKey && MOVE_CODES.has(e.code)) this.keys.add(MOVE_CODES.get(e.code));
     });
     window.addEventListener("keyup", (e) => { if (MOVE_CODES.has(e.code)) this.keys.delete(MOVE_CODES.get(e.code)); });
     window.addEventListener("blur", () => this.keys.clear());

@@ -2,7 +2,7 @@
 // scripting interface the tests use (ready, show, benchmark, info).
 
 import {loadBundle} from "./bundle.js";
-import {Controls, MOVE_CODES, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm, column} from "./camera.js";
+import {Controls, MOVE_CODES, typesText, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm, column} from "./camera.js";
 import {Renderer} from "./renderer.js";
 
 const $ = (id) => document.getElementById(id);
@@ -24,12 +24,6 @@ function sameOriginBase(param) {
     throw new Error(`?bundle=${param}: the viewer only loads bundles served by its own server (${location.origin})`);
   }
   return url.pathname.replace(/\/+$/, "");
-}
-
-// Keys typed into these go to the control, not to the viewer's shortcuts.
-function typesText(el) {
-  if (el instanceof HTMLTextAreaElement || (el instanceof HTMLElement && el.isContentEditable)) return true;
-  return el instanceof HTMLInputElement && !["checkbox", "radio", "button", "range", "submit", "reset"].includes(el.type);
 }
 
 async function fetchText(url) {
