@@ -36,12 +36,24 @@ DIR_MODE = 0o755
 # Temporaries of a process that is gone (crash, kill -9) older than this are removed even when their name carries no
 # process id (names from before ids were added) or the id was reused by an unrelated process since.
 STALE_TEMP_S = 24 * 3600.0
-# ".NAME.tmp-PID-<mkstemp's 8 characters>[.ext]" (group 1: PID), or as named before ids were added (no PID)
-_TEMP_NAME = re.compile(r"^\..+" + re.escape(TMP_TAG) + r"(?:(\d+)-(?:old-)?)?[a-z0-9_]{8}(?:\.[^.]*)?$")
+# ".NAME.tmp-PID-HOST-<mkstemp's 8 characters>[.ext]" (groups: PID, HOST), or as named before ids were added
+_TEMP_NAME = re.compile(r"^\..+" + re.escape(TMP_TAG) + r"(?:(\d+)-([0-9a-f]{6})-(?:old-)?)?[a-z0-9_]{8}(?:\.[^.]*)?$")
+
+
+def _host_tag() -> str:
+    """6 hex digits of this machine's name: a process id only says whether its writer is alive on the machine
+    that wrote it (a folder on a network share is written by several)."""
+    import hashlib
+    import socket
+
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:6]
+
+
+_HOST = _host_tag()
 
 
 def _tmp_prefix(path: str) -> str:
-    return "." + os.path.basename(os.path.normpath(path)) + TMP_TAG + f"{os.getpid()}-"
+    return "." + os.path.basename(os.path.normpath(path)) + TMP_TAG + f"{os.getpid()}-{_HOST}-"
 
 
 def _pid_alive(pid: int) -> bool:
@@ -55,9 +67,10 @@ def _pid_alive(pid: int) -> bool:
 
 
 def sweep_temps(folder: str) -> list[str]:
-    """Remove the hidden temporaries (`.NAME.tmp-PID-*`, files or folders) that killed writers left in `folder`:
-    those whose process is no longer running, and any older than STALE_TEMP_S. A live writer's are kept (two runs
-    writing into one folder). Returns the names removed; never raises (a sweep must not fail a run)."""
+    """Remove the hidden temporaries (`.NAME.tmp-PID-HOST-*`, files or folders) that killed writers left in `folder`:
+    those of this machine whose process is no longer running, and any older than STALE_TEMP_S. A live writer's are
+    kept (two runs writing into one folder), and so are another machine's. Returns the names removed; never raises
+    (a sweep must not fail a run)."""
     removed = []
     try:
         entries = list(os.scandir(folder))
@@ -66,10 +79,10 @@ def sweep_temps(folder: str) -> list[str]:
     now = time.time()
     for entry in entries:
         m = _TEMP_NAME.match(entry.name)
-        if m is None or m.group(1) == str(os.getpid()):
+        if m is None or (m.group(1) == str(os.getpid()) and m.group(2) == _HOST):
             continue
         try:
-            dead = m.group(1) is not None and not _pid_alive(int(m.group(1)))
+            dead = m.group(2) == _HOST and not _pid_alive(int(m.group(1)))
             if not dead and now - entry.stat(follow_symlinks=False).st_mtime <= STALE_TEMP_S:
                 continue
             if entry.is_dir(follow_symlinks=False):

@@ -63,12 +63,15 @@ def _dead_pid() -> int:
 def test_sweep_removes_dead_writers_temporaries_only(tmp_path):
     live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
-        dead = _dead_pid()
+        dead, here = _dead_pid(), atomic._HOST
+        other = "0" * 6 if here != "0" * 6 else "1" * 6
         names = {
-            f".model.tmp-{dead}-abcd1234": "dir",  # a folder a killed export was building
-            f".a.png.tmp-{dead}-zz_9zz9z.png": "file",  # a killed image write
-            f".b.png.tmp-{live.pid}-abcdefgh.png": "file",  # another run writing right now: kept
-            f".c.json.tmp-{os.getpid()}-abcdefgh.json": "file",  # ours: kept
+            f".model.tmp-{dead}-{here}-abcd1234": "dir",  # a folder a killed export was building
+            f".a.png.tmp-{dead}-{here}-zz_9zz9z.png": "file",  # a killed image write
+            f".b.png.tmp-{live.pid}-{here}-abcdefgh.png": "file",  # another run writing right now: kept
+            f".c.json.tmp-{os.getpid()}-{here}-abcdefgh.json": "file",  # ours: kept
+            f".e.json.tmp-{dead}-{other}-abcdefgh.json": "file",  # another machine's (a network share): kept
+            f".f.json.tmp-{dead}-{other}-abcdefgh.json": "old",  # ... unless two days old
             ".old.json.tmp-abcdefgh.json": "old",  # named before ids, two days old: removed
             ".new.json.tmp-abcdefgh.json": "file",  # named before ids, recent: kept (its writer may be alive)
             ".bashrc.tmp-notours": "old",  # not a name the helpers make: never touched
@@ -84,13 +87,14 @@ def test_sweep_removes_dead_writers_temporaries_only(tmp_path):
             if kind == "old":
                 os.utime(path, (time.time() - 2 * 86400,) * 2)
         removed = atomic.sweep_temps(str(tmp_path))
-        assert sorted(removed) == sorted([f".model.tmp-{dead}-abcd1234", f".a.png.tmp-{dead}-zz_9zz9z.png",
-                                          ".old.json.tmp-abcdefgh.json"])
+        assert sorted(removed) == sorted([f".model.tmp-{dead}-{here}-abcd1234",
+                                          f".a.png.tmp-{dead}-{here}-zz_9zz9z.png",
+                                          f".f.json.tmp-{dead}-{other}-abcdefgh.json", ".old.json.tmp-abcdefgh.json"])
         assert sorted(os.listdir(tmp_path)) == sorted(set(names) - set(removed))
         # the next write into the folder sweeps too
-        (tmp_path / f".d.txt.tmp-{dead}-abcdefgh.txt").write_text("half")
+        (tmp_path / f".d.txt.tmp-{dead}-{here}-abcdefgh.txt").write_text("half")
         atomic.write_text(str(tmp_path / "d.txt"), "whole")
-        assert f".d.txt.tmp-{dead}-abcdefgh.txt" not in os.listdir(tmp_path)
+        assert f".d.txt.tmp-{dead}-{here}-abcdefgh.txt" not in os.listdir(tmp_path)
     finally:
         live.kill()
         live.wait()

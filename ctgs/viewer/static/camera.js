@@ -70,7 +70,8 @@ export function lookAt(eye, target, up) {
 // Whether keys typed into element `el` go to it (a text field), not to the viewer's keys.
 export function typesText(el) {
   if (el instanceof HTMLTextAreaElement || (el instanceof HTMLElement && el.isContentEditable)) return true;
-  return el instanceof HTMLInputElement && !["checkbox", "radio", "button", "range", "submit", "reset"].includes(el.type);
+  const keyless = ["checkbox", "radio", "button", "range", "submit", "reset"];
+  return el instanceof HTMLInputElement && !keyless.includes(el.type);
 }
 
 // Fly keys by physical key (KeyboardEvent.code) -> the letter update() reads.
@@ -107,7 +108,8 @@ export class Controls {
     // Only the movement keys are held (by physical key: Shift or a layout change between press and release must
     // not leave one stuck); any other key, `[` `]` included, is a shortcut and not a camera motion.
     window.addEventListener("keydown", (e) => {
-      if (!typesText(e.target) && !e.ctrlKey && !e.metaKey && !e.altKey && MOVE_CODES.has(e.code)) this.keys.add(MOVE_CODES.get(e.code));
+      if (typesText(e.target) || e.ctrlKey || e.metaKey || e.altKey || !MOVE_CODES.has(e.code)) return;
+      this.keys.add(MOVE_CODES.get(e.code));
     });
     window.addEventListener("keyup", (e) => { if (MOVE_CODES.has(e.code)) this.keys.delete(MOVE_CODES.get(e.code)); });
     window.addEventListener("blur", () => this.keys.clear());

@@ -2,7 +2,8 @@
 // scripting interface the tests use (ready, show, benchmark, info).
 
 import {loadBundle} from "./bundle.js";
-import {Controls, MOVE_CODES, typesText, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm, column} from "./camera.js";
+import {Controls, MOVE_CODES, typesText, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm,
+  column} from "./camera.js";
 import {Renderer} from "./renderer.js";
 
 const $ = (id) => document.getElementById(id);
@@ -363,7 +364,8 @@ class Viewer {
       el.appendChild(document.createTextNode(t));
     });
     stats.replaceChildren();
-    lines(stats, [`${Number(b.num_surfels).toLocaleString()} surfels · ${Number(b.num_texels).toLocaleString()} texels`,
+    const count = (x) => Number(x).toLocaleString();
+    lines(stats, [`${count(b.num_surfels)} surfels · ${count(b.num_texels)} texels`,
       `SH degree ${b.sh_degree} · atlas ${b.atlas.pages.length} × ${b.atlas.page_size}² ${b.atlas.texel_format}`,
       `bundle ${mb(b.surfels.bytes + b.atlas.bytes)} MB`, ""]);
     lines(dim, [String(this.renderer.glRenderer), `accumulation ${this.renderer.accumFormat.name}`]);
