@@ -115,6 +115,11 @@ def _named(exc: OSError, path: str, tmp: str | None = None) -> OSError:
     return new
 
 
+def named(exc: OSError, path: str) -> OSError:
+    """`exc` naming `path` when it names no file (for writers outside the atomic helpers: a log, a download)."""
+    return _named(exc, path)
+
+
 def _os_error_inside(exc: BaseException) -> OSError | None:
     """The OSError behind `exc` (a RuntimeError of torch's zip writer has the failed write as its context)."""
     seen = 0
@@ -196,7 +201,7 @@ def append_text(path: str, text: str) -> None:
         with open(path, "a") as fh:
             fh.write(text)
     except OSError as exc:
-        raise _named(exc, path) from None
+        raise named(exc, path) from None
 
 
 def write_json(path: str, obj, *, indent: int | None = 2) -> None:

@@ -65,6 +65,10 @@ def _open(url: str, offset: int):
         raise UserError(f"{url}: cannot connect ({reason}); check the network and run again (it resumes)") from None
 
 
+class _WriteFailed(Exception):
+    """A write to the .part file failed (args[0]: the OSError), told apart from the network's errors."""
+
+
 def download(url: str, dest: str, *, size: int | None = None, sha256: str | None = None,
              quiet: bool = False) -> DownloadResult:
     """Download `url` to `dest` (resuming dest.part), verify, rename. Raises UserError on failures."""
@@ -92,20 +96,28 @@ def download(url: str, dest: str, *, size: int | None = None, sha256: str | None
                     offset = resumed_from = 0
                 length = response.headers.get("Content-Length")
                 total = size or ((int(length) + offset) if length else None)
-                with _progress_bar(quiet) as bar, open(part, "ab" if offset else "wb") as out:
-                    task = bar.add_task(os.path.basename(dest), total=total, completed=offset)
-                    received = 0
-                    try:
-                        while block := response.read(CHUNK):
-                            out.write(block)
-                            received += len(block)
-                            bar.advance(task, len(block))
-                        # A dropped connection can look like a clean end of file: compare with the header.
-                        if length and received < int(length):
-                            raise http.client.IncompleteRead(b"", int(length) - received)
-                    except (OSError, http.client.HTTPException) as exc:  # IncompleteRead, reset, timeout
-                        raise UserError(f"{url}: download interrupted ({type(exc).__name__}); run the same "
-                                        f"command again to resume from {part}") from None
+                try:
+                    with _progress_bar(quiet) as bar, open(part, "ab" if offset else "wb") as out:
+                        task = bar.add_task(os.path.basename(dest), total=total, completed=offset)
+                        received = 0
+                        try:
+                            while block := response.read(CHUNK):
+                                try:
+                                    out.write(block)
+                                except OSError as exc:  # the disk, not the network: said as such below
+                                    raise _WriteFailed(exc) from None
+                                received += len(block)
+                                bar.advance(task, len(block))
+                            # A dropped connection can look like a clean end of file: compare with the header.
+                            if length and received < int(length):
+                                raise http.client.IncompleteRead(b"", int(length) - received)
+                        except (OSError, http.client.HTTPException) as exc:  # IncompleteRead, reset, timeout
+                            raise UserError(f"{url}: download interrupted ({type(exc).__name__}); run the same "
+                                            f"command again to resume from {part}") from None
+                except _WriteFailed as exc:  # a full disk: the CLI's line names the .part file and the fix
+                    raise atomic.named(exc.args[0], part) from None
+                except OSError as exc:  # flushing at close on a full disk
+                    raise atomic.named(exc, part) from None
 
     got = os.path.getsize(part)
     if size is not None and got != size:

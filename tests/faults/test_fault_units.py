@@ -17,6 +17,7 @@ import torch
 from ctgs.errors import OS_ERROR_EXIT, UserError, describe_os_error
 from ctgs.io import atomic, images
 from ctgs.train import checkpoint as ckpt
+from fault_helpers import can_mount, small_fs
 
 
 @pytest.mark.parametrize(("code", "words"), [
@@ -160,3 +161,37 @@ def test_two_writers_of_one_path_never_share_a_temporary(tmp_path):
         open(a, "wb").write(b"first")
         open(b, "wb").write(b"second")
     assert open(path, "rb").read() == b"first" and os.listdir(tmp_path) == ["m.spz"]
+
+
+@pytest.mark.skipif(not can_mount(), reason="a full disk here is a small tmpfs, which needs root")
+def test_a_download_onto_a_full_disk_names_the_partial_file_not_the_network(tmp_path):
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    from ctgs.io.download import download
+
+    data = np.random.default_rng(0).bytes(300_000)
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 (http.server API)
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        with small_fs(128) as fs:
+            dest = os.path.join(fs, "scene.zip")
+            with pytest.raises(OSError) as err:
+                download(f"http://127.0.0.1:{httpd.server_address[1]}/scene.zip", dest, quiet=True)
+            assert err.value.errno == errno.ENOSPC and err.value.filename == dest + ".part"
+            assert describe_os_error(err.value).startswith(f"{dest}.part: no space left on the device")
+            assert not os.path.exists(dest)
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
