@@ -212,8 +212,7 @@ class Trainer:
         # Drop log lines written after the checkpoint (they will be produced again).
         self.log_lines = int(state["log_lines"])
         lines = open(self.log_path).read().splitlines()[: self.log_lines] if os.path.exists(self.log_path) else []
-        with open(self.log_path, "w") as fh:
-            fh.write("".join(line + "\n" for line in lines))
+        atomic.write_text(self.log_path, "".join(line + "\n" for line in lines))  # a failed write names the log
 
     def _state(self) -> dict:
         return {"model": self.model.state_dict(), "opt": self.opt.state_dict(), "iteration": self.it,
