@@ -21,6 +21,7 @@ from ctgs.io import atomic
 
 CKPT_NAME = "last.pt"
 PREV_NAME = "prev.pt"
+UNREADABLE_SUFFIX = ".unreadable"  # a last.pt that could not be read, once the run fell back to prev.pt
 
 
 def rng_state(gen: torch.Generator) -> dict:
@@ -108,6 +109,9 @@ def load_checkpoint(run_dir: str) -> dict | None:
             continue
         if candidate == prev:
             said = problems[0] if problems else f"{path} missing"
+            if problems:  # set aside (kept to look at): the next save must not rotate it into prev.pt
+                os.replace(path, path + UNREADABLE_SUFFIX)
+                said += f", moved to {os.path.basename(path) + UNREADABLE_SUFFIX}"
             print(f"ctgs train: {said}; resuming from the checkpoint before it, {prev} (iteration "
                   f"{int(state['iteration'])})", file=sys.stderr)
         return state

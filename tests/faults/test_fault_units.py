@@ -144,13 +144,17 @@ def test_checkpoints_keep_the_one_before_and_fall_back_to_it(tmp_path, capsys):
         f.truncate(64)
     assert ckpt.load_checkpoint(run)["iteration"] == 20
     assert "resuming from the checkpoint before it" in capsys.readouterr().err
+    # the damaged last.pt is set aside, so the next save keeps the good prev.pt as the one before
+    assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["last.pt.unreadable", "prev.pt"]
+    ckpt.save_checkpoint(run, {"iteration": 21, "model": {}})
+    assert torch.load(ckpt.previous_path(run), weights_only=False)["iteration"] == 20
     os.remove(ckpt.checkpoint_path(run))  # killed between the two renames: prev.pt alone
     assert ckpt.has_checkpoint(run) and ckpt.load_checkpoint(run)["iteration"] == 20
     with open(ckpt.previous_path(run), "wb") as f:
         f.write(b"\x80\x04garbage")
     with pytest.raises(UserError, match="prev.pt unreadable.*no readable checkpoint"):
         ckpt.load_checkpoint(run)
-    assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["prev.pt"]
+    assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["last.pt.unreadable", "prev.pt"]
 
 
 def test_two_writers_of_one_path_never_share_a_temporary(tmp_path):
