@@ -27,8 +27,10 @@ _FIXES = {
     "EDQUOT": ("disk quota exceeded", "free space within your quota or write the output elsewhere (-o)"),
     "EFBIG": ("file too large for this filesystem", "write the output to another filesystem (-o)"),
     "EROFS": ("read-only filesystem", "write the output to a writable folder (-o)"),
-    "EACCES": ("permission denied", "check its permissions (ls -l) or write the output elsewhere (-o)"),
-    "EPERM": ("operation not permitted", "check its permissions (ls -l) or write the output elsewhere (-o)"),
+    "EACCES": ("permission denied", "check its permissions and its folder's (ls -l); for an output, choose a "
+               "folder you may write to (-o)"),
+    "EPERM": ("operation not permitted", "check its permissions and its folder's (ls -l); for an output, choose a "
+              "folder you may write to (-o)"),
     "EIO": ("input/output error (a failing disk or a lost network mount)", "check the device (dmesg) and run again"),
     "ENODEV": ("no such device (a disk or mount went away)", "remount it and run again"),
     "ENXIO": ("no such device or address (a disk or mount went away)", "remount it and run again"),

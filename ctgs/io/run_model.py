@@ -6,6 +6,7 @@ RUN_DIR/model.pt = torch.save({"model": SurfelModel.state_dict(), "scene_dir", "
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import pickle
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.model.surfels import SurfelModel
 
 MODEL_FILE = "model.pt"
@@ -47,12 +49,14 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         model = SurfelModel.from_state_dict(ckpt["model"], device=device)
-    except (KeyError, ValueError, RuntimeError, OSError, EOFError, TypeError, pickle.UnpicklingError,
+    except OSError as exc:
+        if exc.errno in (errno.EACCES, errno.EPERM, errno.EIO, errno.ENODEV, errno.ENXIO, errno.ESTALE):
+            raise atomic.named(exc, path) from None  # the machine's fault: the CLI's line says which and the fix
+        raise _corrupt(path, exc) from None  # torch's reader on a cut file: EINVAL and the like
+    except (KeyError, ValueError, RuntimeError, EOFError, TypeError, pickle.UnpicklingError,
             zipfile.BadZipFile, AttributeError, IndexError) as exc:
         # torch.load of random bytes raises UnpicklingError; of a cut file, RuntimeError from its zip reader
-        detail = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
-        raise UserError(f"{path}: unreadable or incomplete model ({detail}); it is corrupt: re-run `ctgs train` "
-                        "(or `ctgs train --resume` while its checkpoints are there)") from None
+        raise _corrupt(path, exc) from None
     if not isinstance(ckpt, dict) or "scene_dir" not in ckpt:
         raise UserError(f"{path}: not a ctgs run model (no scene_dir); re-run `ctgs train`")
     summary = None
@@ -69,6 +73,12 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
                     iteration=int(ckpt.get("iteration", -1)), config=ckpt.get("config") or {},
                     summary=summary, model_bytes=os.path.getsize(path),
                     world_origin=tuple(float(x) for x in ckpt.get("world_origin") or (0.0, 0.0, 0.0)))
+
+
+def _corrupt(path: str, exc: BaseException) -> UserError:
+    detail = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+    return UserError(f"{path}: unreadable or incomplete model ({detail}); it is corrupt: re-run `ctgs train` "
+                     "(or `ctgs train --resume` while its checkpoints are there)")
 
 
 def with_scene(run: RunModel, scene_dir: str | None = None) -> RunModel:

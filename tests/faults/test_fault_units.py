@@ -199,3 +199,24 @@ def test_a_download_onto_a_full_disk_names_the_partial_file_not_the_network(tmp_
     finally:
         httpd.shutdown()
         httpd.server_close()
+
+
+def test_a_model_the_user_may_not_read_is_a_permission_error_not_a_corrupt_file(tmp_path, monkeypatch):
+    # (root reads any file: the refusal is injected where torch opens it)
+    from click.testing import CliRunner
+
+    from ctgs.cli import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "model.pt").write_bytes(b"x")
+
+    def refused(path, *args, **kwargs):
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+
+    monkeypatch.setattr(torch, "load", refused)
+    result = CliRunner().invoke(main, ["export", str(run), "-o", str(tmp_path / "out")])
+    assert result.exit_code == OS_ERROR_EXIT
+    assert result.stderr.strip().splitlines() == [f"error: {run / 'model.pt'}: permission denied; check its "
+                                                  "permissions and its folder's (ls -l); for an output, choose a "
+                                                  "folder you may write to (-o)"]
