@@ -35,9 +35,13 @@ def _table(paths: tuple[str, ...], out: str) -> None:
     metrics = []
     for p in paths:
         mp = _metrics_path(p)
-        with open(mp) as f:
-            m = json.load(f)
-        if m.get("schema") != METRICS_SCHEMA:
+        try:
+            with open(mp, encoding="utf-8") as f:
+                m = json.load(f)
+        except ValueError as exc:  # not JSON, not UTF-8: a damaged file
+            raise UserError(f"{mp}: corrupt metrics.json ({' '.join(str(exc).split())[:120]}); run "
+                            f"`ctgs eval {p}` again") from None
+        if not isinstance(m, dict) or m.get("schema") != METRICS_SCHEMA:
             raise UserError(f"{mp}: not a ctgs metrics.json; pass run folders evaluated by `ctgs eval`")
         metrics.append(m)
     md, csv_text = build_table(metrics)

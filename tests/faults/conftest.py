@@ -30,6 +30,7 @@ def pipeline(tmp_path_factory) -> dict:
     _ok(["export", p["run"], "-o", p["model"]])
     _ok(["compress", p["model"], "-o", p["small"]])
     _ok(["export", p["run"], "--format", "web", "-o", f"{root}/run/webmodel"])
+    _ok(["eval", p["run"], "--no-lpips"])  # run/eval/metrics.json, for eval --table
     # the scene again with its COLMAP model as text files (what other tools often ship)
     from ctgs.scene.colmap import import_pycolmap
 
