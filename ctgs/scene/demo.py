@@ -245,11 +245,12 @@ def make_demo_scene(out_dir: str, *, num_views: int = 40, width: int = 256, heig
     params = {"num_views": num_views, "width": width, "height": height, "seed": seed, "points": points,
               "supersample": supersample, "version": META_VERSION}
     meta_path = os.path.join(out_dir, META_NAME)
-    if os.path.isfile(meta_path) and not overwrite:
-        with open(meta_path) as f:
-            if json.load(f).get("params") == params:
-                return out_dir
+    if os.path.isfile(meta_path) and not overwrite and _read_meta(meta_path).get("params") == params:
+        return out_dir  # (a damaged demo_meta.json reads as {}: not an identical scene, refused below)
     if os.path.isdir(out_dir) and os.listdir(out_dir) and not overwrite:
+        if os.path.isfile(meta_path) and not _read_meta(meta_path):
+            raise UserError(f"{meta_path}: damaged, so this folder cannot be checked to be the same demo scene; "
+                            f"remove {out_dir} or pass --force")
         raise UserError(f"{out_dir}: folder exists and is not an identical demo scene; remove it or pass --force")
 
     rects = demo_surfaces()
@@ -284,8 +285,20 @@ def load_demo_meta(scene_dir: str) -> dict:
     path = os.path.join(scene_dir, META_NAME)
     if not os.path.isfile(path):
         raise UserError(f"{path}: not a demo scene (no {META_NAME}); run `ctgs demo-scene {scene_dir}`")
-    with open(path) as f:
-        return json.load(f)
+    meta = _read_meta(path)
+    if "surfaces" not in meta:
+        raise UserError(f"{path}: damaged or not a demo scene's {META_NAME}; run `ctgs demo-scene {scene_dir} --force`")
+    return meta
+
+
+def _read_meta(path: str) -> dict:
+    """demo_meta.json as a dict, {} when it cannot be parsed (a damaged file)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            meta = json.load(f)
+    except ValueError:
+        return {}
+    return meta if isinstance(meta, dict) else {}
 
 
 def surface_of(points: np.ndarray, meta: dict, tol: float = 0.02) -> np.ndarray:

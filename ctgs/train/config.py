@@ -313,7 +313,7 @@ def load_toml(path: str) -> dict:
             data = tomllib.load(fh)
     except FileNotFoundError:
         raise UserError(f"{path}: config file not found; pass an existing file (see configs/)") from None
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:  # a damaged file may not even be UTF-8
         raise UserError(f"{path}: invalid TOML ({exc}); fix the file") from None
     # `base = "default.toml"` lets an experiment name only what it changes.
     return data

@@ -90,6 +90,13 @@ def make_views(views, device) -> list[TrainView]:
     return out
 
 
+def _json_record(line: str) -> bool:
+    try:
+        return isinstance(json.loads(line), dict)
+    except ValueError:
+        return False
+
+
 class Trainer:
     """cfg: the config as given (saved with the run); self.cfg is its copy resolved for this scene's image size
     (ctgs/train/rules.py) whose `iterations` is the planned run length (`--time-budget` re-plans it).
@@ -210,8 +217,10 @@ class Trainer:
         if self.exposure is not None and "exposure" in state:
             self.exposure.load_state_dict(state["exposure"])
         # Drop log lines written after the checkpoint (they will be produced again).
-        self.log_lines = int(state["log_lines"])
-        lines = open(self.log_path).read().splitlines()[: self.log_lines] if os.path.exists(self.log_path) else []
+        # A damaged log (not UTF-8, cut lines) loses its unreadable lines, not the run.
+        raw = open(self.log_path, "rb").read().decode("utf-8", "replace") if os.path.exists(self.log_path) else ""
+        lines = [line for line in raw.splitlines()[: int(state["log_lines"])] if _json_record(line)]
+        self.log_lines = len(lines)
         atomic.write_text(self.log_path, "".join(line + "\n" for line in lines))  # a failed write names the log
 
     def _state(self) -> dict:

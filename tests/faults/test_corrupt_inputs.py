@@ -11,7 +11,7 @@ import shutil
 
 import pytest
 
-from fault_helpers import TRAIN_OPTS, assert_nothing_half_written, assert_one_line_failure, cli
+from fault_helpers import SCENE_OPTS, TRAIN_OPTS, assert_nothing_half_written, assert_one_line_failure, cli
 
 VARIANTS = ("cut", "empty", "random")
 SPARSE = "scene/sparse/0/"
@@ -20,6 +20,7 @@ SPARSE = "scene/sparse/0/"
 def _commands(p: dict, dest: str) -> dict[str, list[str]]:
     return {
         "sfm": ["sfm", p["photos"], "-o", f"{dest}/out", "--threads", "1"],
+        "demo-scene": ["demo-scene", p["scene"], *SCENE_OPTS],  # the same scene again: checked by its record
         "train": ["train", p["scene"], "-o", f"{dest}/out", *TRAIN_OPTS],
         "train-text": ["train", p["textscene"], "-o", f"{dest}/out", *TRAIN_OPTS],
         "export": ["export", p["run"], "-o", f"{dest}/out"],
@@ -38,6 +39,7 @@ def _commands(p: dict, dest: str) -> dict[str, list[str]]:
 # (stage, file under the pipeline's root that it reads)
 CASES = [
     ("sfm", "photos/images/005.png"),
+    ("demo-scene", "scene/demo_meta.json"),
     *[("train", SPARSE + f"{name}.bin") for name in ("cameras", "images", "points3D", "frames", "rigs")],
     ("train", "scene/images/003.png"),
     *[("train-text", f"textscene/sparse/0/{name}.txt") for name in ("cameras", "images", "points3D", "frames", "rigs")],
@@ -129,6 +131,18 @@ def test_resume_falls_back_to_the_previous_checkpoint(variant, pipeline, tmp_pat
     assert result.exit_code == 0, result.stderr
     note = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(note) == 1 and "last.pt unreadable" in note[0] and "prev.pt" in note[0], result.stderr
+    assert os.path.isfile(os.path.join(run, "model.pt"))
+
+
+def test_resume_with_a_damaged_config_or_log(pipeline, tmp_path):
+    run = _stopped_run(pipeline, str(tmp_path / "run"))
+    config = os.path.join(run, "config.toml")
+    with damaged(config, "random"):
+        result = cli(["train", pipeline["scene"], "-o", run, "--resume", "-q"])
+        assert_one_line_failure(result, codes=(2,), needles=("config.toml", "invalid TOML"))
+    with damaged(os.path.join(run, "log.jsonl"), "random"):  # the log is a record: its unreadable lines go
+        result = cli(["train", pipeline["scene"], "-o", run, "--resume", "-q"])
+        assert result.exit_code == 0, result.stderr
     assert os.path.isfile(os.path.join(run, "model.pt"))
 
 
