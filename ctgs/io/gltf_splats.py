@@ -141,6 +141,11 @@ def read_glb_splats(path: str) -> SurfelModel:
         w = widths[a.type]
         stride = v.byteStride or 4 * w
         start = (v.byteOffset or 0) + (a.byteOffset or 0)
+        end = start + (a.count - 1) * stride + 4 * w if a.count else start
+        if a.count < 0 or start < 0 or stride < 4 * w or end > len(blob):
+            # (as_strided would read past the buffer: memory that is not the file's)
+            raise UserError(f"{path}: {name} ({a.count} rows) reaches past the {len(blob)}-byte binary chunk; the "
+                            "file is truncated or corrupt, re-export it")
         rows = np.lib.stride_tricks.as_strided(np.frombuffer(blob, np.uint8, offset=start), (a.count, 4 * w),
                                                (stride, 1)) if a.count else np.zeros((0, 4 * w), np.uint8)
         return np.ascontiguousarray(rows).view("<f4").reshape(a.count, w).astype(np.float64)

@@ -68,14 +68,18 @@ def write_splat(model: SurfelModel, path: str) -> int:
 def read_splat(path: str) -> SurfelModel:
     """A .splat file as untextured surfels (degree-0 SH); UserError naming the file when it is not one."""
     try:
-        raw = open(path, "rb").read()
+        with open(path, "rb") as f:
+            raw = f.read()
     except OSError as exc:
         raise UserError(f"{path}: cannot read .splat file ({exc.strerror}); check the path") from exc
     if len(raw) % RECORD.itemsize:
         raise UserError(f"{path}: {len(raw)} bytes is not a multiple of {RECORD.itemsize}; not a .splat file "
                         "(or truncated): re-export it")
+    if not raw:
+        raise UserError(f"{path}: empty (no splats); re-export it")
     rec = np.frombuffer(raw, RECORD)
-    scales = rec["scale"].astype(np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):  # foreign bytes: NaN or huge scales, refused just below
+        scales = rec["scale"].astype(np.float64)
     if len(rec) and not (np.isfinite(scales).all() and (scales > 0).all()):
         raise UserError(f"{path}: non-positive or non-finite scales; not a .splat file")
     alpha = np.clip(rec["rgba"][:, 3] / 255.0, ALPHA_EPS, 1 - ALPHA_EPS)

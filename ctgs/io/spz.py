@@ -181,7 +181,8 @@ def read_spz(path: str) -> SurfelModel:
     """A .spz file (version 2 or 3) as untextured surfels in the RDF (COLMAP) frame; UserError naming the
     file when it is not one."""
     try:
-        packed = open(path, "rb").read()
+        with open(path, "rb") as f:
+            packed = f.read()
     except OSError as exc:
         raise UserError(f"{path}: cannot read .spz file ({exc.strerror}); check the path") from exc
     try:

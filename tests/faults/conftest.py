@@ -8,7 +8,7 @@ import shutil
 
 import pytest
 
-from fault_helpers import SCENE_OPTS, TRAIN_OPTS, cli
+from fault_helpers import GAUSSIAN_FILES, SCENE_OPTS, TRAIN_OPTS, cli
 
 
 def _ok(args: list[str]) -> None:
@@ -31,6 +31,8 @@ def pipeline(tmp_path_factory) -> dict:
     _ok(["compress", p["model"], "-o", p["small"]])
     _ok(["export", p["run"], "--format", "web", "-o", f"{root}/run/webmodel"])
     _ok(["eval", p["run"], "--no-lpips"])  # run/eval/metrics.json, for eval --table
+    for fmt, ext in GAUSSIAN_FILES.items():  # the files for Gaussian viewers, which eval --model reads back
+        _ok(["export", p["run"], "--format", fmt, "-o", f"{root}/run/m.{ext}"])
     # the scene again with its COLMAP model as text files (what other tools often ship)
     from ctgs.scene.colmap import import_pycolmap
 

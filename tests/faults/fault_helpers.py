@@ -15,6 +15,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import warnings
 
 from click.testing import CliRunner
 
@@ -26,6 +27,9 @@ TEMP = re.compile(r"\.tmp-")  # the atomic helpers' temporaries (ctgs.io.atomic)
 SFM_WORK = re.compile(r"\.sfm-work$")
 # The tiny pipeline: a 64x48 demo scene of 10 views, 30 iterations of the fast preset (a few seconds).
 SCENE_OPTS = ["--views", "10", "--width", "64", "--height", "48", "--points", "600", "--supersample", "1"]
+# export --format -> file ending, of the files for Gaussian viewers
+GAUSSIAN_FILES = {"ply": "ply", "splat": "splat", "spz": "spz", "compressed-ply": "compressed.ply", "sog": "sog",
+                  "glb-splats": "splats.glb"}
 TRAIN_OPTS = ["--preset", "fast", "--iterations", "30", "-q", "--set", "threads=1", "--set", "checkpoint_every=10",
               "--backend", "cpu"]
 
@@ -55,17 +59,25 @@ def stage_commands(p: dict, dest: str) -> dict[str, tuple[list[str], str]]:
 
 
 def cli(args: list[str]):
-    """`ctgs ARGS` in this process (CliRunner: stderr apart from stdout)."""
-    return CliRunner().invoke(main, args)
+    """`ctgs ARGS` in this process (CliRunner: stderr apart from stdout). Python warnings, which a real run prints
+    on stderr and CliRunner does not capture, are added to `result.warnings` as the lines they would print."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.resetwarnings()  # Python's own defaults, as a user's run has them (not pytest's)
+        warnings.simplefilter("default")
+        for quiet in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+            warnings.simplefilter("ignore", quiet)
+        result = CliRunner().invoke(main, args)
+    result.warnings = [f"{w.category.__name__}: {w.message}" for w in caught]
+    return result
 
 
 def assert_one_line_failure(result, codes=(2, OS_ERROR_EXIT), needles=()) -> str:
     """Non-zero exit (one of `codes`), no traceback, exactly one stderr line `error: ...` holding every needle."""
     assert not (result.exception and not isinstance(result.exception, SystemExit)), (
         f"uncaught {type(result.exception).__name__}: {result.exception}\n{result.stderr}")
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    lines = [line for line in result.stderr.splitlines() if line.strip()] + getattr(result, "warnings", [])
     assert result.exit_code in codes, (result.exit_code, result.stderr)
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert len(lines) == 1 and lines[0].startswith("error: "), lines
     assert not TEMP.search(lines[0]), f"names a hidden temporary, not the file the user asked for: {lines[0]}"
     for needle in needles:
         assert needle in lines[0], (needle, lines[0])

@@ -11,7 +11,7 @@ import shutil
 
 import pytest
 
-from fault_helpers import SCENE_OPTS, TRAIN_OPTS, assert_nothing_half_written, assert_one_line_failure, cli
+from fault_helpers import GAUSSIAN_FILES, SCENE_OPTS, TRAIN_OPTS, assert_nothing_half_written, assert_one_line_failure, cli
 
 VARIANTS = ("cut", "empty", "random")
 SPARSE = "scene/sparse/0/"
@@ -31,6 +31,8 @@ def _commands(p: dict, dest: str) -> dict[str, list[str]]:
         "eval-compressed": ["eval", p["run"], "--model", p["small"], "--no-lpips", "-o", f"{dest}/out"],
         "render": ["render", p["run"], "-o", f"{dest}/out"],
         "render-model": ["render", p["run"], "--model", p["model"], "-o", f"{dest}/out"],
+        **{f"eval-{ext}": ["eval", p["run"], "--model", f"{p['root']}/run/m.{ext}", "--no-lpips", "-o", f"{dest}/out"]
+           for ext in GAUSSIAN_FILES.values()},
         "view": ["view", p["web"], "--no-browser", "--port", "0"],
         "view-model": ["view", p["model"], "--no-browser", "--port", "0"],
     }
@@ -59,6 +61,7 @@ CASES = [
     ("render", SPARSE + "points3D.bin"),
     ("render-model", "run/model/primitives.ply"),
     ("render-model", "run/model/textures.bin"),
+    *[(f"eval-{ext}", f"run/m.{ext}") for ext in GAUSSIAN_FILES.values()],
     ("view", "run/webmodel/web/bundle.json"),
     ("view", "run/webmodel/web/surfels.bin"),
     ("view", "run/webmodel/web/atlas_000.bin"),
