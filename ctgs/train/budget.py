@@ -21,6 +21,7 @@ the model stops growing.
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -43,15 +44,29 @@ TEXTURE_JUMP_PRIOR = 2.4
 REPLAN_FRACTION = 0.01  # re-plan every 1% of the planned run ...
 REPLAN_MIN_ITERS = 10  # ... but not more often than every 10 iterations
 SAFETY = 0.97  # plan for 97% of the budget: the rest absorbs the error of the last predictions
-# Exponential average of the recent cost per iteration (weight of the previous value): a time constant of ~100
-# steps. At 0.9 (10 steps) the plan followed the load of a shared machine burst by burst: a 45-minute herzjesu25
-# run re-planned 17.0k -> 26.8k -> 17.7k iterations within 450 iterations, moving every schedule fraction with it.
-# In tests/train/test_budget.py's simulation with step times noisy by ~30% per 10 steps, 0.99 cut the summed
-# plan changes 3.5x (largest single change 49% -> 12%) and still ended within 0.2% of the budget, also with the
-# machine turning 3x slower at 95% of the budget (ends at 1.006x).
-RECENT = 0.99
+# The cost per unit of g is a trimmed mean of the last RECENT_STEPS measured steps: the slowest and the fastest TRIM
+# of them left out. A plain average (earlier: an exponential one, time constant ~100 steps) lets a few slow steps move
+# the plan: the first textured steps of a large texture start (first-touch allocation, 2.7M texels on a 135x240
+# capture) read as the machine's speed cut a 10-minute plan from 469 to 29 iterations, and the run ended after 54 s.
+# The trimmed mean ignores such steps, is about as steady as the average under a shared machine's bursts
+# (tests/train/test_budget.py), and follows a lasting change of speed within a window.
+RECENT_STEPS = 151
+TRIM = 0.25
+# Between two re-plans the number of iterations left changes by at most this factor, either way: a plan cannot
+# collapse (or balloon) on one re-plan's evidence; re-plans every 1% of the run still follow a real change.
+MAX_SWING = 2.0
+# A run ends in the last END_SLACK of its budget: at the end of its plan with more left, it re-plans at once.
+END_SLACK = 0.05
 # The shortest run any preset makes (`preview`): below it no recorded run says what the model is worth.
 SHORTEST_MEASURED = 1000
+
+
+def _trimmed_mean(values) -> float:
+    """Mean of `values` without their lowest and highest TRIM (all of them when there are fewer than 5)."""
+    v = sorted(values)
+    cut = int(len(v) * TRIM) if len(v) >= 5 else 0
+    kept = v[cut:len(v) - cut]
+    return float(sum(kept) / len(kept))
 
 
 def short_plan_warning(iterations: int, budget_s: float, step_s: float, pixels: float) -> str | None:
@@ -120,6 +135,7 @@ class BudgetPlanner:
         self.jump = TEXTURE_JUMP_PRIOR if cfg.method == "content_aware" else 1.0
         self.tex_at: int | None = None  # iteration after which the textures started (None: not yet)
         self.base = 0.0  # recent seconds per training step per unit of g (without routines, evals, checkpoints)
+        self.recent: collections.deque = collections.deque(maxlen=RECENT_STEPS)  # the last steps' seconds per g
         self.n_obs = 0  # steps observed
         self.n_obs_planned = 0  # steps observed when the plan was last made
         # Routines' and evaluations' seconds per unit of g: the calibration's forward renders until one is measured
@@ -145,7 +161,9 @@ class BudgetPlanner:
             self.plan.calib_textured_step_s = textured_step_s
             self.jump = max(textured_step_s / max(step_s, 1e-12), 1.0)
         self.base = self.base_calib = step_s
-        self.t_routine = 2 * self.n_train * render_s  # E: a render and an error-statistics render per view
+        # E: a render with error statistics per view it uses (about two plain forwards' cost)
+        e_views = min(self.n_train, self.cfg.error_views) if self.cfg.error_views > 0 else self.n_train
+        self.t_routine = 2 * e_views * render_s
         self.t_eval = max(self.n_test, 1) * render_s
         self.t_ckpt = 0.05
         self.t_save = 0.2
@@ -161,13 +179,11 @@ class BudgetPlanner:
     def observe_step(self, seconds: float, it: int) -> None:
         """A training step `it` took `seconds`. The calibration (timed on a copy of the model, possibly while the
         machine is busy with something else: at 768x512 beside another training compiling its extension it read
-        2.2x the real step) stands for the step cost only until steps are measured: the average starts as the plain
-        mean of the measured steps and turns into the exponential average (RECENT) once that weighs more (after
-        100 steps)."""
-        b = seconds / self._g_now(it)
+        2.2x the real step) stands for the step cost only until steps are measured; then the cost is the median of
+        the last RECENT_STEPS measured steps (per unit of g), their slowest and fastest TRIM left out."""
+        self.recent.append(seconds / self._g_now(it))
         self.n_obs += 1
-        w = max(1 - RECENT, 1 / self.n_obs)
-        self.base = (1 - w) * self.base + w * b
+        self.base = _trimmed_mean(self.recent)
 
     def tex_pending(self) -> bool:
         return self.cfg.method == "content_aware" and self.tex_at is None
@@ -204,8 +220,14 @@ class BudgetPlanner:
         return s
 
     def observe_texture_start(self, it: int) -> None:
-        """The textures started after step `it` (steps after it pay the jump J)."""
+        """The textures started after step `it` (steps after it pay the jump J). Where the jump is the prior's (not
+        measured), the step window restarts: the true jump shows as a new cost per unit of g, which the untextured
+        steps would otherwise outvote for a whole window. A measured jump keeps the window, so the first textured
+        steps (first touches of the new texels, textures at their largest until the first routine) stay a minority
+        the trimmed mean leaves out."""
         self.tex_at = it
+        if self.recent and not self.plan.calib_textured_step_s:
+            self.recent = collections.deque([self.base], maxlen=RECENT_STEPS)
 
     def observe_routine(self, seconds: float, it: int) -> None:
         self.t_routine = seconds / self._g_now(it)
@@ -229,18 +251,27 @@ class BudgetPlanner:
     def maybe_replan(self, it: int) -> int | None:
         """New planned iteration count, or None when it is not time to re-plan (never for a fixed run)."""
         n = self.plan.iterations
-        if it >= n or self.fixed:
+        if self.fixed:
+            return None
+        # At the end of the plan with more than END_SLACK of the budget left: re-plan now (the run would end early).
+        ending = it >= n - 1 and self.budget_s_left() > END_SLACK * self.plan.budget_s
+        if it >= n and not ending:
             return None
         # Also on the step before the texture start: it cannot be undone, so it happens at its fraction of a
         # plan made from measured steps, not of the calibration's alone (a short plan starts it in a few steps).
         before_tex = self.tex_pending() and it + 1 >= schedule.texture_start(self.cfg)
         # Until the textures start: every REPLAN_MIN_ITERS steps (the first measured steps correct the calibration).
         every = REPLAN_MIN_ITERS if self.tex_pending() else max(REPLAN_MIN_ITERS, int(REPLAN_FRACTION * n))
-        if it - self.last_replan < every and not before_tex:
+        if it - self.last_replan < every and not before_tex and not ending:
             return None
         self.last_replan = it
+        first = self.n_obs_planned == 0  # the first plan from measured steps corrects the calibration's freely
         self.n_obs_planned = self.n_obs
         new = self._solve(it)
+        if not first:
+            # bounded swing of the iterations left (at least one more step while the budget lasts)
+            left = max(n - it, 1)
+            new = min(max(new, it + max(1, math.ceil(left / MAX_SWING))), it + max(1, math.floor(left * MAX_SWING)))
         self.plan.replans += 1
         if new != n and len(self.plan.history) < 200:
             self.plan.history.append((it, new, round(self.budget_s_left(), 1)))
@@ -351,7 +382,8 @@ class BudgetPlanner:
                 "replans": p.replans, "plan_history": p.history}
 
     def state_dict(self) -> dict:
-        return {"plan": vars(self.plan).copy(), "growth": self.growth, "base": self.base, "jump": self.jump,
+        return {"plan": vars(self.plan).copy(), "growth": self.growth, "base": self.base, "recent": list(self.recent),
+                "jump": self.jump,
                 "tex_at": self.tex_at, "n_obs": self.n_obs, "n_obs_planned": self.n_obs_planned,
                 "t_routine": self.t_routine, "t_eval": self.t_eval, "routine_seen": self.routine_seen,
                 "eval_seen": self.eval_seen, "base_calib": self.base_calib, "t_ckpt": self.t_ckpt, "t_save": self.t_save,
@@ -361,6 +393,8 @@ class BudgetPlanner:
         self.plan = Plan(**state["plan"])
         self.growth = state["growth"]
         self.base = state.get("base", state.get("c_step", 0.0))  # c_step: checkpoints of an earlier planner
+        # older checkpoints kept an average, not the steps: the window restarts from it
+        self.recent = collections.deque(state.get("recent") or [self.base], maxlen=RECENT_STEPS)
         self.jump, self.tex_at = state.get("jump", self.jump), state.get("tex_at")
         self.n_obs = state.get("n_obs", 10_000)  # older checkpoints: long past the calibration
         self.n_obs_planned = state.get("n_obs_planned", self.n_obs)

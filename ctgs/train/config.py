@@ -88,6 +88,11 @@ class TrainConfig:
     # ---- loss ----
     lambda_ssim: float = _f(0.2, "weight of 1 - SSIM (L1 gets 1 - this)")
     lambda_opacity: float = _f(0.01, "opacity regulariser weight on mean(opacity)")
+    opacity_reg_visible: bool = _f(False, "apply the opacity regulariser to the primitives the view rasterizes only "
+                                   "(their opacities summed / N): under Adam a constant gradient moves a primitive no "
+                                   "view shows at the full learning rate, which with hundreds of training views sinks "
+                                   "the primitives of the views not drawn lately below the pruning threshold "
+                                   "(false = mean over all, the paper)")
     lambda_texture: float = _f(1e-8, "texture sparsity weight on sum |texel| of visible primitives")
     texture_reg_transmittance: bool = _f(False, "weight each primitive's texel L1 by 1 - its mean transmittance in "
                                         "the view (the authors' README variant; the paper and their code use plain L1)")
@@ -119,6 +124,9 @@ class TrainConfig:
     routine_margin: int = _f(3000, "no full routines during the last this many iterations (paper scale)")
     late_downscale_every: int = _f(1000, "after routine_until: downscale + light prune only, this often")
     realloc_every: int = _f(100, "iterations between jagged texture reallocations")
+    error_views: int = _f(0, "> 0: E from at most this many training views per full routine, drawn at random "
+                          "without replacement, a new draw at every routine (an unbiased estimate of the paper's sums "
+                          "at a fraction of the renders); 0 = every training view (the paper)")
     top_fraction: float = _f(0.1, "fraction of primitives with the largest E eligible for split/upscale")
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
     tau_tr_start: float = _f(64.0, "split threshold on active texture resolution at iteration 0")
@@ -211,6 +219,7 @@ _RANGES = [
     ("lr_texture_final", _ge(0), ">= 0 (0 = constant lr_texture)"),
     ("lr_scale_final", _ge(0), ">= 0 (0 = constant lr_scale)"), ("adam_eps", _gt(0), "> 0"),
     ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
+    ("error_views", _ge(0), ">= 0 (0 = every view)"),
     ("lambda_texture", _ge(0), ">= 0"), ("lambda_normal", _ge(0), ">= 0"),
     ("normal_from", _ge(0), ">= 0"), ("lr_exposure", _ge(0), ">= 0"),
     ("exposure_channels", lambda v: v in (1, 3), "1 or 3"), ("exposure_check", lambda v: 0 <= v < 1, "in [0, 1)"),

@@ -12,19 +12,29 @@ SH_C0 = 0.28209479177387814
 
 
 def farthest_point_subsample(points: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
-    """Indices [k] of a greedy farthest-point subset of points [P, 3] (vectorised per pick)."""
-    p = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+    """Indices [k] of a greedy farthest-point subset of points [P, 3].
+
+    Exact greedy FPS without touching every point at every pick: a pick at squared distance d (the largest of all
+    the points' distances to the chosen set) can only lower the distances of points within sqrt(d) of it, which a
+    KD-tree finds; the ball shrinks as the set grows, so a pick costs about P / i point updates instead of P (86k
+    SfM points -> 10k: under a second, where updating every point took minutes on a busy 2-core machine)."""
+    from scipy.spatial import cKDTree  # scipy: scikit-learn's own dependency
+
+    p = np.ascontiguousarray(points, dtype=np.float32)
     n = p.shape[0]
     if k >= n:
         return np.arange(n)
     rng = np.random.default_rng(seed)
-    chosen = torch.empty(k, dtype=torch.long)
+    tree = cKDTree(p)
+    chosen = np.empty(k, dtype=np.int64)
     chosen[0] = int(rng.integers(n))
-    dist = ((p - p[chosen[0]]) ** 2).sum(1)  # [P] squared distance to the chosen set
+    dist = ((p - p[chosen[0]]) ** 2).sum(1)  # [P] squared distance to the chosen set (float32)
     for i in range(1, k):
-        chosen[i] = torch.argmax(dist)
-        dist = torch.minimum(dist, ((p - p[chosen[i]]) ** 2).sum(1))
-    return chosen.numpy()
+        c = int(np.argmax(dist))
+        chosen[i] = c
+        near = np.asarray(tree.query_ball_point(p[c], r=float(np.sqrt(dist[c])) * (1 + 1e-6)), dtype=np.int64)
+        dist[near] = np.minimum(dist[near], ((p[near] - p[c]) ** 2).sum(1))
+    return chosen
 
 
 def knn_scale(points: np.ndarray) -> np.ndarray:

@@ -119,7 +119,15 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, st
     # (1 - l) L1 + l (1 - SSIM): one fused pass, gradient included, on the CPU (kernels/cpu/ssim.cpp).
     total, l1, s = photometric_loss(render, gt, cfg.lambda_ssim)
     if cfg.lambda_opacity > 0:
-        total = total + cfg.lambda_opacity * model.opacities.mean()
+        if cfg.opacity_reg_visible:
+            # Only what this view rasterizes: a primitive no view shows gets no gradient, so Adam cannot move it
+            # (a constant gradient alone is a full-lr step per iteration, whatever its size).
+            if rasterized is None or rasterized.shape != (model.num_primitives,):
+                rasterized = rasterized_mask(model, camera)
+            opacity = (model.opacities * rasterized.to(model.opacities.dtype)).sum() / max(model.num_primitives, 1)
+        else:
+            opacity = model.opacities.mean()
+        total = total + cfg.lambda_opacity * opacity
     if cfg.lambda_texture > 0 and model.texture_mode != "none" and model.num_texels > 0:
         weights = texture_weights(model, camera, cfg, stats, rasterized)  # [N]
         # cfg.lambda_texture is already resolved for the image size (ctgs/train/rules.py: x 1e6 / (H*W)).

@@ -10,10 +10,20 @@ from ctgs.train.kmin import compute_k_min
 from ctgs.train.split import prune, split
 
 
+def error_views(views, cfg, it: int) -> list:
+    """The training views E is computed over at the routine of iteration `it`: all of them, or cfg.error_views drawn
+    at random without replacement (seeded by the run's seed and the iteration, so a resumed run draws the same)."""
+    if cfg.error_views <= 0 or len(views) <= cfg.error_views:
+        return list(views)
+    gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + it)
+    pick = torch.randperm(len(views), generator=gen)[: cfg.error_views].sort().values
+    return [views[i] for i in pick.tolist()]
+
+
 @torch.no_grad()
 def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None, lean: bool = True,
                  gains=None) -> dict:
-    """E over all training views; split (tau_tr), upscale top E (t2p_exp > min), downscale the others
+    """E over the training views (all, or cfg.error_views of them); split (tau_tr), upscale top E (t2p_exp > min), downscale the others
     (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
 
     background: optional function model -> [N] bool of primitives the ranking leaves out (never split or upscaled;
@@ -23,6 +33,7 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     with up to ~2x the texels in between: tests/train/test_routines_image.py, benchmarks/results/lean_routine/).
     """
     support = None
+    views = error_views(views, cfg, it)
     if cfg.max_params > 0:
         E, support = compute_E(model, views, render_fn, cfg.lambda_ssim, with_support=True, gains=gains)
     else:

@@ -23,10 +23,15 @@ recipe is reproduced exactly; elsewhere:
 - lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
 - the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a
-  training image, at initialisation (farthest-point subsample of the SfM points) and through splits
-  (max_primitives). SfM points are found at the photos' full resolution: on downsampled images they are
-  far denser than a pixel (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's
-  Mip-NeRF 360 models hold 0.1-0.3 primitives per pixel);
+  typical training view, at initialisation (farthest-point subsample of the SfM points) and through splits
+  (max_primitives): primitives_per_pixel x pixels x coverage, where coverage (ctgs.train.kmin.view_coverage) is
+  how many views' worth of scene the capture holds, the SfM points over the median number one view sees. A
+  facade photographed from the front is about 1 view's worth (every view sees most of it); a capture all around
+  an object is more (Mip-NeRF 360 bonsai: 2.4), and a cap per pixel of one view would leave each view with a
+  fraction of the density (bonsai at 200x133: 10.6k primitives for the whole room, open pixels in test views).
+  SfM points are found at the photos' full resolution: on downsampled images they are far denser than a pixel
+  (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's Mip-NeRF 360 models hold 0.1-0.3
+  primitives per pixel);
 - settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
   texel values (tau_ds, texture_trim), learning rates (x scene extent for positions), the 2DGS baseline's densification
   threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
@@ -76,14 +81,15 @@ def _pow2_at_least(x: float, floor: int) -> int:
     return max(floor, 2 ** math.ceil(math.log2(max(x, 1.0))))
 
 
-def resolve(cfg: TrainConfig, pixels: float) -> TrainConfig:
-    """A copy of `cfg` whose pixel- and texel-based values are resolved for images of `pixels` (H*W).
+def resolve(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> TrainConfig:
+    """A copy of `cfg` whose pixel- and texel-based values are resolved for images of `pixels` (H*W) of a capture
+    holding `coverage` views' worth of scene (ctgs.train.kmin.view_coverage; the primitive cap).
 
     Iteration counts stay at the paper's scale: the schedule scales them by the planned run length
     (which `--time-budget` may change while training).
     """
     s = scale_of(cfg, pixels)
-    cap = int(round(cfg.primitives_per_pixel * pixels)) if cfg.primitives_per_pixel > 0 else 0
+    cap = int(round(cfg.primitives_per_pixel * pixels * coverage)) if cfg.primitives_per_pixel > 0 else 0
     # --max-params: no more primitives than the budget holds with the smallest textures (size_budget)
     budget_cap = primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)
     caps = [c for c in (cfg.max_primitives, cap, budget_cap) if c > 0]
@@ -108,10 +114,10 @@ def with_size_budget(cfg: TrainConfig, observed_values: int) -> TrainConfig:
     return replace(cfg, max_params=max(1, int(round(cfg.max_params_per_value * observed_values))))
 
 
-def init_point_cap(cfg: TrainConfig, pixels: float) -> int:
-    """Initial primitives: max_init_points, at most primitives_per_pixel per training-image pixel, and no more than a
-    --max-params budget holds (size_budget.primitive_cap); 0 = all."""
-    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels)),
+def init_point_cap(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> int:
+    """Initial primitives: max_init_points, at most primitives_per_pixel per pixel of a typical view (x coverage, as
+    in `resolve`), and no more than a --max-params budget holds (size_budget.primitive_cap); 0 = all."""
+    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels * coverage)),
                         primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)) if c > 0]
     return min(caps) if caps else 0
 
@@ -128,7 +134,7 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
                       ("tau_tr_end", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
                       ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
                       ("lambda_texture", "x 1e6 / HW"),
-                      ("max_primitives", "min(max_primitives, primitives_per_pixel x HW, max_params / "
+                      ("max_primitives", "min(max_primitives, primitives_per_pixel x HW x coverage, max_params / "
                                          "(params per primitive + 3 x smallest texture)); 0 = no cap")):
         vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
         unit = {"lambda_texture": "per texel", "max_primitives": "primitives"}.get(key, "texels")

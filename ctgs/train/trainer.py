@@ -31,7 +31,7 @@ from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routin
 from ctgs.train.exposure import Exposure
 from ctgs.train.fill import fill_points
 from ctgs.train.init import init_model
-from ctgs.train.kmin import compute_k_min
+from ctgs.train.kmin import compute_k_min, view_coverage
 from ctgs.train.loss import training_loss
 from ctgs.train.normal import normal_loss
 from ctgs.train.routines import full_routine, late_routine
@@ -141,7 +141,10 @@ class Trainer:
         self.virtual_order = torch.randperm(len(self.virtual), generator=torch.Generator().manual_seed(cfg.seed + 1))
         # max_params_per_value: the size budget from the observed values (an explicit max_params wins)
         budgeted = rules.with_size_budget(cfg, self.observed_values())
-        self.cfg = rules.resolve(budgeted, self.pixels)
+        # views' worth of scene in the capture (the primitive cap is per pixel of a typical view: ctgs.train.rules)
+        self.coverage = (view_coverage(torch.from_numpy(np.asarray(scene.points, np.float32)), self.cameras)
+                         if cfg.primitives_per_pixel > 0 else 1.0)
+        self.cfg = rules.resolve(budgeted, self.pixels, self.coverage)
         self.planner = None  # --time-budget: plans the run's length
         self.estimator = None  # a fresh run of fixed length: the same cost model, estimating its wall time only
         self.wall_before = 0.0  # wall seconds of earlier sessions of this run (resume)
@@ -165,7 +168,8 @@ class Trainer:
             if cfg.init_fill:
                 fill = fill_points(scene.points, scene.train)
                 extra = tuple(f if e is None else np.concatenate([e, f]) for e, f in zip(extra, fill))
-            self.model = init_model(scene.points, scene.point_colors, max_points=rules.init_point_cap(budgeted, self.pixels),
+            cap = rules.init_point_cap(budgeted, self.pixels, self.coverage)
+            self.model = init_model(scene.points, scene.point_colors, max_points=cap,
                                     opacity=cfg.init_opacity, max_sh_degree=cfg.max_sh_degree,
                                     random_rotation=cfg.random_rotation, normals=cfg.init_normals, texture_mode=mode,
                                     fixed_res=cfg.fixed_texture_res, seed=cfg.seed, extra_points=extra[0],
@@ -427,7 +431,8 @@ class Trainer:
         cfg = self.cfg
         if self.it == 0:
             self._log({"type": "start", "n": self.model.num_primitives, "method": cfg.method,
-                       "device": str(self.device), "backend": cfg.backend, "pixels": self.pixels})
+                       "device": str(self.device), "backend": cfg.backend, "pixels": self.pixels,
+                       "coverage": round(self.coverage, 3), "max_primitives": cfg.max_primitives})
         self._plan_start()
         if self.planner is not None:
             yield Planned(self.it, cfg.iterations, self.planner.plan.budget_s)

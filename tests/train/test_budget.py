@@ -21,13 +21,16 @@ class Clock:
 
 
 def simulate(monkeypatch, cfg, budget_s, step0, growth, routine_s, prior_growth=None, noise=0.0, plans=None,
-             jump=1.0, calibrated_jump=None, calibration_slowdown=1.0, record=None):
+             jump=1.0, calibrated_jump=None, calibration_slowdown=1.0, record=None, slow_textured=(0, 1.0),
+             speed_change=None):
     """Drive the planner like the trainer does; the true cost of a step is step0 * (1 + (growth - 1) * p)
     over the routine window (p = its progress), times `jump` after the texture start, times a factor
     exp(N(0, noise)) drawn every 10 steps (a shared machine's load). The calibration reports a textured step of
     step0 * calibrated_jump (None: not measured), both times calibration_slowdown (a machine busy during the
     calibration). Appends (iteration, new plan) to `plans` if given; record["tex_at"]: the texture start's
-    iteration. Returns (wall seconds, iterations, initial plan)."""
+    iteration. slow_textured (k, f): the first k textured steps cost f times more (a large texture start's first
+    touches). speed_change (fraction, f): from that fraction of the budget on, every step costs f times as much.
+    Returns (wall seconds, iterations, initial plan)."""
     import math
     import random
 
@@ -53,6 +56,10 @@ def simulate(monkeypatch, cfg, budget_s, step0, growth, routine_s, prior_growth=
         p = min(max((it - start) / max(end - start, 1), 0.0), 1.0)
         j = jump if tex_at is not None and it > tex_at else 1.0
         step = step0 * j * (1 + (growth - 1) * p) * factor
+        if tex_at is not None and it - tex_at <= slow_textured[0]:
+            step *= slow_textured[1]
+        if speed_change is not None and clock.t >= speed_change[0] * budget_s:
+            step *= speed_change[1]
         clock.t += step
         started = tex_at is None and it >= schedule.texture_start(cfg) and planner.measured_plan  # as the trainer
         planner.observe_step(step, it)
@@ -389,3 +396,66 @@ def test_a_replanned_run_keeps_its_routines_evenly_spaced():
     # A run that is never re-planned gets exactly the plain calendar, shift or not.
     fixed = {0: 6826}
     assert _routine_gaps(fixed, shifted=True) == _routine_gaps(fixed, shifted=False)
+
+
+def test_slow_first_textured_steps_do_not_collapse_the_plan(monkeypatch):
+    """The first textured steps of a huge texture start cost 30x a step (first touches): the plan follows the steady
+    cost, not them, and the run ends in the last 5% of its budget."""
+    cfg = load_config(None, preset="fast")
+    budget_s = 600.0
+    plans = []
+    wall, iterations, initial = simulate(monkeypatch, cfg, budget_s, step0=0.05, growth=2.0, routine_s=0.5, jump=2.5,
+                                         calibrated_jump=2.5, slow_textured=(8, 30.0), plans=plans)
+    assert 0.95 * budget_s <= wall <= 1.02 * budget_s, (wall, iterations, initial, plans[:5])
+    assert min(n for _, n in plans) > 0.5 * initial, plans[:10]
+
+
+def test_plans_swing_by_a_bounded_factor(monkeypatch):
+    """After the first plan made from measured steps, no re-plan changes the iterations left by more than
+    MAX_SWING, even when the machine turns 4x slower mid-run; the run still ends within its budget."""
+    cfg = load_config(None, preset="fast")
+    budget_s = 900.0
+    plans = []
+    wall, iterations, _ = simulate(monkeypatch, cfg, budget_s, step0=0.05, growth=2.0, routine_s=0.5, jump=2.5,
+                                   calibrated_jump=2.5, speed_change=(0.5, 4.0), plans=plans)
+    assert wall <= 1.02 * budget_s and wall >= 0.95 * budget_s, (wall, iterations)
+    for (it_a, a), (it_b, b) in zip(plans[1:], plans[2:]):  # plans[0]: the first measured plan, free
+        left_a, left_b = max(a - it_b, 1), b - it_b
+        assert left_b <= budget_mod.MAX_SWING * left_a + 1 and left_b >= left_a / budget_mod.MAX_SWING - 1, (a, b, it_b)
+
+
+def test_a_run_whose_machine_turns_faster_uses_its_budget(monkeypatch):
+    """The machine turns 3x faster at 80% of the budget: the plan grows (re-planned at its end if need be) and the
+    run ends in the last 5% of its budget rather than early."""
+    cfg = load_config(None, preset="fast")
+    budget_s = 600.0
+    wall, iterations, _ = simulate(monkeypatch, cfg, budget_s, step0=0.05, growth=2.0, routine_s=0.5, jump=2.5,
+                                   calibrated_jump=2.5, speed_change=(0.8, 1 / 3))
+    assert 0.95 * budget_s <= wall <= 1.02 * budget_s, (wall, iterations)
+
+
+def test_a_real_run_with_a_slow_texture_start_still_uses_its_budget(tmp_path, monkeypatch):
+    """End to end: the first textured steps of a real run are made 0.5 s slower each (a sleep, standing for a huge
+    texture start's first touches); the run still ends in the last 5% of its 30-second budget (or a little past it,
+    which the planner's safety margin absorbs), not after a collapsed plan."""
+    import time as time_mod
+
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import train_main
+    from ctgs.train import trainer as trainer_mod
+
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=48, height=36, points=200)
+    real = trainer_mod.Trainer._training_render
+    slow = {"left": 6}
+
+    def training_render(self, inputs, view, bg):
+        if self.textures_started and slow["left"] > 0 and self.it > 0:
+            slow["left"] -= 1
+            time_mod.sleep(0.5)
+        return real(self, inputs, view, bg)
+
+    monkeypatch.setattr(trainer_mod.Trainer, "_training_render", training_render)
+    summary = train_main(scene_dir, str(tmp_path / "run"), preset="fast", time_budget=0.5, quiet=True,
+                         sets=("threads=1",))
+    assert slow["left"] == 0  # the slow steps happened
+    assert 0.95 * 30 <= summary["wall_seconds"] <= 1.05 * 30, summary["plan_history"]
