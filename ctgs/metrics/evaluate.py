@@ -37,6 +37,7 @@ class EvalOptions:
     lpips_weights: str | None = None
     scene_dir: str | None = None  # this machine's copy of the run's scene, when the run moved (None: the one it names)
     dataset: str | None = None  # table grouping; None = name of the scene folder's parent
+    scene_name: str | None = None  # the scene's name in tables; None = the scene folder's name
     split: str = "test"  # "test": the protocol's test views; "train": the views the run was trained on
 
 
@@ -169,7 +170,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
         mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
         metrics = {
             "schema": METRICS_SCHEMA, "schema_version": METRICS_VERSION,
-            "scene": os.path.basename(os.path.normpath(run.scene_dir)),
+            "scene": opts.scene_name or os.path.basename(os.path.normpath(run.scene_dir)),
             "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
             "run_dir": run.run_dir, "model_source": model_source, "scene_dir": run.scene_dir,
             "images": run.images, "holdout": run.holdout, "split": opts.split, "num_views": len(rows),

@@ -28,7 +28,7 @@ TABLE_COLUMNS = [
     ("SSIM", "ssim", "{:.3f}"), ("PSNR", "psnr", "{:.2f}"), ("LPIPS", "lpips", "{:.3f}"),
     ("Points", "points", "count"), ("Texels", "texels", "count"), ("Params", "params", "count"),
     ("FPS", "fps", "{:.0f}"), ("Mem", "storage_bytes", "bytes"), ("Disk", "bytes_on_disk", "bytes"),
-    ("Texels/Primitive", "texels_per_primitive", "{:.1f}"),
+    ("Texels/Primitive", "texels_per_primitive", "{:.1f}"), ("Train min", "train_minutes", "{:.1f}"),
 ]
 
 
@@ -127,15 +127,31 @@ def storage_bytes(m: dict):
     return m.get("bytes_on_disk") if variant(m) else m.get("model_memory_bytes")
 
 
-def build_table(metrics_list: list[dict]) -> tuple[str, str]:
+def _resolution(m: dict) -> str:
+    res = m.get("resolution")
+    return f"{res[0]}x{res[1]}" if isinstance(res, (list, tuple)) and len(res) == 2 else (res or "n/a")
+
+
+def paper_row(paper: dict) -> dict:
+    """A manifest's `paper` table (ctgs.scene.manifests.PAPER_KEYS) as a metrics dict the table can print."""
+    return {**paper, "storage_bytes": paper.get("mem_mb", 0) * 1e6 if "mem_mb" in paper else None,
+            "resolution": paper.get("resolution")}
+
+
+def build_table(metrics_list: list[dict], references: dict | None = None) -> tuple[str, str]:
     """(markdown, csv): scenes grouped by dataset and variant (uncompressed, or one compression setting),
-    each group followed by its mean row, so a model is never averaged with its own compressed copy."""
+    each group followed by its mean row, so a model is never averaged with its own compressed copy.
+
+    references: {(dataset, scene): the paper's row (a manifest's `paper` table)}, printed under the scene's own
+    uncompressed row and labelled with the size the paper used where the manifest gives it; never in a mean."""
+    references = references or {}
     groups: dict[tuple[str, str], list[dict]] = {}
     for m in metrics_list:
-        m = {**m, "storage_bytes": storage_bytes(m)}
+        m = {**m, "storage_bytes": storage_bytes(m),
+             "train_minutes": m["train_seconds"] / 60 if m.get("train_seconds") is not None else None}
         groups.setdefault((m.get("dataset") or "unknown", variant(m)), []).append(m)
-    header = ["Dataset", "Scene"] + [c[0] for c in TABLE_COLUMNS]
-    md = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * len(TABLE_COLUMNS)) + "|"]
+    header = ["Dataset", "Scene", "Resolution"] + [c[0] for c in TABLE_COLUMNS]
+    md = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * len(TABLE_COLUMNS)) + "|"]
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(header)
@@ -144,10 +160,17 @@ def build_table(metrics_list: list[dict]) -> tuple[str, str]:
         suffix = f" ({var})" if var else ""
         for m in rows:
             label = m.get("scene", "?") + suffix
-            md.append("| " + " | ".join([dataset, label] + [_fmt(m.get(k), f) for _, k, f in TABLE_COLUMNS]) + " |")
-            w.writerow([dataset, label] + ["" if m.get(k) is None else m.get(k) for _, k, _ in TABLE_COLUMNS])
+            lines = [(label, m)]
+            ref = references.get((dataset, m.get("scene"))) if not var else None
+            if ref:
+                lines.append((f"{m.get('scene', '?')} (paper, all photos)", paper_row(ref)))
+            for name, row in lines:
+                res = _resolution(row)
+                md.append("| " + " | ".join([dataset, name, res] + [_fmt(row.get(k), f) for _, k, f in TABLE_COLUMNS])
+                          + " |")
+                w.writerow([dataset, name, res] + ["" if row.get(k) is None else row.get(k) for _, k, _ in TABLE_COLUMNS])
         means = {k: _mean([m.get(k) for m in rows]) for _, k, _ in TABLE_COLUMNS}
-        md.append("| " + " | ".join([f"**{dataset}**", f"**mean{suffix} ({len(rows)})**"] +
+        md.append("| " + " | ".join([f"**{dataset}**", f"**mean{suffix} ({len(rows)})**", ""] +
                                     [_fmt(means[k], f) for _, k, f in TABLE_COLUMNS]) + " |")
-        w.writerow([dataset, "mean" + suffix] + ["" if means[k] is None else means[k] for _, k, _ in TABLE_COLUMNS])
+        w.writerow([dataset, "mean" + suffix, ""] + ["" if means[k] is None else means[k] for _, k, _ in TABLE_COLUMNS])
     return "\n".join(md) + "\n", buf.getvalue()

@@ -25,6 +25,7 @@ from ctgs.errors import UserError
 from ctgs.io.images import IMAGE_EXTENSIONS, image_info, read_rgb, stderr_silenced
 from ctgs.render.camera import Camera
 from ctgs.scene.colmap import ColmapModel, ModelImage, find_model_dir, model_file, read_colmap_model
+from ctgs.scene.levels import level_dir
 from ctgs.scene.types import Scene, View
 
 # Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
@@ -131,7 +132,7 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
     if not os.path.isdir(scene_dir):
         raise UserError(f"{scene_dir}: scene folder not found; run `ctgs sfm IMAGES_DIR -o {scene_dir}` or "
                         f"`ctgs demo-scene {scene_dir}`")
-    images_dir = os.path.join(scene_dir, images)
+    images_dir = level_dir(scene_dir, images) or os.path.join(scene_dir, images)  # images_N made if missing
     if not os.path.isdir(images_dir):
         found = sorted(d for d in os.listdir(scene_dir) if d.startswith("images") and
                        os.path.isdir(os.path.join(scene_dir, d)))

@@ -18,7 +18,10 @@ from ctgs.resources import manifests_dir
 MANIFEST_ENV = "CTGS_MANIFEST_DIR"
 DATA_ROOT_ENV = "CTGS_DATA_ROOT"
 _ARCHIVE_KEYS = {"url", "size", "sha256", "format"}
-_SCENE_KEYS = {"archive", "path", "images", "holdout"}
+_SCENE_KEYS = {"archive", "path", "images", "holdout", "paper"}
+# The paper's per-scene row (its per-scene table): what `make table` prints beside a scene's own row.
+PAPER_KEYS = {"ssim": float, "psnr": float, "lpips": float, "points": int, "texels": int, "params": int, "fps": float,
+              "mem_mb": float, "texels_per_primitive": float, "resolution": str}
 _TOP_KEYS = {"name", "description", "holdout", "images", "archives", "scenes"}
 
 
@@ -84,8 +87,17 @@ def load_manifest(name: str, manifest_dir_override: str | None = None) -> dict:
             raise bad(f"scenes.{sname}: unknown key(s) {sorted(unknown)}")
         if scene.get("archive") not in archives:
             raise bad(f"scenes.{sname}: archive {scene.get('archive')!r} is not in [archives]")
+        paper = scene.get("paper")
+        if paper is not None:
+            if not isinstance(paper, dict) or set(paper) - set(PAPER_KEYS):
+                raise bad(f"scenes.{sname}.paper: a table of {sorted(PAPER_KEYS)}")
+            try:
+                paper = {k: PAPER_KEYS[k](v) for k, v in paper.items()}
+            except (TypeError, ValueError):
+                raise bad(f"scenes.{sname}.paper: values must be numbers (resolution a string)") from None
         scenes[sname] = {"archive": scene["archive"], "path": str(scene.get("path", sname)).strip("/"),
-                         "images": str(scene.get("images", images)), "holdout": int(scene.get("holdout", holdout))}
+                         "images": str(scene.get("images", images)), "holdout": int(scene.get("holdout", holdout)),
+                         "paper": paper}
     return {"name": data.get("name", path.stem), "description": data.get("description", ""), "holdout": holdout,
             "images": images, "archives": archives, "scenes": scenes, "path": str(path)}
 

@@ -28,6 +28,22 @@ def _metrics_path(path: str) -> str:
     raise UserError(f"{path}: no metrics.json (looked in it, and in eval/); run `ctgs eval {path}` first")
 
 
+def _paper_rows(metrics: list[dict]) -> dict:
+    """{(dataset, scene): the paper's row} for the scenes of `metrics` that a shipped manifest lists with one."""
+    from ctgs.scene.manifests import available, load_manifest
+
+    wanted = {(m.get("dataset"), m.get("scene")) for m in metrics}
+    rows = {}
+    for name in available():
+        manifest = load_manifest(name)
+        for scene, info in manifest["scenes"].items():
+            if info.get("paper") and (manifest["name"], scene) in wanted:
+                # the size the paper trained at where the manifest gives it, else the protocol's image folder
+                rows[(manifest["name"], scene)] = {**info["paper"],
+                                                   "resolution": info["paper"].get("resolution") or info["images"]}
+    return rows
+
+
 def _table(paths: tuple[str, ...], out: str) -> None:
     from ctgs.io import atomic
     from ctgs.metrics.report import METRICS_SCHEMA, build_table
@@ -44,7 +60,7 @@ def _table(paths: tuple[str, ...], out: str) -> None:
         if not isinstance(m, dict) or m.get("schema") != METRICS_SCHEMA:
             raise UserError(f"{mp}: not a ctgs metrics.json; pass run folders evaluated by `ctgs eval`")
         metrics.append(m)
-    md, csv_text = build_table(metrics)
+    md, csv_text = build_table(metrics, _paper_rows(metrics))
     atomic.write_text(os.path.join(out, "table.md"), md)
     atomic.write_text(os.path.join(out, "table.csv"), csv_text)
     click.echo(md)
@@ -66,6 +82,9 @@ def _table(paths: tuple[str, ...], out: str) -> None:
 @click.option("--lpips-weights", default=None, type=click.Path(dir_okay=False), envvar="CTGS_VGG16_WEIGHTS",
               help="VGG16 weights .pth (torchvision layout); see docs/reference/metrics.md for the lookup order.")
 @click.option("--dataset", default=None, help="Dataset name for --table grouping (default: scene's parent folder).")
+@click.option("--scene-name", default=None,
+              help="The scene's name in tables (default: the scene folder's name), e.g. the benchmark's name for a "
+                   "local copy stored under another folder name.")
 @click.option("--split", type=click.Choice(["test", "train"]), default="test", show_default=True,
               help="Views to evaluate: the test views, or the views the run was trained on (how well it fits its "
                    "own photos; the gap to the test views is what did not generalise). Default output for train: "
@@ -74,8 +93,8 @@ def _table(paths: tuple[str, ...], out: str) -> None:
               help="This machine's copy of the scene the run trained on, when the run moved from the machine or "
                    "folder it trained on (default: the folder its model.pt names).")
 @click.option("--table", is_flag=True, help="Aggregate the metrics.json of RUN_DIRS into the paper's table.")
-def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights, dataset, split, scene_dir,
-            table) -> None:
+def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights, dataset, scene_name, split,
+            scene_dir, table) -> None:
     """Render the test views of RUN_DIR (or its training views: --split train) and write metrics.json,
     per_image.csv, renders/ and strips/."""
     if table:
@@ -94,6 +113,7 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
         out_dir = os.path.join(run_dir, "eval" + suffix)
     m = evaluate(run_dir, EvalOptions(out_dir=out_dir, model_dir=model_dir, backend=backend, device=device,
                                       lpips=lpips, lpips_weights=lpips_weights, dataset=dataset, split=split,
+                                      scene_name=scene_name,
                                       scene_dir=scene_dir))
     lp = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
     views = f" ({m['num_views']} training views)" if split == "train" else ""
