@@ -199,6 +199,12 @@ class Browser:
         self.key(key, "keyDown", shift=shift)
         self.key(key, "keyUp", shift=shift)
 
+    def log_entries(self, source: str | None = None) -> list[str]:
+        """The browser's own log lines since the last goto (e.g. source "security": Content-Security-Policy
+        violations), once `self.page("Log.enable")` has been sent."""
+        return [ev["params"]["entry"].get("text", "") for ev in self._events if ev["method"] == "Log.entryAdded"
+                and (source is None or ev["params"]["entry"].get("source") == source)]
+
     def console_messages(self) -> list[str]:
         return [" ".join(str(a.get("value", a.get("description", ""))) for a in ev["params"].get("args", []))
                 for ev in self._events if ev["method"] == "Runtime.consoleAPICalled"]

@@ -27,6 +27,10 @@ EXTRA_TYPES = {".js": "text/javascript", ".vert": "text/plain", ".frag": "text/p
                ".json": "application/json", ".css": "text/css", ".html": "text/html"}
 
 
+CSP = ("default-src 'self'; script-src 'self'; connect-src 'self'; img-src 'self' data:; style-src 'self'; "
+       "object-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+
+
 class _Handler(SimpleHTTPRequestHandler):
     def __init__(self, *args, bundle_dir: str, bundle_json: bytes, quiet: bool, **kwargs):
         self.bundle_dir = bundle_dir
@@ -41,6 +45,10 @@ class _Handler(SimpleHTTPRequestHandler):
     def end_headers(self):
         # The bundle and scripts change between exports: never let the browser reuse a stale copy.
         self.send_header("Cache-Control", "no-store")
+        # Defence in depth: only this server's own scripts run (no inline script or handler, whatever a bundle
+        # holds), nothing is fetched elsewhere, and no other site may frame the page.
+        self.send_header("Content-Security-Policy", CSP)
+        self.send_header("X-Content-Type-Options", "nosniff")
         super().end_headers()
 
     def _refused(self) -> bool:

@@ -63,6 +63,7 @@ def bundles(tmp_path_factory) -> dict:
 def browser():
     with Browser() as b:
         b.set_viewport(PANEL_CSS_PX + 640, 480)
+        b.page("Log.enable")  # Content-Security-Policy violations come as log entries
         yield b
 
 
@@ -81,6 +82,19 @@ def test_a_crafted_bundle_is_shown_as_text_and_runs_no_script(browser, bundles):
         assert PAYLOAD in stats  # shown literally, as text
         options = browser.evaluate("[...document.querySelectorAll('#camera option')].map(o => o.textContent)")
         assert any(PAYLOAD in o for o in options)
+        # the page works within its Content-Security-Policy: nothing of its own was refused
+        assert browser.log_entries("security") == []
+
+
+def test_the_page_runs_no_inline_script_even_if_html_got_in(browser, bundles):
+    # defence in depth (the server's Content-Security-Policy): markup that reached the page by any path stays inert
+    with ViewerServer(bundles["plain"]) as server:
+        _open(browser, server.url)
+        assert browser.log_entries("security") == []
+        browser.evaluate(f"document.body.insertAdjacentHTML('beforeend', {json.dumps(PAYLOAD)}); "
+                         "new Promise(r => setTimeout(r, 300))")
+        assert browser.evaluate("window.__pwned === undefined")
+        assert any("Content Security Policy" in line for line in browser.log_entries("security"))
 
 
 class _CorsHandler(SimpleHTTPRequestHandler):

@@ -168,3 +168,12 @@ def test_bundle_is_readable_by_others_like_every_output(tmp_path):
         for name in os.listdir(out):
             assert os.stat(os.path.join(out, name)).st_mode & 0o777 == 0o644, name
         assert sorted(os.listdir(tmp_path)) == ["web"]  # no temporary left beside it
+
+
+def test_every_response_carries_the_content_security_policy(bundle_dir):
+    with ViewerServer(bundle_dir) as srv:
+        for path in ("", "viewer.js", "bundle/bundle.json", "bundle/surfels.bin"):
+            with urllib.request.urlopen(srv.url + path, timeout=10) as r:
+                csp = r.headers.get("Content-Security-Policy", "")
+                assert "script-src 'self'" in csp and "frame-ancestors 'none'" in csp, (path, csp)
+                assert r.headers.get("X-Content-Type-Options") == "nosniff"

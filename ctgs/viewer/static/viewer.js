@@ -307,7 +307,7 @@ class Viewer {
   // ---- UI ----------------------------------------------------------------------------------------------
   buildUi() {
     const b = this.bundle, sel = $("camera");
-    sel.innerHTML = "";
+    sel.replaceChildren();
     const free = document.createElement("option");
     free.value = "-1";
     free.textContent = "(free camera)";
