@@ -9,6 +9,7 @@ final name (the output is absent or whole, and no temporary is left).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import shutil
@@ -21,6 +22,7 @@ from click.testing import CliRunner
 
 from ctgs.cli import main
 from ctgs.errors import OS_ERROR_EXIT
+from ctgs.io import atomic
 
 TEMP = re.compile(r"\.tmp-")  # the atomic helpers' temporaries (ctgs.io.atomic)
 # sfm's work folder: kept on a failure (the same command resumes from it), gone after a successful run
@@ -56,6 +58,9 @@ def stage_commands(p: dict, dest: str) -> dict[str, tuple[list[str], str]]:
         "eval": (["eval", p["run"], "--no-lpips", "-o", f"{dest}/eval"], f"{dest}/eval"),
         "render": (["render", p["run"], "-o", f"{dest}/render"], f"{dest}/render"),
     }
+
+
+STAGES = list(stage_commands({k: "" for k in ("photos", "scene", "run", "model")}, "").keys())
 
 
 def cli(args: list[str]):
@@ -141,12 +146,32 @@ def fill(folder: str, leave_bytes: int) -> str:
     return path
 
 
-def ctgs_subprocess(args: list[str], *, kill_at_write: int | None = None, count_file: str | None = None,
+def ctgs_subprocess(args: list[str], *, kill_at_write: int | None = None,
                     timeout: float = 300.0) -> subprocess.CompletedProcess:
     """`ctgs ARGS` in a child process. kill_at_write=N: the child SIGKILLs itself while the N-th atomic write's
-    temporary is complete but not yet renamed (the worst moment); count_file: the child writes there how many
-    atomic writes it made."""
+    temporary is complete but not yet renamed (the worst moment)."""
     hook = os.path.join(os.path.dirname(os.path.abspath(__file__)), "kill_hook.py")
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "CTGS_KILL_AT_WRITE": str(kill_at_write or 0),
-           "CTGS_COUNT_WRITES": count_file or ""}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "CTGS_KILL_AT_WRITE": str(kill_at_write or 0)}
     return subprocess.run([sys.executable, hook, *args], env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def inject_enospc(monkeypatch, fail_at: int | None) -> list[int]:
+    """Count the atomic writes; fail_at=N: the N-th raises ENOSPC once its temporary is written, as a write on a
+    full disk does (an OSError naming no file)."""
+    calls = [0]
+
+    def wrap(original):
+        @contextlib.contextmanager
+        def wrapped(*args, **kwargs):
+            calls[0] += 1
+            n = calls[0]
+            with original(*args, **kwargs) as tmp:
+                yield tmp
+                if n == fail_at:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        return wrapped
+
+    monkeypatch.setattr(atomic, "atomic_path", wrap(atomic.atomic_path))
+    monkeypatch.setattr(atomic, "atomic_dir", wrap(atomic.atomic_dir))
+    return calls

@@ -1,10 +1,9 @@
 """Run `ctgs ARGS` with the atomic-write helpers instrumented (tests/faults): CTGS_KILL_AT_WRITE=N makes the
 process SIGKILL itself inside the N-th atomic write, after its temporary is complete and before the rename (where
-a kill -9 hurts most); CTGS_COUNT_WRITES=FILE records how many atomic writes a whole run makes."""
+a kill -9 hurts most)."""
 
 from __future__ import annotations
 
-import atexit
 import os
 import signal
 import sys
@@ -13,7 +12,6 @@ from contextlib import contextmanager
 from ctgs.io import atomic
 
 KILL_AT = int(os.environ.get("CTGS_KILL_AT_WRITE") or 0)
-COUNT_FILE = os.environ.get("CTGS_COUNT_WRITES") or ""
 _count = 0
 
 
@@ -33,8 +31,6 @@ def _instrument(original):
 
 atomic.atomic_path = _instrument(atomic.atomic_path)
 atomic.atomic_dir = _instrument(atomic.atomic_dir)
-if COUNT_FILE:
-    atexit.register(lambda: open(COUNT_FILE, "w").write(str(_count)))
 
 if __name__ == "__main__":
     from ctgs.cli import main

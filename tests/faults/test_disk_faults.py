@@ -7,7 +7,6 @@ The small filesystem is a tmpfs (root only, as on the CI machine); the injected 
 
 from __future__ import annotations
 
-import errno
 import os
 import shutil
 import subprocess
@@ -16,11 +15,9 @@ from contextlib import contextmanager
 import pytest
 
 from ctgs.errors import OS_ERROR_EXIT
-from ctgs.io import atomic
-from fault_helpers import (assert_nothing_half_written, assert_one_line_failure, can_mount, cli, fill, small_fs,
-                           stage_commands)
+from fault_helpers import (STAGES, assert_nothing_half_written, assert_one_line_failure, can_mount, cli, fill,
+                           inject_enospc, small_fs, stage_commands)
 
-STAGES = list(stage_commands({k: "" for k in ("photos", "scene", "run", "model")}, "").keys())
 MOUNT = can_mount()
 needs_mount = pytest.mark.skipif(not MOUNT, reason="mounting a tmpfs needs root (the injected cases still run)")
 # How much room the disk has left, as a fraction of what the stage writes: nothing, and two points part-way.
@@ -89,32 +86,10 @@ def test_read_only_output_folder(stage, pipeline, tmp_path):
         assert os.listdir(ro) == []
 
 
-def _inject(monkeypatch, fail_at: int | None) -> list[int]:
-    """Count the atomic writes; fail_at=N: the N-th raises ENOSPC once its temporary is written, as a write on a
-    full disk does (an OSError naming no file)."""
-    calls = [0]
-
-    def wrap(original):
-        @contextmanager
-        def wrapped(*args, **kwargs):
-            calls[0] += 1
-            n = calls[0]
-            with original(*args, **kwargs) as tmp:
-                yield tmp
-                if n == fail_at:
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-        return wrapped
-
-    monkeypatch.setattr(atomic, "atomic_path", wrap(atomic.atomic_path))
-    monkeypatch.setattr(atomic, "atomic_dir", wrap(atomic.atomic_dir))
-    return calls
-
-
 @pytest.mark.parametrize("stage", STAGES)
 def test_enospc_injected_at_each_write(stage, pipeline, tmp_path, monkeypatch):
     with monkeypatch.context() as m:
-        calls = _inject(m, None)
+        calls = inject_enospc(m, None)
         assert cli(stage_commands(pipeline, str(tmp_path / "count"))[stage][0]).exit_code == 0
     total = calls[0]
     assert total >= 1
@@ -124,7 +99,7 @@ def test_enospc_injected_at_each_write(stage, pipeline, tmp_path, monkeypatch):
         os.makedirs(dest)
         args, out = stage_commands(pipeline, dest)[stage]
         with monkeypatch.context() as m:
-            _inject(m, k)
+            inject_enospc(m, k)
             line = assert_one_line_failure(cli(args), codes=(OS_ERROR_EXIT,), needles=("no space left",))
         assert dest in line, line
         assert_nothing_half_written(stage, out, dest)

@@ -12,8 +12,7 @@ import random
 
 import pytest
 
-from fault_helpers import cli, ctgs_subprocess, stage_commands, temporaries
-from test_disk_faults import STAGES, _inject
+from fault_helpers import STAGES, cli, ctgs_subprocess, inject_enospc, stage_commands, temporaries
 
 # train twice: inside a checkpoint, and inside the last writes (the summary and model.pt)
 CASES = [(stage, "random") for stage in STAGES] + [("train", "last")]
@@ -31,7 +30,7 @@ def _whole(stage: str, out: str) -> bool:
 @pytest.mark.parametrize(("stage", "where"), CASES, ids=[f"{s}-{w}" for s, w in CASES])
 def test_kill_9_then_the_same_command(stage, where, pipeline, tmp_path, monkeypatch):
     with monkeypatch.context() as m:
-        calls = _inject(m, None)
+        calls = inject_enospc(m, None)
         assert cli(stage_commands(pipeline, str(tmp_path / "count"))[stage][0]).exit_code == 0
     total = calls[0]
     at = total if where == "last" else random.Random(stage).randint(1, total)
