@@ -58,7 +58,7 @@ def describe_os_error(exc: OSError) -> str:
     detail = exc.strerror or standard or str(exc)
     if what is None:
         what = detail
-    elif detail != standard:  # a message of ours (check_free_space) or the library's: keep it
+    elif detail != standard:  # a message of ours or a library's (what and how much): keep it
         what = f"{what} ({detail})"
     paths = [p for p in (exc.filename, exc.filename2) if p is not None]
     where = " -> ".join(_os.fsdecode(p) for p in paths) if paths else "(no file named)"

@@ -4,8 +4,8 @@ Every writer in ctgs goes through here (reports, checkpoints, model.pt, PLY, ima
 demo scene, eval folders...). Files are written under a hidden temporary name in the destination's own
 folder (same filesystem, so the final `os.replace` is atomic) and renamed; folders are built in a hidden
 temporary sibling and renamed into place. On any exception the temporary is removed, so a failure never
-leaves a half-written artifact behind, and a crash (kill -9) leaves at most a hidden `.NAME.tmp-PID-*`, which
-the next write to the same folder removes once process PID is gone (`sweep_temps`).
+leaves a half-written artifact behind, and a crash (kill -9) leaves at most a hidden `.NAME.tmp-PID-HOST-*`,
+which the next write to the same folder removes once process PID of machine HOST is gone (`sweep_temps`).
 
 An OSError raised while writing (a full disk, a read-only folder: `fh.write` names no file) leaves here with
 its `filename` set to the final path, so the CLI's one line names the file the user asked for.
@@ -13,7 +13,6 @@ its `filename` set to the final path, so the CLI's one line names the file the u
 
 from __future__ import annotations
 
-import errno
 import json
 import os
 import re
@@ -27,7 +26,7 @@ from contextlib import contextmanager
 
 from ctgs.errors import UserError
 
-TMP_TAG = ".tmp-"  # every temporary name is ".<final name>.tmp-<pid>-<random>": hidden, says what it was for and whose
+TMP_TAG = ".tmp-"  # every temporary is ".<final name>.tmp-<pid>-<host>-<random>": hidden, says what for and whose
 # mkstemp/mkdtemp create private (0600/0700) entries; the results are ordinary output files and folders.
 FILE_MODE = 0o644
 DIR_MODE = 0o755
@@ -129,19 +128,6 @@ def _os_error_inside(exc: BaseException) -> OSError | None:
         exc = exc.__cause__ or exc.__context__
         seen += 1
     return None
-
-
-def check_free_space(folder: str, need_bytes: int, what: str) -> None:
-    """OSError(ENOSPC) naming `folder` when its filesystem has fewer than `need_bytes` free (for writers that
-    cannot stop cleanly once the disk fills, like COLMAP's SQLite database). Unknown free space passes."""
-    try:
-        st = os.statvfs(folder)
-    except (OSError, AttributeError):
-        return
-    free = st.f_bavail * st.f_frsize
-    if free < need_bytes:
-        raise OSError(errno.ENOSPC, f"{free / 2**20:.0f} MiB free, {what} needs about {need_bytes / 2**20:.0f} MiB",
-                      folder)
 
 
 @contextmanager
