@@ -47,6 +47,15 @@ _FIXES = {
 }
 
 
+def machine_fault(exc: OSError) -> bool:
+    """Whether `exc` is the machine's (permissions, a device or mount failing), not a damaged file: a reader's
+    OSError on a cut file (torch's EINVAL) is the file's, and is said as such."""
+    import errno as _errno
+
+    return exc.errno in (_errno.EACCES, _errno.EPERM, _errno.EIO, _errno.ENODEV, _errno.ENXIO, _errno.ESTALE,
+                         _errno.ENOTCONN)
+
+
 def describe_os_error(exc: OSError) -> str:
     """One line for an operating-system error: the path it names, what happened and the fix."""
     import errno as _errno

@@ -6,7 +6,6 @@ RUN_DIR/model.pt = torch.save({"model": SurfelModel.state_dict(), "scene_dir", "
 
 from __future__ import annotations
 
-import errno
 import json
 import os
 import pickle
@@ -15,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ctgs.errors import UserError
+from ctgs.errors import UserError, machine_fault
 from ctgs.io import atomic
 from ctgs.model.surfels import SurfelModel
 
@@ -50,8 +49,8 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         model = SurfelModel.from_state_dict(ckpt["model"], device=device)
     except OSError as exc:
-        if exc.errno in (errno.EACCES, errno.EPERM, errno.EIO, errno.ENODEV, errno.ENXIO, errno.ESTALE):
-            raise atomic.named(exc, path) from None  # the machine's fault: the CLI's line says which and the fix
+        if machine_fault(exc):
+            raise atomic.named(exc, path) from None  # the CLI's line for the machine says which and the fix
         raise _corrupt(path, exc) from None  # torch's reader on a cut file: EINVAL and the like
     except (KeyError, ValueError, RuntimeError, EOFError, TypeError, pickle.UnpicklingError,
             zipfile.BadZipFile, AttributeError, IndexError) as exc:

@@ -16,7 +16,7 @@ import zipfile
 import numpy as np
 import torch
 
-from ctgs.errors import UserError
+from ctgs.errors import UserError, machine_fault
 from ctgs.io import atomic
 
 CKPT_NAME = "last.pt"
@@ -105,6 +105,8 @@ def load_checkpoint(run_dir: str) -> dict | None:
         try:
             state = _read(candidate)
         except _UNREADABLE as exc:
+            if isinstance(exc, OSError) and machine_fault(exc):  # not a damaged file: say what the machine did
+                raise atomic.named(exc, candidate) from None
             problems.append(f"{candidate} unreadable ({_why(exc)})")
             continue
         if candidate == prev:
