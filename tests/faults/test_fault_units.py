@@ -220,3 +220,19 @@ def test_a_model_the_user_may_not_read_is_a_permission_error_not_a_corrupt_file(
     assert result.stderr.strip().splitlines() == [f"error: {run / 'model.pt'}: permission denied; check its "
                                                   "permissions and its folder's (ls -l); for an output, choose a "
                                                   "folder you may write to (-o)"]
+
+
+def test_a_checkpoint_the_machine_cannot_read_is_not_taken_for_a_damaged_one(tmp_path, monkeypatch):
+    run = str(tmp_path)
+    os.makedirs(os.path.join(run, "checkpoints"))
+    for it in (10, 20):
+        ckpt.save_checkpoint(run, {"iteration": it, "model": {}})
+
+    def failing_device(path, *args, **kwargs):
+        raise OSError(errno.EIO, os.strerror(errno.EIO), str(path))
+
+    monkeypatch.setattr(torch, "load", failing_device)
+    with pytest.raises(OSError) as err:
+        ckpt.load_checkpoint(run)
+    assert err.value.errno == errno.EIO and err.value.filename == ckpt.checkpoint_path(run)
+    assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["last.pt", "prev.pt"]  # nothing set aside
