@@ -57,7 +57,8 @@ class _Handler(SimpleHTTPRequestHandler):
         that cannot name a file (a NUL, bad percent escapes) gets 400, never a traceback in the user's terminal."""
         port = self.server.server_address[1]
         host = (self.headers.get("Host") or "").strip().lower()
-        if host not in {f"{HOST}:{port}", f"localhost:{port}"}:
+        ours = {f"{HOST}:{port}", f"localhost:{port}"} | ({HOST, "localhost"} if port == 80 else set())
+        if host not in ours:  # (a browser leaves out port 80)
             self.send_error(HTTPStatus.MISDIRECTED_REQUEST, "this viewer answers only to its own address")
             return True
         try:
