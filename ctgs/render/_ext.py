@@ -13,8 +13,9 @@ different kernels never share (or fight over) a build, and a header change rebui
 venvs with the same kernels: torch writes absolute source and include paths into the folder's build.ninja, so one
 folder shared by two of them was rebuilt (a minute) at every switch between them.
 
-A one-line message on stderr says when a build starts; when torch recompiles a folder that was built before (its
-sources' timestamps changed, e.g. by a git checkout) the same line comes once the load has taken BUILD_NOTE_S.
+A one-line message on stderr says when a build starts; when torch recompiles a folder that was built before (it
+finds the build out of date, e.g. the sources' timestamps changed in a git checkout), a line says so once the load
+has taken BUILD_NOTE_S.
 """
 
 from __future__ import annotations
@@ -145,8 +146,8 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
         print(note, file=sys.stderr, flush=True)
     else:  # built before: torch may still recompile (sources touched since); say so if it takes a while
         late = threading.Timer(BUILD_NOTE_S, lambda: print(
-            f"ctgs: recompiling the {what} renderer extension (its sources changed on disk since the last build, "
-            f"{first_use}) in {folder} ...", file=sys.stderr, flush=True))
+            f"ctgs: recompiling the {what} renderer extension (torch found the build out of date, e.g. sources "
+            f"touched since; {first_use}) in {folder} ...", file=sys.stderr, flush=True))
         late.daemon = True
         late.start()
     try:
