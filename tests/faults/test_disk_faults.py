@@ -15,8 +15,8 @@ from contextlib import contextmanager
 import pytest
 
 from ctgs.errors import OS_ERROR_EXIT
-from fault_helpers import (STAGES, assert_nothing_half_written, assert_one_line_failure, can_mount, cli, fill,
-                           inject_enospc, small_fs, stage_commands)
+from fault_helpers import (STAGES, assert_nothing_half_written, assert_one_line_failure, can_mount, cli,
+                           ctgs_subprocess, fill, inject_enospc, small_fs, stage_commands)
 
 MOUNT = can_mount()
 needs_mount = pytest.mark.skipif(not MOUNT, reason="mounting a tmpfs needs root (the injected cases still run)")
@@ -103,3 +103,19 @@ def test_enospc_injected_at_each_write(stage, pipeline, tmp_path, monkeypatch):
             line = assert_one_line_failure(cli(args), codes=(OS_ERROR_EXIT,), needles=("no space left",))
         assert dest in line, line
         assert_nothing_half_written(stage, out, dest)
+
+
+@needs_mount
+@pytest.mark.parametrize("stage", ["render", "train", "export-spz"])
+def test_full_disk_in_a_real_process_prints_one_line(stage, pipeline):
+    # The in-process cases cannot see what C libraries print on file descriptor 2 (libpng, torch's zip writer):
+    # a real `ctgs` process on a full disk, its whole stderr.
+    with small_fs(4096) as fs:
+        args, out = stage_commands(pipeline, fs)[stage]
+        filler = fill(fs, 0)
+        done = ctgs_subprocess(args)
+        os.remove(filler)
+        lines = [line for line in done.stderr.splitlines() if line.strip()]
+        assert done.returncode == OS_ERROR_EXIT and len(lines) == 1, (done.returncode, done.stderr[-2000:])
+        assert lines[0].startswith(f"error: {fs}") and "no space left on the device" in lines[0], lines
+        assert_nothing_half_written(stage, out, fs)
