@@ -125,6 +125,34 @@ def agreement(scene_dir: str, reference: dict, ref_focal: float) -> dict:
             "focal_error_pct": float(100 * (np.mean(focals) / ref_focal - 1))}
 
 
+def run_in_tmux(cmd: list[str], args) -> subprocess.CompletedProcess:
+    """Run `cmd` in a detached tmux terminal (so that ctgs draws its progress bars) and append what the terminal
+    shows every --capture-every seconds to the --capture file."""
+    session = f"sfm_modes_{os.getpid()}"
+    done = os.path.join(args.work, f".{session}.exit")
+    if os.path.exists(done):
+        os.remove(done)
+    shell = f"cd {shlex.quote(args.work)} && {shlex.join(cmd)}; echo $? > {shlex.quote(done)}; sleep 3600"
+    subprocess.run(["tmux", "new-session", "-d", "-s", session, "-x", "120", "-y", "24", shell], check=True)
+    start = time.perf_counter()
+    with open(args.capture, "a") as log:
+        log.write(f"$ {shlex.join(cmd)}\n")
+        while True:
+            finished = os.path.exists(done)
+            time.sleep(0.5 if finished else args.capture_every)
+            pane = subprocess.run(["tmux", "capture-pane", "-p", "-t", session], capture_output=True, text=True).stdout
+            log.write(f"--- {time.perf_counter() - start:.0f} s, {time.strftime('%H:%M:%S', time.gmtime())} UTC, load "
+                      f"average {os.getloadavg()[0]:.1f} ---\n{pane.rstrip()}\n")
+            log.flush()
+            if finished:
+                break
+    subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True)
+    with open(done) as f:
+        code = int(f.read().strip() or 1)
+    os.remove(done)
+    return subprocess.CompletedProcess(cmd, code, "", pane)
+
+
 def run_mode(args, mode: str, reference: dict, ref_focal: float, ref_source: str, commit: str) -> dict:
     ctgs = shlex.split(args.ctgs) if args.ctgs else [os.path.join(os.path.dirname(sys.executable), "ctgs")]
     if mode == "default":  # the command's own defaults (e.g. an older ctgs without these options)
@@ -140,7 +168,10 @@ def run_mode(args, mode: str, reference: dict, ref_focal: float, ref_source: str
     load_start, date = list(os.getloadavg()), time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     start, cpu = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
     # Run from the work folder: `python -m ctgs` would otherwise import the checkout's ctgs from the current folder.
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=args.work)
+    if args.capture:
+        proc = run_in_tmux(cmd, args)
+    else:
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=args.work)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_s = (after.ru_utime + after.ru_stime) - (cpu.ru_utime + cpu.ru_stime)
@@ -154,6 +185,8 @@ def run_mode(args, mode: str, reference: dict, ref_focal: float, ref_source: str
               "reference": ref_source, "notes": args.note}
     if proc.returncode == 0:
         report = read_report(out)
+        if args.capture:  # the tmux server, not this process, was the command's parent
+            record["cpu_s"] = sum(report.cpu_seconds.values())
         record["report"] = vars(report)
         record["agreement"] = agreement(out, reference, ref_focal)
     if not args.keep:
@@ -248,6 +281,9 @@ def main() -> int:
     ap.add_argument("--work", default="/tmp/sfm_modes", help="where the scenes are made (removed unless --keep)")
     ap.add_argument("--keep", action="store_true", help="keep the scenes made")
     ap.add_argument("--note", action="append", default=[], help="a line recorded in the results (repeatable)")
+    ap.add_argument("--capture", help="run each command in a tmux terminal and append its screen to this file every "
+                    "--capture-every seconds (the progress display); CPU seconds then come from sfm_report.json")
+    ap.add_argument("--capture-every", type=float, default=30.0)
     ap.add_argument("--tag", default="", help="appended to the record names (e.g. a subset's name)")
     args = ap.parse_args()
     os.makedirs(args.work, exist_ok=True)

@@ -463,6 +463,7 @@ def _undistort(work: str, images_dir: str, opts: SfmOptions, progress: ProgressF
 
     _run_worker(work, "undistort", {"output": out, "model": os.path.join(work, "distorted", "best"),
                                     "images_dir": images_dir, "threads": opts.threads}, poll, verbose)
+    poll()
     # pycolmap writes the model straight into sparse/; training and 3DGS tools expect sparse/0/.
     sparse, sparse0 = os.path.join(out, "sparse"), os.path.join(out, "sparse", "0")
     os.makedirs(sparse0, exist_ok=True)
