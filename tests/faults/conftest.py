@@ -30,6 +30,7 @@ def pipeline(tmp_path_factory) -> dict:
     _ok(["export", p["run"], "-o", p["model"]])
     _ok(["compress", p["model"], "-o", p["small"]])
     _ok(["export", p["run"], "--format", "web", "-o", f"{root}/run/webmodel"])
+    assert os.path.isfile(f"{p['web']}/atlas_000.bin"), "the tiny run has no texels: the atlas cases need some"
     _ok(["eval", p["run"], "--no-lpips"])  # run/eval/metrics.json, for eval --table
     for fmt, ext in GAUSSIAN_FILES.items():  # the files for Gaussian viewers, which eval --model reads back
         _ok(["export", p["run"], "--format", fmt, "-o", f"{root}/run/m.{ext}"])
