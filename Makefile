@@ -81,7 +81,7 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	scene=$(or $(SCENE_DIR_$*),$(DATA_ROOT)/$$dataset/$*); \
 	if [ -n "$(SCENE_DIR_$*)" ]; then test -d $$scene || { echo "SCENE_DIR_$*=$$scene: no such folder" >&2; exit 2; }; \
 	else test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; fi; \
-	resume=$$(test -d $(RUNS)/$*/checkpoints && echo --resume); \
+	resume=$$(test -d $(RUNS)/$*/checkpoints && echo --resume || true); \
 	$(CTGS) train $$scene -o $(RUNS)/$* --images $(or $(IMAGES),$$images) --set holdout=$$holdout $(TRAIN_OPTS) $$resume
 
 # Any run folder (benchmark scenes and the demo alike): export, then compress the export.
