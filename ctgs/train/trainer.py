@@ -391,6 +391,9 @@ class Trainer:
             training_loss(rgb, view.image_t, self.model, view.camera, self.cfg, rasterized=rasterized,
                           textures=inputs.textures).total.backward()
             self.opt.step(self.model, lrs)
+            # as the loop does after every step: learning rates that make the copy diverge make the run diverge
+            # (said as such, before a render of non-finite parameters fails on its input checks)
+            self._check_finite(None)
 
         seconds = _median_seconds(step, device=self.device)
         if self.cfg.lambda_normal > 0:  # its share of the run's steps (from normal_from on)

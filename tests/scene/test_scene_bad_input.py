@@ -115,7 +115,8 @@ def _one_line_error(fn, *needles) -> str:
 
 def test_loader_missing_scene_and_image_folder(tmp_path, tiny_demo):
     _one_line_error(lambda: load_scene(str(tmp_path / "absent")), "absent", "not found")
-    _one_line_error(lambda: load_scene(tiny_demo, images="images_4"), "images_4", "available: images")
+    # (a missing images_N is made from images/: ctgs.scene.levels, tests/scene/test_levels.py)
+    _one_line_error(lambda: load_scene(tiny_demo, images="photos_4"), "photos_4", "available: images")
     shutil.rmtree(os.path.join(tiny_demo, "sparse"))
     _one_line_error(lambda: load_scene(tiny_demo), "sparse", "ctgs sfm")
 
