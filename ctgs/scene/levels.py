@@ -12,11 +12,11 @@ from __future__ import annotations
 import hashlib
 import os
 import re
-import shutil
 import sys
 import tempfile
 
 from ctgs.errors import UserError
+from ctgs.io import atomic
 from ctgs.io.images import image_info, list_images, read_image, resize_image, write_image
 
 LEVEL = re.compile(r"^images_([1-9][0-9]*)$")
@@ -45,11 +45,9 @@ def _writable(folder: str) -> bool:
 
 
 def make_level(src: str, dst: str, factor: int, names: list[str]) -> None:
-    """dst/<name> for each photo of src, shrunk by `factor`; written to a hidden sibling, renamed when complete."""
-    parent = os.path.dirname(dst)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(dst)}.tmp-", dir=parent)
-    try:
+    """dst/<name> for each photo of src, shrunk by `factor`; written to a hidden sibling (ctgs.io.atomic: swept when a
+    killed run left it), renamed when complete."""
+    with atomic.atomic_dir(dst, replace=False) as tmp:
         for name in names:
             path = os.path.join(src, name)
             bits = 16 if image_info(path).format == "uint16" else 8
@@ -57,11 +55,6 @@ def make_level(src: str, dst: str, factor: int, names: list[str]) -> None:
             h, w = pixels.shape[:2]
             small = resize_image(pixels, max(1, round(w / factor)), max(1, round(h / factor)))
             write_image(os.path.join(tmp, name), small, bits=bits)
-        os.chmod(tmp, 0o755)
-        os.replace(tmp, dst)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def level_dir(scene_dir: str, images: str, quiet: bool = False) -> str | None:
@@ -84,9 +77,5 @@ def level_dir(scene_dir: str, images: str, quiet: bool = False) -> str | None:
         if not quiet:
             print(f"ctgs: {scene_dir} has no {images}: making it from images/ ({len(names)} photos shrunk {factor}x, "
                   f"as `ctgs sfm` does) in {dst}", file=sys.stderr)
-        try:
-            make_level(src, dst, factor, names)
-        except OSError as exc:
-            raise UserError(f"{dst}: could not write {images} ({exc.strerror or exc}); free space or pass an "
-                            f"existing --images") from None
+        make_level(src, dst, factor, names)  # a full disk or a read-only cache: the CLI's one line names dst
     return dst
