@@ -1,5 +1,5 @@
-"""The product names no history of its making: no "session N", no "vmN" tags, no "lent" machines in README, docs,
-the package, tests, configs or the benchmark scripts, nor in the names of recorded results. History lives in
+"""The product names no history of its making (numbered work sessions, VM tags, borrowed machines: WORDS) in README,
+docs, the package, tests, configs or the benchmark scripts, nor in the names of recorded results. History lives in
 CHANGELOG.md (by version and date) and in git; a machine is named by what it is, a run by its commit and date."""
 
 from __future__ import annotations
