@@ -67,7 +67,7 @@ def main() -> None:
     if views:
         lines += ["", f"Per test view, over the {len(views)} seed(s) whose records keep each view's PSNR "
                   "(the first view of herzjesu25's one-sided trajectory is an extrapolation; "
-                  "benchmarks/results/findings/train_findings.md):", "",
+                  "docs/studies.md):", "",
                   "| view | content-aware mean | 2dgs mean | paired difference |", "| --- | ---: | ---: | --- |"]
         for name in sorted(views[0][0]):
             d = [a[name] - b[name] for a, b in views]

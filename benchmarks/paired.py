@@ -2,7 +2,7 @@
 
 On herzjesu25 one pair of runs says little: the test mean is over four views, and the first (the trajectory's
 first camera, an extrapolation) swings by 3-4 dB from run to run with what the model happens to put where no
-training view looked (benchmarks/results/findings/train_findings.md, 'What the first test view measures'). This trains
+training view looked (docs/studies.md, 'Why does a herzjesu25 test mean swing between runs?'). This trains
 A and B at each seed on the protocol split (every 8th view is a test view; nothing is chosen from them here:
 A and B are fixed before the runs), two trainings at a time in seed order (1 thread each; A and B of a seed
 start together), then `ctgs export` + `ctgs eval` of the exported model, and reports per

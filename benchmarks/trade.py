@@ -217,7 +217,7 @@ def write(rows: list[dict], args) -> None:
     with_views = [r for r in rows if r.get("per_view_psnr")]
     if with_views:  # records written before per-view PSNR was kept have none
         lines += ["", "Test PSNR per view (the mean above is over these; the first view of a one-sided trajectory "
-                  "is an extrapolation: benchmarks/results/findings/train_findings.md, 'What the first test view measures'):", ""]
+                  "is an extrapolation: docs/studies.md):", ""]
         for scene, scale in sorted({(r["scene"], r["scale"]) for r in with_views}):
             group = [r for r in with_views if (r["scene"], r["scale"]) == (scene, scale)]
             names = sorted({v for r in group for v in r["per_view_psnr"]})

@@ -19,7 +19,7 @@ recipe is reproduced exactly; elsewhere:
   (tau_tr 5 texels: 13% of the primitives split at every routine), against 3,185 at the end with the paper's
   32 texels; on the 96x72 demo (400 fast iterations, validation views) tau x (HW/1e6)**e gave 21.96 dB at
   e = 0, 17.6 at 0.25, 11.84 at 0.5 (1k, 3.7k, 21k primitives): `tau_tr_pixel_exponent` (default 0) keeps
-  the option, measured in benchmarks/results/findings/train_findings.md;
+  the option, measured in docs/studies.md;
 - lambda_texture (texture sparsity, summed over texels): x 1e6 / pixels. The photometric loss is a mean
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
 - the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a

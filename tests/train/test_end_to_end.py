@@ -22,7 +22,7 @@ ITERATIONS = 400
 # Measured: 16.19 dB test PSNR at 400 iterations of the fast preset on this 96x72 scene (16.50 before it took mult4
 # textures over +-2 sigma: CI and the dev VM agreed on that figure;
 # 1 thread, deterministic); a constant colour scores 13.9 dB. Its two test views are the scene's hardest: the
-# validation views of the same run score 21.96 dB (benchmarks/results/findings/train_findings.md). The floor leaves 1 dB
+# validation views of the same run score 21.96 dB (docs/studies.md). The floor leaves 1 dB
 # for other CPUs' rounding: it catches a run that stopped learning, not a small regression.
 PSNR_FLOOR = 15.5
 
