@@ -1,5 +1,5 @@
 """The product names no history of its making (numbered work sessions, VM tags, borrowed machines: WORDS) in README,
-docs, the package, tests, configs or the benchmark scripts, nor in the names of recorded results. History lives in
+docs, the package, tests, configs, the benchmark scripts or the recorded results (names and contents). History lives in
 CHANGELOG.md (by version and date) and in git; a machine is named by what it is, a run by its commit and date."""
 
 from __future__ import annotations
@@ -20,9 +20,10 @@ def _tracked(paths):
 
 
 def _text_files():
-    """Tracked files of the product, the records' contents excepted (they quote the commands that made them)."""
+    """Tracked text files of the product, the records in benchmarks/results included (their commands, notes and
+    sources name records by their current names and runs by commit and date)."""
     for path in _tracked(TEXT_PATHS):
-        if path.startswith("benchmarks/results/") or path == THIS:
+        if path == THIS:
             continue
         if os.path.exists(os.path.join(ROOT, path)):
             yield path
