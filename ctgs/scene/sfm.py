@@ -55,6 +55,8 @@ RETRIEVAL_OVERLAP = 3
 # Sequential pairing: COLMAP's default overlap (quadratic), and loop closure by retrieval.
 SEQUENTIAL_OVERLAP = 10
 LOOP_NEIGHBOURS = 5
+# The global mapper's photos with fewer 3D points than this are registered again (ctgs.scene.sfm_worker.map_global).
+MIN_POINTS_PER_IMAGE = 20
 # SIFT features per photo (COLMAP's default).
 DEFAULT_MAX_FEATURES = 8192
 # Free space needed before starting, per photo feature (keypoint 24 B + descriptor 128 B) and per matched
@@ -112,6 +114,7 @@ class SfmReport:
     mapper: str = "incremental"
     max_features: int = DEFAULT_MAX_FEATURES
     pairs: int = 0  # image pairs matched
+    reregistered: list[str] = field(default_factory=list)  # photos the global mapper left without points, redone
     inputs_digest: str = ""  # of the photos' names, sizes and first bytes: which photos made this scene
 
 
@@ -439,7 +442,8 @@ def _map(work: str, images_dir: str, names: list[str], opts: SfmOptions, mapper:
                 progress("mapping", min(int(done), total), total, "photos registered")
 
     result = _run_worker(work, call, {"database": os.path.join(work, "database.db"), "images_dir": images_dir,
-                                      "output": out, "threads": opts.threads, "seed": opts.seed}, poll, verbose)
+                                      "output": out, "threads": opts.threads, "seed": opts.seed,
+                                      "min_points": MIN_POINTS_PER_IMAGE}, poll, verbose)
     registered = int(result.get("registered", 0))
     if not result.get("models"):
         raise UserError(f"{images_dir}: SfM could not register any image pair (too little overlap or texture); "
@@ -516,13 +520,15 @@ def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: 
         seconds[step] = float(figures[0])
         cpu_seconds[step] = float(figures[1]) if len(figures) > 1 else float("nan")
     pairs = _count_rows(os.path.join(work, "database.db"), "two_view_geometries") or 0
+    reregistered = _read_json(os.path.join(work, "map_global.result.json")).get("reregistered", [])
     return SfmReport(
         images_dir=images_dir, scene_dir=scene_dir, given=len(names), registered=len(registered),
         points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
         mean_track_length=float(rec.compute_mean_track_length()), camera_model=cam.model.name,
         width=int(cam.width), height=int(cam.height), fx=fx, fy=fy, cx=cx, cy=cy, matcher=matcher,
         unregistered=sorted(set(names) - registered), seconds=seconds, pycolmap_version=pycolmap.__version__,
-        cpu_seconds=cpu_seconds, mapper=mapper, max_features=opts.max_features, pairs=pairs, inputs_digest=_inputs_digest(images_dir, names),
+        cpu_seconds=cpu_seconds, mapper=mapper, max_features=opts.max_features, pairs=pairs, reregistered=reregistered,
+        inputs_digest=_inputs_digest(images_dir, names),
     )
 
 

@@ -273,3 +273,15 @@ def test_a_really_full_disk_is_one_line(tmp_path, monkeypatch, tiny_demo_master)
         assert not (small / "out").exists()
     finally:
         subprocess.run(["umount", str(small)], check=True)
+
+
+@pytest.mark.slow
+def test_global_mapper_photos_without_points_are_registered_again(tmp_path, monkeypatch, demo24):
+    """The repair after the global mapper (a photo it keeps with too few 3D points is taken out and registered again
+    by the incremental mapper, the rest held fixed), forced here on the demo photos with the fewest points."""
+    monkeypatch.setattr(sfm, "MIN_POINTS_PER_IMAGE", 450)
+    sfm.run_sfm(os.path.join(demo24, "images"), str(tmp_path / "g"), sfm.SfmOptions(matcher="exhaustive",
+                                                                                     mapper="global", threads=2))
+    report = json.load(open(tmp_path / "g" / "sfm_report.json"))
+    assert report["reregistered"], "no photo below the threshold: the repair did not run"
+    assert report["registered"] == VIEWS and report["mean_reprojection_error_px"] < 1.0
