@@ -108,6 +108,41 @@ $(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json
 # Keep every intermediate artifact (make would otherwise delete the chain's middle files).
 .SECONDARY:
 
+# LAUNCHER=slurm: the same per-scene targets as Slurm jobs, one per scene, and a last job writing the table
+# (ctgs/launch/slurm.py, docs/guide/cluster.md). Options: SLURM_TOML (configs/slurm/defaults.toml), overridden by
+# PARTITION= ACCOUNT= TIME_LIMIT= GPUS= CPUS= MEM= SBATCH_OPTS=; SLURM_WAIT=1 returns when the sweep has ended.
+# A re-run submits only the scenes neither finished nor queued; `make status` says where each scene is.
+LAUNCHER ?=
+SLURM_TOML ?= configs/slurm/defaults.toml
+SLURM_WAIT ?=
+PARTITION ?=
+ACCOUNT ?=
+TIME_LIMIT ?=
+GPUS ?=
+CPUS ?=
+MEM ?=
+SBATCH_OPTS ?=
+# What each job's make is given: this make's pipeline variables (never LAUNCHER: a job runs its scene where it is).
+SLURM_MAKE_ARGS = -o $(STAMP) -o $(LPIPS_WEIGHTS) PRESET=$(PRESET) CONFIG=$(CONFIG) ITERATIONS=$(ITERATIONS) \
+	TIME_BUDGET=$(TIME_BUDGET) IMAGES=$(IMAGES) SEED=$(SEED) DATA_ROOT=$(DATA_ROOT) BACKEND=$(BACKEND) RUNS=$(RUNS) \
+	COMPRESS_TARGET=$(COMPRESS_TARGET) VENV=$(VENV) CTGS_CACHE_DIR=$(CTGS_CACHE_DIR) \
+	$(foreach s,$(SCENES),$(if $(SCENE_DIR_$(s)),SCENE_DIR_$(s)=$(SCENE_DIR_$(s))))
+
+.PHONY: status
+status: | $(STAMP)
+	@$(PY) -m ctgs.launch.slurm status --runs $(RUNS) --scenes "$(SCENES)"
+
+ifeq ($(LAUNCHER),slurm)
+all table: | $(STAMP) $(LPIPS_WEIGHTS)
+	@test -n "$(SCENES)" || { echo 'usage: make all SCENES="bicycle garden ..." LAUNCHER=slurm [PARTITION= ACCOUNT= TIME_LIMIT= GPUS= CPUS= MEM= SBATCH_OPTS= SLURM_TOML= SLURM_WAIT=1] [PRESET= CONFIG= ITERATIONS= ... as without LAUNCHER]'; exit 2; }
+	$(PY) -m ctgs.launch.slurm submit --root $(CURDIR) --runs $(RUNS) --scenes "$(SCENES)" --python $(PY) \
+		--config "$(SLURM_TOML)" --partition "$(PARTITION)" --account "$(ACCOUNT)" --time "$(TIME_LIMIT)" \
+		--gpus "$(GPUS)" --cpus "$(CPUS)" --mem "$(MEM)" --sbatch-opts "$(SBATCH_OPTS)" $(if $(SLURM_WAIT),--wait) \
+		-- $(SLURM_MAKE_ARGS)
+else ifneq ($(LAUNCHER),)
+all table:
+	@echo "LAUNCHER=$(LAUNCHER): unknown launcher; use LAUNCHER=slurm, or leave LAUNCHER empty to run the scenes on this machine" >&2; exit 2
+else
 all:
 	@test -n "$(SCENES)" || { echo 'usage: make all SCENES="bicycle garden ..." [PRESET= CONFIG= ITERATIONS= TIME_BUDGET= IMAGES= SEED= DATA_ROOT= SCENE_DIR_<scene>= BACKEND= RUNS=]'; exit 2; }
 	$(MAKE) --no-print-directory $(foreach s,$(SCENES),$(RUNS)/$(s)/eval/metrics.json $(RUNS)/$(s)/eval-compressed/metrics.json)
@@ -115,6 +150,7 @@ all:
 table: all
 	$(CTGS) eval --table $(foreach s,$(SCENES),$(RUNS)/$(s)/eval) -o $(RUNS)/table
 	$(CTGS) eval --table $(foreach s,$(SCENES),$(RUNS)/$(s)/eval-compressed) -o $(RUNS)/table-compressed
+endif
 
 # The built-in demo scene, end to end (the README's first command).
 $(DEMO_DIR)/scene/sparse: | $(STAMP)
