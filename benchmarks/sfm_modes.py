@@ -38,7 +38,7 @@ sys.path.insert(0, REPO)
 sys.path.insert(0, os.path.join(REPO, "benchmarks"))
 
 from ctgs.scene.align import align_cameras, camera_poses  # noqa: E402
-from ctgs.scene.sfm import DEFAULT_MAX_FEATURES, read_report  # noqa: E402
+from ctgs.scene.sfm import read_report  # noqa: E402
 
 RESULTS = os.path.join(REPO, "benchmarks", "results", "sfm")
 
@@ -161,8 +161,8 @@ def run_mode(args, mode: str, reference: dict, ref_focal: float, ref_source: str
     else:
         parts = mode.split("/")
         matcher, mapper = parts[0], parts[1] if len(parts) > 1 else "auto"
-        features = int(parts[2]) if len(parts) > 2 else DEFAULT_MAX_FEATURES
-        options = ["--matcher", matcher, "--mapper", mapper, "--max-features", str(features)]
+        features = parts[2] if len(parts) > 2 else "auto"
+        options = ["--matcher", matcher, "--mapper", mapper, "--max-features", "0" if features == "auto" else features]
     out = os.path.join(args.work, f"{args.scene}_{matcher}-{mapper}-{features}")
     cmd = [*ctgs, "sfm", args.images_dir, "-o", out, *options, "--threads", str(args.threads), "--force"]
     load_start, date = list(os.getloadavg()), time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())

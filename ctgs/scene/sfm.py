@@ -14,6 +14,7 @@ matched, photos registered) from the database and the worker's progress file. py
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -57,8 +58,10 @@ SEQUENTIAL_OVERLAP = 10
 LOOP_NEIGHBOURS = 5
 # The global mapper's photos with fewer 3D points than this are registered again (ctgs.scene.sfm_worker.map_global).
 MIN_POINTS_PER_IMAGE = 20
-# SIFT features per photo (COLMAP's default).
+# SIFT features per photo: COLMAP's default up to EXHAUSTIVE_MAX_IMAGES photos, fewer above, where matching and
+# mapping cost grow with them (--max-features 0, the default: "auto").
 DEFAULT_MAX_FEATURES = 8192
+LARGE_CAPTURE_MAX_FEATURES = 4096
 # Free space needed before starting, per photo feature (keypoint 24 B + descriptor 128 B) and per matched
 # pair (matches and inlier matches, ~2,000 of 8 B each), plus the undistorted images and the pyramid (about
 # 1.6x the input files).
@@ -73,7 +76,7 @@ LOW_SPACE_BYTES = 64 << 20
 class SfmOptions:
     matcher: str = "auto"  # "auto" | "exhaustive" | "sequential" (video frames, in name order) | "retrieval"
     mapper: str = "auto"  # "auto" | "incremental" | "global"
-    max_features: int = DEFAULT_MAX_FEATURES  # SIFT features per photo
+    max_features: int = 0  # SIFT features per photo; 0: by the number of photos (resolve_modes)
     max_image_size: int = 3200  # pixels, longest side seen by SIFT (COLMAP's default)
     threads: int = -1  # -1: all cores
     force: bool = False  # redo every step even if finished
@@ -81,13 +84,15 @@ class SfmOptions:
     device: str = "auto"  # "auto": SIFT extraction and matching on the GPU when pycolmap was built with CUDA
 
 
-def resolve_modes(opts: SfmOptions, num_images: int) -> tuple[str, str]:
-    """(matcher, mapper) that "auto" stands for with this many photos."""
+def resolve_modes(opts: SfmOptions, num_images: int) -> tuple[str, str, int]:
+    """(matcher, mapper, max features) that "auto" (and max_features 0) stand for with this many photos."""
     matcher = opts.matcher if opts.matcher != "auto" else (
         "exhaustive" if num_images <= EXHAUSTIVE_MAX_IMAGES else "retrieval")
     mapper = opts.mapper if opts.mapper != "auto" else (
         "incremental" if num_images < GLOBAL_MIN_IMAGES else "global")
-    return matcher, mapper
+    features = opts.max_features or (
+        DEFAULT_MAX_FEATURES if num_images <= EXHAUSTIVE_MAX_IMAGES else LARGE_CAPTURE_MAX_FEATURES)
+    return matcher, mapper, features
 
 
 @dataclass
@@ -582,9 +587,10 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
         raise UserError(f"--matcher {opts.matcher}: unknown matcher; use one of {', '.join(MATCHERS)}")
     if opts.mapper not in MAPPERS:
         raise UserError(f"--mapper {opts.mapper}: unknown mapper; use one of {', '.join(MAPPERS)}")
-    if opts.max_features < 64:
-        raise UserError(f"--max-features {opts.max_features}: too few for SfM; use 1024 or more (default "
-                        f"{DEFAULT_MAX_FEATURES})")
+    if opts.max_features and opts.max_features < 64:
+        raise UserError(f"--max-features {opts.max_features}: too few for SfM; use 1024 or more (or 0: "
+                        f"{DEFAULT_MAX_FEATURES} up to {EXHAUSTIVE_MAX_IMAGES} photos, {LARGE_CAPTURE_MAX_FEATURES} "
+                        f"above)")
     images_dir, scene_dir = os.path.abspath(images_dir), os.path.abspath(scene_dir)
     if scene_dir == images_dir:
         raise UserError(f"{scene_dir}: SCENE_DIR must differ from IMAGES_DIR (it gets its own images/ folder)")
@@ -616,7 +622,8 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
 
 def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions, status: StatusFn,
                progress: ProgressFn, verbose: bool) -> tuple[SfmReport, bool]:
-    matcher, mapper = resolve_modes(opts, len(names))
+    matcher, mapper, features = resolve_modes(opts, len(names))
+    opts = dataclasses.replace(opts, max_features=features)
     work = _work_dir(scene_dir)
     os.makedirs(os.path.dirname(work), exist_ok=True)
     _prepare_work(work, _inputs_fingerprint(images_dir, names, opts, matcher, mapper), opts.force)

@@ -48,7 +48,8 @@ class _Bars:
 @click.option("--mapper", type=click.Choice(["auto", "incremental", "global"]), default="auto", show_default=True,
               help="incremental: COLMAP's, photo by photo; global: GLOMAP's (pycolmap.global_mapping), all photos at "
                    "once, faster on large captures; auto: incremental below 100 photos, global from 100.")
-@click.option("--max-features", default=8192, show_default=True, help="SIFT features per photo.")
+@click.option("--max-features", default=0, show_default=True,
+              help="SIFT features per photo at most; 0: 8192 up to 100 photos, 4096 above.")
 @click.option("--max-image-size", default=3200, show_default=True, help="Longest side seen by SIFT, pixels.")
 @click.option("--threads", default=-1, show_default=True, help="CPU threads (-1: all cores).")
 @click.option("--force", is_flag=True, help="Redo every step, replacing a finished SCENE_DIR.")

@@ -167,11 +167,12 @@ def test_retrieval_pairs_and_global_mapper_reconstruct_the_demo_scene(tmp_path, 
 
 def test_auto_modes_follow_the_number_of_photos():
     small, large = sfm.EXHAUSTIVE_MAX_IMAGES, sfm.EXHAUSTIVE_MAX_IMAGES + 1
-    assert sfm.resolve_modes(sfm.SfmOptions(), small)[0] == "exhaustive"
-    assert sfm.resolve_modes(sfm.SfmOptions(), large)[0] == "retrieval"
+    assert sfm.resolve_modes(sfm.SfmOptions(), small)[::2] == ("exhaustive", sfm.DEFAULT_MAX_FEATURES)
+    assert sfm.resolve_modes(sfm.SfmOptions(), large)[::2] == ("retrieval", sfm.LARGE_CAPTURE_MAX_FEATURES)
+    assert sfm.resolve_modes(sfm.SfmOptions(max_features=2048), large)[2] == 2048
     assert sfm.resolve_modes(sfm.SfmOptions(), sfm.GLOBAL_MIN_IMAGES - 1)[1] == "incremental"
     assert sfm.resolve_modes(sfm.SfmOptions(), sfm.GLOBAL_MIN_IMAGES)[1] == "global"
-    assert sfm.resolve_modes(sfm.SfmOptions(matcher="sequential", mapper="incremental"), 10**4) == \
+    assert sfm.resolve_modes(sfm.SfmOptions(matcher="sequential", mapper="incremental"), 10**4)[:2] == \
         ("sequential", "incremental")
 
 
