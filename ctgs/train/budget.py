@@ -179,8 +179,8 @@ class BudgetPlanner:
     def observe_step(self, seconds: float, it: int) -> None:
         """A training step `it` took `seconds`. The calibration (timed on a copy of the model, possibly while the
         machine is busy with something else: at 768x512 beside another training compiling its extension it read
-        2.2x the real step) stands for the step cost only until steps are measured; then the cost is the median of
-        the last RECENT_STEPS measured steps (per unit of g), their slowest and fastest TRIM left out."""
+        2.2x the real step) stands for the step cost only until steps are measured; then the cost is the mean of the
+        last RECENT_STEPS measured steps (per unit of g), their slowest and fastest TRIM left out."""
         self.recent.append(seconds / self._g_now(it))
         self.n_obs += 1
         self.base = _trimmed_mean(self.recent)
