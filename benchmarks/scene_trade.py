@@ -162,7 +162,8 @@ def markdown(res: dict) -> str:
                    f"{r['params']} | {r['params_per_observed_value'] or 0:.3f} | {r['fps']:.1f} | "
                    f"{r['bytes_on_disk'] / 1e6:.1f} | {100 * (r['open_pixels'] or 0):.1f}% | "
                    + (f"{tc['spearman_weighted']:.2f}" if tc else "-") + " |")
-    out += ["", "Means over seeds:", "", "| variant | PSNR | SSIM | LPIPS | params | primitives |", "|---|---:|---:|---:|---:|---:|"]
+    out += ["", "Means over seeds:", "", "| variant | PSNR | SSIM | LPIPS | params | primitives |",
+            "|---|---:|---:|---:|---:|---:|"]
     for v in res["variants"]:
         rs = [r for r in res["rows"] if r["variant"] == v]
         if not rs:

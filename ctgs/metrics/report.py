@@ -168,7 +168,8 @@ def build_table(metrics_list: list[dict], references: dict | None = None) -> tup
                 res = _resolution(row)
                 md.append("| " + " | ".join([dataset, name, res] + [_fmt(row.get(k), f) for _, k, f in TABLE_COLUMNS])
                           + " |")
-                w.writerow([dataset, name, res] + ["" if row.get(k) is None else row.get(k) for _, k, _ in TABLE_COLUMNS])
+                w.writerow([dataset, name, res] + ["" if row.get(k) is None else row.get(k)
+                                                   for _, k, _ in TABLE_COLUMNS])
         means = {k: _mean([m.get(k) for m in rows]) for _, k, _ in TABLE_COLUMNS}
         md.append("| " + " | ".join([f"**{dataset}**", f"**mean{suffix} ({len(rows)})**", ""] +
                                     [_fmt(means[k], f) for _, k, f in TABLE_COLUMNS]) + " |")
