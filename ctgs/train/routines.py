@@ -24,8 +24,7 @@ def error_views(views, cfg, it: int) -> list:
 def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None, lean: bool = True,
                  gains=None) -> dict:
     """E over the training views (all, or cfg.error_views of them); split (tau_tr), upscale top E (t2p_exp > min),
-    downscale the others
-    (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
+    downscale the others (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
 
     background: optional function model -> [N] bool of primitives the ranking leaves out (never split or upscaled;
     the top fraction is taken among the others).
