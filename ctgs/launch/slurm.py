@@ -150,8 +150,11 @@ QUEUED = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEU
 def last_line(runs: str, scene: str) -> str:
     """The last line of the scene's log that says something: not the job scripts' own marks, not make's
     `*** [...] Error N` echo of the failure."""
-    path = os.path.join(runs, scene, LOG_NAME)
-    if not os.path.isfile(path):
+    return _last(os.path.join(runs, scene, LOG_NAME))
+
+
+def _last(path: str) -> str:
+    if not path or not os.path.isfile(path):
         return ""
     with open(path, "rb") as fh:
         fh.seek(max(0, os.path.getsize(path) - 65536))
@@ -213,8 +216,14 @@ def print_status(runs: str, scenes: list[str] | None) -> list[tuple[str, str, st
     if table:
         tstate = queue_states([table]).get(table, ("", ""))[0]
         made = os.path.isfile(os.path.join(runs, "table", "table.md"))
-        print(f"{'table':<{width}}  {'done' if made and tstate in ('', 'COMPLETED') else (tstate.lower() or 'failed'):<14} "
-              f"{table:<10} {os.path.join(runs, 'table', 'table.md') if made else os.path.join(runs, 'slurm')}")
+        if made and tstate in ("", "COMPLETED"):
+            said, detail = "done", os.path.join(runs, "table", "table.md")
+        elif tstate in QUEUED:
+            said, detail = tstate.lower(), "after the scenes"
+        else:
+            tlog = jobs.get("table_log") or os.path.join(runs, "slurm")
+            said, detail = "failed", f"{_last(tlog) or 'no table'} ({tlog})"
+        print(f"{'table':<{width}}  {said:<14} {table:<10} {detail}")
     return rows
 
 
@@ -369,7 +378,7 @@ def submit(args) -> int:
         subprocess.run(["scancel", old], capture_output=True)
     if not todo and not waiting:
         print(f"every scene is finished; the table: make table SCENES=\"{' '.join(scenes)}\" RUNS={runs}")
-        jobs["table"] = None
+        jobs["table"] = jobs["table_log"] = None
         write_jobs(runs, jobs)
         return 0
     script = os.path.join(folder, "table.sh")
@@ -379,6 +388,7 @@ def submit(args) -> int:
     cmd = ["sbatch", "--parsable", f"--job-name={name}-table", f"--dependency=afterany:{':'.join(after)}",
            f"--chdir={root}", f"--output={folder}/table.out"] + _sbatch_opts(tsec, sc["account"])
     jobs["table"] = _slurm(cmd + extra + [script]).strip().split(";")[0]
+    jobs["table_log"] = os.path.join(folder, "table.out")
     write_jobs(runs, jobs)
     print(f"table: job {jobs['table']} writes {os.path.join(runs, 'table', 'table.md')} once the scenes are done; "
           f"make status RUNS={runs} shows where each scene is")
