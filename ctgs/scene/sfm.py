@@ -495,18 +495,15 @@ def _shrink_one(src: str, scene_dir: str, name: str, factors) -> None:
         write_image(os.path.join(scene_dir, f"images_{f}", name), small, bits=bits)
 
 
-def build_pyramid(scene_dir: str, factors=PYRAMID_FACTORS, threads: int = 1,
-                  progress: ProgressFn = _no_progress) -> None:
-    """scene_dir/images_F for each factor F: every image shrunk by F (antialiased, OpenImageIO), `threads` images
-    at a time."""
-    from concurrent.futures import ThreadPoolExecutor
-
+def build_pyramid(scene_dir: str, factors=PYRAMID_FACTORS, progress: ProgressFn = _no_progress) -> None:
+    """scene_dir/images_F for each factor F: every image shrunk by F (antialiased, OpenImageIO). One image at a
+    time: write_image points file descriptor 2 at /dev/null while it reads a file back, process-wide, so writes
+    from two threads can leave stderr (and the progress display) silenced."""
     src = os.path.join(scene_dir, "images")
     names = list_images(src)
-    workers = max(1, threads if threads > 0 else (os.cpu_count() or 1))
-    with ThreadPoolExecutor(workers) as pool:
-        for done, _ in enumerate(pool.map(lambda n: _shrink_one(src, scene_dir, n, factors), names), 1):
-            progress("pyramid", done, len(names), "photos")
+    for done, name in enumerate(names, 1):
+        _shrink_one(src, scene_dir, name, factors)
+        progress("pyramid", done, len(names), "photos")
 
 
 def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions, matcher: str,
@@ -639,7 +636,7 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
             ("mapping", f"mapping: {mapper}", lambda: _map(work, images_dir, names, opts, mapper, progress, verbose)),
             ("undistort", "undistorting", lambda: _undistort(work, images_dir, opts, progress, verbose)),
             ("pyramid", "images_2/4/8",
-             lambda: build_pyramid(os.path.join(work, "scene"), threads=opts.threads, progress=progress)),
+             lambda: build_pyramid(os.path.join(work, "scene"), progress=progress)),
         ):
             if _done(work, step):
                 continue
