@@ -95,9 +95,10 @@ def _slurm(args: list[str]) -> str:
     env = {k: v for k, v in os.environ.items() if k not in MAKE_ENV}
     r = subprocess.run([_need(args[0])] + args[1:], capture_output=True, text=True, env=env)
     if r.returncode != 0:
-        said = " ".join((r.stderr or r.stdout).split()) or f"exit {r.returncode}"
-        raise UserError(f"{args[0]} failed: {said} (the options come from SLURM_TOML and PARTITION= ACCOUNT= "
-                        "TIME_LIMIT= GPUS= CPUS= MEM= SBATCH_OPTS=)")
+        lines = [line.strip() for line in (r.stderr or r.stdout).splitlines() if line.strip()]
+        said = next((line.split("error: ", 1)[1] for line in lines if "error: " in line), " ".join(lines))
+        raise UserError(f"{args[0]} refused: {said or f'exit {r.returncode}'} (the options come from SLURM_TOML and "
+                        "PARTITION= ACCOUNT= TIME_LIMIT= GPUS= CPUS= MEM= SBATCH_OPTS=)")
     return r.stdout
 
 

@@ -95,6 +95,11 @@ def test_two_scenes_through_slurm_end_in_one_table(slurm, work, sweep):
     assert again.returncode == 0, again.stderr
     assert "tinya: finished" in again.stdout and "tinyb: finished" in again.stdout
     assert "submitted as job" not in again.stdout
+    # what sbatch refuses (here a partition the cluster lacks) is one line naming where the options come from
+    bad = _make(*_sweep_args(base, scene, base / "runs-bad", ["tinya"]), "PARTITION=nosuch", env=_env(slurm, base))
+    assert bad.returncode != 0
+    assert bad.stderr.startswith("error: sbatch refused: invalid partition specified: nosuch (the options come from "
+                                 "SLURM_TOML and PARTITION="), bad.stderr
 
 
 @pytest.mark.slow
@@ -184,6 +189,9 @@ def test_without_sbatch_the_submission_says_so(tmp_path):
     r = subprocess.run([sys.executable, "-m", "ctgs.launch.slurm", "submit", "--scenes", "nosuch",
                         "--runs", str(tmp_path / "runs")], env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "no manifest lists a scene 'nosuch'" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "ctgs.launch.slurm", "submit", "--scenes", "tinya", "--gpus", "one",
+                        "--runs", str(tmp_path / "runs")], env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "GPUS=one: should be a whole number" in r.stderr, r.stderr
 
 
 def test_status_from_the_files_alone(tmp_path):
