@@ -29,8 +29,8 @@ archive = "none"
 [scenes.tinyb]
 archive = "none"
 """
-# both tests: the requeued run is compared with the uninterrupted one (the fast preset checkpoints every 30 here)
-ITERATIONS = 300
+# both tests: the requeued run is compared with the uninterrupted one (the fast preset checkpoints every 40 here)
+ITERATIONS = 400
 
 
 def _make(*args, env, timeout=600):
