@@ -139,14 +139,18 @@ def test_sigterm_ends_sfm_at_once_during_its_steps_and_is_restored_after(tmp_pat
 
 
 @pytest.mark.slow
-def test_retrieval_pairs_and_global_mapper_reconstruct_the_demo_scene(tmp_path, demo24):
+def test_retrieval_pairs_and_global_mapper_reconstruct_the_demo_scene(tmp_path, monkeypatch, demo24):
     """The large-capture path on a small one: retrieval pairing (the capture's own vocabulary) and the global
-    mapper register the arc, with the same report and layout; progress reaches every step's total."""
+    mapper register the arc, with the same report and layout; progress reaches every step's total. The repair after
+    the global mapper (a photo it keeps with too few 3D points is registered again by the incremental mapper, the
+    rest held fixed) is forced on the demo photos with the fewest points."""
+    monkeypatch.setattr(sfm, "MIN_POINTS_PER_IMAGE", 450)
     seen: dict[str, list] = {}
     report, ran = sfm.run_sfm(os.path.join(demo24, "images"), str(tmp_path / "big"),
                               sfm.SfmOptions(matcher="retrieval", mapper="global", threads=2),
                               progress=lambda step, done, total, note: seen.setdefault(step, []).append((done, total)))
     assert ran and report.matcher == "retrieval" and report.mapper == "global"
+    assert report.reregistered, "no photo below the threshold: the repair did not run"
     n = VIEWS
     assert 0 < report.pairs < n * (n - 1) // 2  # fewer pairs than exhaustive
     assert report.registered >= 0.9 * n and report.mean_reprojection_error_px < 1.0
@@ -275,14 +279,3 @@ def test_a_really_full_disk_is_one_line(tmp_path, monkeypatch, tiny_demo_master)
     finally:
         subprocess.run(["umount", str(small)], check=True)
 
-
-@pytest.mark.slow
-def test_global_mapper_photos_without_points_are_registered_again(tmp_path, monkeypatch, demo24):
-    """The repair after the global mapper (a photo it keeps with too few 3D points is taken out and registered again
-    by the incremental mapper, the rest held fixed), forced here on the demo photos with the fewest points."""
-    monkeypatch.setattr(sfm, "MIN_POINTS_PER_IMAGE", 450)
-    sfm.run_sfm(os.path.join(demo24, "images"), str(tmp_path / "g"), sfm.SfmOptions(matcher="exhaustive",
-                                                                                     mapper="global", threads=2))
-    report = json.load(open(tmp_path / "g" / "sfm_report.json"))
-    assert report["reregistered"], "no photo below the threshold: the repair did not run"
-    assert report["registered"] == VIEWS and report["mean_reprojection_error_px"] < 1.0
