@@ -44,12 +44,12 @@ class _Bars:
               help="Which photo pairs to match. exhaustive: every pair; retrieval: each photo with its 20 most similar "
                    "photos (a vocabulary made from the capture's own features) and its next 3 in name order; "
                    "sequential: video frames, neighbours in name order plus loop closure; auto: exhaustive up to "
-                   "100 photos, retrieval above.")
+                   "50 photos, retrieval above.")
 @click.option("--mapper", type=click.Choice(["auto", "incremental", "global"]), default="auto", show_default=True,
               help="incremental: COLMAP's, photo by photo; global: GLOMAP's (pycolmap.global_mapping), all photos at "
-                   "once, faster on large captures; auto: incremental below 100 photos, global from 100.")
+                   "once, faster on large captures; auto: incremental below 50 photos, global from 50.")
 @click.option("--max-features", default=0, show_default=True,
-              help="SIFT features per photo at most; 0: 8192 up to 100 photos, 4096 above.")
+              help="SIFT features per photo at most; 0: 8192 up to 50 photos, 4096 above.")
 @click.option("--max-image-size", default=3200, show_default=True, help="Longest side seen by SIFT, pixels.")
 @click.option("--threads", default=-1, show_default=True, help="CPU threads (-1: all cores).")
 @click.option("--force", is_flag=True, help="Redo every step, replacing a finished SCENE_DIR.")
