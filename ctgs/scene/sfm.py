@@ -52,11 +52,11 @@ MAPPERS = ("auto", "incremental", "global")
 # features, 0.22 at 8,192); at 50 photos exhaustive matching costs ~1.8x retrieval's, at 63 2.4x (181 vs 75 CPU s)
 # with no better cameras. herzjesu25 (25 photos) stays exhaustive: as accurate as before, no slower.
 EXHAUSTIVE_MAX_IMAGES = 50
-# --mapper auto: incremental mapping below this many photos, the global mapper from it. Measured: herzjesu25 (25)
+# --mapper auto: incremental mapping below this many photos (up to 50), the global mapper from it. herzjesu25 (25)
 # maps in 24 CPU s incrementally vs 42 globally, the same cameras; bonsai252's every-4th 63 photos mapped
 # incrementally came out wrong (focal -13% to -17%, from exhaustive or retrieval pairs), globally right (0.54% mean
 # centre error) in 23 CPU s vs 91; bonsai252 maps globally in 172-311 CPU s (incrementally: 1,795 s wall before).
-GLOBAL_MIN_IMAGES = 50
+GLOBAL_MIN_IMAGES = 51
 # Retrieval pairing: each photo with its most similar photos, and its next ones in name order.
 RETRIEVAL_NEIGHBOURS = 20
 RETRIEVAL_OVERLAP = 3

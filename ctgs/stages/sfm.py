@@ -47,7 +47,7 @@ class _Bars:
                    "50 photos, retrieval above.")
 @click.option("--mapper", type=click.Choice(["auto", "incremental", "global"]), default="auto", show_default=True,
               help="incremental: COLMAP's, photo by photo; global: GLOMAP's (pycolmap.global_mapping), all photos at "
-                   "once, faster on large captures; auto: incremental below 50 photos, global from 50.")
+                   "once, faster on large captures; auto: incremental up to 50 photos, global above.")
 @click.option("--max-features", default=0, show_default=True,
               help="SIFT features per photo at most; 0: 8192 up to 50 photos, 4096 above.")
 @click.option("--max-image-size", default=3200, show_default=True, help="Longest side seen by SIFT, pixels.")
