@@ -39,6 +39,7 @@ sys.path.insert(0, os.path.join(REPO, "benchmarks"))
 
 from ctgs.scene.align import align_cameras, camera_poses  # noqa: E402
 from ctgs.scene.sfm import read_report  # noqa: E402
+from sfm_accuracy import read_gt_dir, write_atomic  # noqa: E402
 
 RESULTS = os.path.join(REPO, "benchmarks", "results", "sfm")
 
@@ -47,8 +48,8 @@ def _commit() -> str:
     """The checkout's commit, "+" when ctgs's sfm code differs from it (others' uncommitted work elsewhere in the
     shared checkout does not count)."""
     out = subprocess.run(["git", "-C", REPO, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    changed = subprocess.run(["git", "-C", REPO, "status", "--porcelain", "ctgs/scene/sfm.py", "ctgs/scene/sfm_pairs.py",
-                              "ctgs/scene/sfm_worker.py", "ctgs/stages/sfm.py"],
+    sfm_code = ["ctgs/scene/sfm.py", "ctgs/scene/sfm_pairs.py", "ctgs/scene/sfm_worker.py", "ctgs/stages/sfm.py"]
+    changed = subprocess.run(["git", "-C", REPO, "status", "--porcelain", *sfm_code],
                              capture_output=True, text=True).stdout.strip()
     return (out.stdout.strip() or "unknown") + ("+" if changed else "")
 
@@ -93,8 +94,6 @@ def reference_cameras(args) -> tuple[dict, float, str]:
         centres, rotations = _poses(rec, names)
         focal = float(np.mean([_focal(c) for c in rec.cameras.values()]))
         return {n: (c, r) for n, c, r in zip(names, centres, rotations)}, focal, f"COLMAP model {args.reference}"
-    from sfm_accuracy import read_gt_dir
-
     from ctgs.io.images import image_info, list_images
 
     gt = read_gt_dir(args.gt_cameras)
@@ -248,21 +247,16 @@ def summary(records: list[dict], args) -> str:
         mode = "/".join(dict.fromkeys(str(v) for v in r["mode"].values()))
         load = f"{r['load_average_start'][0]:.1f} / {r['load_average_end'][0]:.1f}"
         if r["exit_code"] != 0:
-            lines.append(f"| {mode} | {r['date_utc'][11:19]} | {load} | failed (exit {r['exit_code']}) | | | | | | | | |")
+            lines.append(f"| {mode} | {r['date_utc'][11:19]} | {load} | failed (exit {r['exit_code']}) "
+                         "| | | | | | | | |")
             continue
         rep, a = r["report"], r["agreement"]
-        lines.append(f"| {mode} | {r['date_utc'][11:19]} | {load} | {_steps(r, 'seconds')} | {_steps(r, 'cpu_seconds')} "
-                     f"| {r['wall_s']:.0f} / {r['cpu_s']:.0f} | {rep['registered']}/{rep['given']} | {rep['pairs']} | {rep['mean_reprojection_error_px']:.3f} "
+        lines.append(f"| {mode} | {r['date_utc'][11:19]} | {load} | {_steps(r, 'seconds')} | "
+                     f"{_steps(r, 'cpu_seconds')} | {r['wall_s']:.0f} / {r['cpu_s']:.0f} | {rep['registered']}/"
+                     f"{rep['given']} | {rep['pairs']} | {rep['mean_reprojection_error_px']:.3f} "
                      f"| {a['center_error_mean_pct']:.3f} / {a['center_error_max_pct']:.3f} | "
                      f"{a['rotation_error_mean_deg']:.3f} | {a['focal_error_pct']:+.3f} |")
     return "\n".join(lines) + "\n"
-
-
-def _write(path: str, text: str) -> None:
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 def main() -> int:
@@ -297,11 +291,11 @@ def main() -> int:
         m = record["mode"]
         stem = os.path.join(RESULTS, f"{args.scene}{args.tag}_{m['matcher']}-{m['mapper']}-{m['max_features']}_"
                                      f"{commit}")
-        _write(stem + ".json", json.dumps(record, indent=1) + "\n")
-        _write(stem + ".md", markdown(record))
+        write_atomic(stem + ".json", json.dumps(record, indent=1) + "\n")
+        write_atomic(stem + ".md", markdown(record))
         print(markdown(record), flush=True)
     text = summary(records, args)
-    _write(os.path.join(RESULTS, f"{args.scene}{args.tag}_modes_{commit}.md"), text)
+    write_atomic(os.path.join(RESULTS, f"{args.scene}{args.tag}_modes_{commit}.md"), text)
     print(text)
     return 0
 
