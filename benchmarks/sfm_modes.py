@@ -22,11 +22,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import shlex
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -39,7 +37,7 @@ sys.path.insert(0, os.path.join(REPO, "benchmarks"))
 
 from ctgs.scene.align import align_cameras, camera_poses  # noqa: E402
 from ctgs.scene.sfm import read_report  # noqa: E402
-from sfm_accuracy import read_gt_dir, write_atomic  # noqa: E402
+from sfm_accuracy import machine_info, read_gt_dir, write_atomic  # noqa: E402
 
 RESULTS = os.path.join(REPO, "benchmarks", "results", "sfm")
 
@@ -55,17 +53,14 @@ def _commit() -> str:
 
 
 def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
-    except OSError:
-        pass
+    """sfm_accuracy's machine description (without its git, date and load: these records hold their own), and
+    whether pycolmap has CUDA."""
     import pycolmap
 
-    return {"hostname": socket.gethostname(), "cpu_model": cpu, "logical_cores": os.cpu_count(),
-            "platform": platform.platform(), "python": platform.python_version(), "pycolmap": pycolmap.__version__,
-            "cuda": bool(pycolmap.has_cuda)}
+    info = machine_info()
+    for key in ("git", "date_utc", "load_average", "numpy"):
+        info.pop(key, None)
+    return {**info, "cuda": bool(pycolmap.has_cuda)}
 
 
 def _poses(rec, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
