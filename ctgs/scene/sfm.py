@@ -423,10 +423,12 @@ def _match(work: str, opts: SfmOptions, matcher: str = "exhaustive", progress: P
     return total
 
 
-# Phases of the global mapper, as its log names them (the last one seen is shown while it runs).
-GLOBAL_PHASES = (("rotation averaging", "rotation averaging"), ("track establishment", "tracks"),
-                 ("global positioning", "global positioning"), ("bundle adjustment", "bundle adjustment"),
-                 ("retriangulation", "retriangulation"))
+# Phases of the global mapper, as its log's "=== Running ... ===" lines name them (the last one seen is shown while
+# it runs; other lines name phases too, e.g. a warning about bundle adjustment on the GPU during positioning).
+GLOBAL_PHASES = (("running rotation averaging", "rotation averaging"), ("running track establishment", "tracks"),
+                 ("running global positioning", "global positioning"),
+                 ("running iterative bundle adjustment", "bundle adjustment"),
+                 ("running iterative retriangulation", "retriangulation"))
 
 
 def _global_phase(log: str) -> str:
