@@ -6,6 +6,7 @@ atomic checkpoints, and on success model.pt + train_summary.json into the run fo
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import math
@@ -17,7 +18,7 @@ import numpy as np
 import torch
 
 from ctgs import fused
-from ctgs.errors import UserError
+from ctgs.errors import Terminated, UserError
 from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
@@ -442,51 +443,8 @@ class Trainer:
         if self.estimator is not None:
             yield Estimated(self.it, cfg.iterations, self.estimator.estimates[0][1])
         while self.it < cfg.iterations:
-            t0 = time.perf_counter()
-            self.it += 1
-            it = self.it
-            self.model.sh_degree = schedule.sh_degree(cfg, it)
-            view = self._next_view()
-            # A random background colour per step (cfg.random_background) makes transparency unpredictable,
-            # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
-            bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
-            inputs = self.model.render_inputs()
-            rgb, rasterized = self._training_render(inputs, view, bg)
-            if self.exposure is not None:
-                rgb = self.exposure.apply(rgb, self.view_index[view.name])
-            terms = training_loss(rgb, view.image_t, self.model, view.camera, cfg, rasterized=rasterized,
-                                  textures=inputs.textures)
-            loss = terms.total
-            if cfg.debug_nan_at and it == cfg.debug_nan_at:
-                loss = loss * float("nan")  # testing hook for the NaN guard
-            self._check_finite(loss)
-            for name in ALL_PARAMS:
-                getattr(self.model, name).grad = None
-            loss.backward()
-            if cfg.method != "content_aware" and it <= schedule.at(cfg, cfg.densify_until):
-                self.acc.add_view(self.model.means, self.model.means.grad, view.camera)
-            self._virtual_step(it)
-            self._normal_step(it, view)
-            lrs = schedule.learning_rates(cfg, it, self.extent, self.model.sh.shape[1], self.device)
-            self.opt.step(self.model, lrs)
-            if self.exposure is not None:
-                self.exposure.step()
-                if (cfg.exposure_check > 0 and not self.exposure.checked
-                        and it >= max(1, round(cfg.exposure_check * cfg.iterations))):
-                    self._log({"type": "exposure_check", "it": it, **self.exposure.check(cfg.exposure_min_gain)})
-            self._check_finite(loss.detach())
-            t1 = time.perf_counter()
-            events = list(self._adapt(it))
-            if self.model.num_primitives == 0:
-                self._no_primitives_left(events)
-            t2 = time.perf_counter()
-            self.train_seconds += t2 - t0
-            if (clock := self._clock) is not None:
-                clock.observe_step(t1 - t0, it)
-                if any(ev.kind == "texture_start" for ev in events):
-                    clock.observe_texture_start(it)
-                if any(ev.kind in ("full", "late") for ev in events):
-                    clock.observe_routine(t2 - t1, it)
+            with self._whole_step():
+                it, loss, terms, lrs, events = self._train_step(cfg)
             if it % cfg.log_every == 0 or it == 1:
                 self._log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                            "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
@@ -544,6 +502,69 @@ class Trainer:
         self._save_checkpoint()
         summary = self._finish(p, s)
         yield Done(self.it, summary)
+
+    def _train_step(self, cfg: TrainConfig):
+        """One iteration: a random training view, loss, backward, Adam, then the schedule's routines (_adapt).
+        Returns (iteration, loss, loss terms, learning rates, routine events)."""
+        t0 = time.perf_counter()
+        self.it += 1
+        it = self.it
+        self.model.sh_degree = schedule.sh_degree(cfg, it)
+        view = self._next_view()
+        # A random background colour per step (cfg.random_background) makes transparency unpredictable,
+        # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
+        bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
+        inputs = self.model.render_inputs()
+        rgb, rasterized = self._training_render(inputs, view, bg)
+        if self.exposure is not None:
+            rgb = self.exposure.apply(rgb, self.view_index[view.name])
+        terms = training_loss(rgb, view.image_t, self.model, view.camera, cfg, rasterized=rasterized,
+                              textures=inputs.textures)
+        loss = terms.total
+        if cfg.debug_nan_at and it == cfg.debug_nan_at:
+            loss = loss * float("nan")  # testing hook for the NaN guard
+        self._check_finite(loss)
+        for name in ALL_PARAMS:
+            getattr(self.model, name).grad = None
+        loss.backward()
+        if cfg.method != "content_aware" and it <= schedule.at(cfg, cfg.densify_until):
+            self.acc.add_view(self.model.means, self.model.means.grad, view.camera)
+        self._virtual_step(it)
+        self._normal_step(it, view)
+        lrs = schedule.learning_rates(cfg, it, self.extent, self.model.sh.shape[1], self.device)
+        self.opt.step(self.model, lrs)
+        if self.exposure is not None:
+            self.exposure.step()
+            if (cfg.exposure_check > 0 and not self.exposure.checked
+                    and it >= max(1, round(cfg.exposure_check * cfg.iterations))):
+                self._log({"type": "exposure_check", "it": it, **self.exposure.check(cfg.exposure_min_gain)})
+        self._check_finite(loss.detach())
+        t1 = time.perf_counter()
+        events = list(self._adapt(it))
+        if self.model.num_primitives == 0:
+            self._no_primitives_left(events)
+        t2 = time.perf_counter()
+        self.train_seconds += t2 - t0
+        if (clock := self._clock) is not None:
+            clock.observe_step(t1 - t0, it)
+            if any(ev.kind == "texture_start" for ev in events):
+                clock.observe_texture_start(it)
+            if any(ev.kind in ("full", "late") for ev in events):
+                clock.observe_routine(t2 - t1, it)
+        return it, loss, terms, lrs, events
+
+    @contextlib.contextmanager
+    def _whole_step(self):
+        """Ctrl-C and SIGTERM (a cluster's time limit or preemption) wait for the step to end, then a checkpoint of
+        that state is written before the stop goes on: `--resume` loses no step (the periodic checkpoint may be
+        up to checkpoint_every iterations older)."""
+        try:
+            with atomic.signals_deferred():
+                yield
+        except (KeyboardInterrupt, Terminated):
+            if self.it > 0:
+                self._save_checkpoint()
+            raise
 
     def _device_memory(self) -> dict:
         """{"cuda_peak_mb": peak memory torch's allocator has held on the training GPU so far} on CUDA, else {}

@@ -170,3 +170,30 @@ def test_sigterm_before_the_first_checkpoint_removes_the_run_folder(scene, tmp_p
     code, err = _train_then_terminate(scene, run, os.path.isdir, sets=("iterations=100000",))
     assert code == 143 and "stack trace" not in err and "Traceback" not in err, err
     assert "before the first checkpoint" in err and not os.path.exists(run)
+
+
+def _logged_steps(run: str) -> int:
+    path = os.path.join(run, "log.jsonl")
+    if not os.path.exists(path):
+        return 0
+    with open(path) as f:
+        return sum(1 for line in f if '"type": "step"' in line)
+
+
+def test_sigterm_mid_run_checkpoints_the_last_whole_step(scene, tmp_path):
+    """A cluster's time limit or a preemption (SIGTERM) between periodic checkpoints: the step under way ends, a
+    checkpoint of that state is written, and --resume continues from there (no step lost, none done twice)."""
+    import torch
+
+    run = str(tmp_path / "term_mid")
+    code, err = _train_then_terminate(scene, run, lambda r: _logged_steps(r) >= 8,
+                                      sets=("iterations=100000", "checkpoint_every=100000"))
+    assert code == 143 and "Traceback" not in err, err
+    state = torch.load(os.path.join(run, "checkpoints", "last.pt"), map_location="cpu", weights_only=False)
+    assert state["iteration"] >= 8, state["iteration"]  # no periodic checkpoint was due: this is the stop's
+    assert state["iteration"] >= _logged_steps(run)  # the step under way finished before it was written
+    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.train.trainer import Trainer
+
+    cfg = resolve_config(scene, run, None, None, (), None, True, None, None)  # the run's own config, as --resume
+    assert Trainer(cfg, _load_scene(cfg), run, resume=True).it == state["iteration"]
