@@ -27,7 +27,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -37,26 +36,17 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import record  # noqa: E402
+from trade import ctgs  # noqa: E402 (runs `python -m ctgs ...`, output appended to a log)
 
 METRICS = ("psnr", "ssim", "lpips", "points", "texels", "params", "fps", "bytes_on_disk", "train_seconds")
-
-
-def run_cmd(cmd: list[str], log: str) -> None:
-    with open(log, "a") as fh:
-        fh.write("$ " + " ".join(cmd) + "\n")
-        fh.flush()
-        r = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT)
-    if r.returncode != 0:
-        raise RuntimeError(f"failed ({r.returncode}): {' '.join(cmd)}; see {log}")
 
 
 def train_one(args, variant: str, seed: int, threads: int) -> str:
     run = os.path.join(args.work, f"{args.scene}_{args.images}_{args.minutes:g}min_{variant}_s{seed}")
     if os.path.isfile(os.path.join(run, "eval", "metrics.json")):
         return run
-    ctgs = [sys.executable, "-m", "ctgs"]
     preset = args.baseline_preset if variant == "2dgs" else variant
-    train = ctgs + ["train", args.scene_dir, "-o", run, "--images", args.images, "--preset", preset,
+    train = ["train", args.scene_dir, "-o", run, "--images", args.images, "--preset", preset,
                     "--time-budget", f"{args.minutes:g}", "--seed", str(seed), "--set", f"threads={threads}", "-q"]
     if variant == "2dgs":
         train += ["--config", "2dgs"]
@@ -66,10 +56,10 @@ def train_one(args, variant: str, seed: int, threads: int) -> str:
     log = run + ".log"
     if not os.path.isfile(os.path.join(run, "model.pt")):
         resume = ["--resume"] if os.path.isdir(os.path.join(run, "checkpoints")) else []
-        run_cmd(train + resume, log)
-    run_cmd(ctgs + ["export", run, "-o", os.path.join(run, "model")], log)
-    run_cmd(ctgs + ["eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"),
-                    "--scene-name", args.scene], log)
+        ctgs(*train, *resume, log=log)
+    ctgs("export", run, "-o", os.path.join(run, "model"), log=log)
+    ctgs("eval", run, "--model", os.path.join(run, "model"), "-o", os.path.join(run, "eval"), "--scene-name", args.scene,
+         log=log)
     return run
 
 
@@ -216,6 +206,7 @@ def main() -> None:
     ap.add_argument("--no-content", action="store_true", help="skip the texel-size analysis")
     ap.add_argument("--name", default=None, help="record name (default from scene, images, minutes, variants)")
     args = ap.parse_args()
+    args.scene_dir, args.work = os.path.abspath(args.scene_dir), os.path.abspath(args.work)  # the runs' cwd is the repo
     args.load_start = os.getloadavg()
     threads = max(1, (os.cpu_count() or 2) // max(args.parallel, 1))
     jobs = [(v, s) for s in args.seeds for v in args.variants]
