@@ -225,7 +225,7 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
 
 // Blocks per SM the float kernel is compiled for: 3 by default (at most 80 registers: more warps to hide latency;
 // 0.91-1.00x the uncapped kernel's time in benchmarks/results/bench_cuda/1920x1080_variants_ba45e3f.md, 0.96x in training in
-// gpu_train_probe/texagg_ba45e3f.md; the GPU agreement tests pass with it, gpu_session/pytest_mb3_d47581f.log), or from
+// gpu_train_probe/texagg_ba45e3f.md; the GPU agreement tests pass with it, gpu_tests/pytest_mb3_d47581f.log), or from
 // CTGS_CUDA_BWD_MIN_BLOCKS: 1 (no register cap; 91 registers and 34 KB of shared memory per block allowed 2
 // blocks, 25% occupancy on an H200, benchmarks/results/bench_cuda/ncu_before_1M_f0ac038.txt), 3, or 4 (at most 64 registers).
 // Read at every launch so that one process can compare them (benchmarks/bench_cuda.py --bwd-min-blocks).
