@@ -6,7 +6,8 @@ content-aware models, whether texel size follows the content.
         --minutes 15 --variants fast 2dgs --seeds 0 1 2 --work /tmp/trade [--parallel 2] [--validation]
 
 Variants: a preset name (preview, fast, balanced, paper) or `2dgs` (the baseline under --baseline-preset, default
-fast). With --parallel 2 two runs train at once, one thread each: every pair shares the machine alike, so their
+fast). A variant may carry config overrides after `@`, comma-separated:
+`fast@primitives_per_pixel=0.8,max_params_per_value=0.5` (a recipe study, on --validation views). With --parallel 2 two runs train at once, one thread each: every pair shares the machine alike, so their
 times stay comparable (a run alone on 2 cores would not be). Runs already finished in --work are reused.
 --validation trains on the training views less a validation split (validation_holdout 8) and scores on it: the
 split for choices; the default scores the protocol's test views, for reporting only.
@@ -42,14 +43,18 @@ METRICS = ("psnr", "ssim", "lpips", "points", "texels", "params", "fps", "bytes_
 
 
 def train_one(args, variant: str, seed: int, threads: int) -> str:
-    run = os.path.join(args.work, f"{args.scene}_{args.images}_{args.minutes:g}min_{variant}_s{seed}")
+    tag = variant.replace("@", "_").replace(",", "_").replace("=", "")
+    run = os.path.join(args.work, f"{args.scene}_{args.images}_{args.minutes:g}min_{tag}_s{seed}")
     if os.path.isfile(os.path.join(run, "eval", "metrics.json")):
         return run
-    preset = args.baseline_preset if variant == "2dgs" else variant
+    name, _, overrides = variant.partition("@")
+    preset = args.baseline_preset if name == "2dgs" else name
     train = ["train", args.scene_dir, "-o", run, "--images", args.images, "--preset", preset,
                     "--time-budget", f"{args.minutes:g}", "--seed", str(seed), "--set", f"threads={threads}", "-q"]
-    if variant == "2dgs":
+    if name == "2dgs":
         train += ["--config", "2dgs"]
+    for kv in filter(None, overrides.split(",")):
+        train += ["--set", kv]
     if args.validation:
         train += ["--set", "validation_holdout=8"]
     os.makedirs(args.work, exist_ok=True)
@@ -213,7 +218,7 @@ def main() -> None:
     with ThreadPoolExecutor(max(args.parallel, 1)) as pool:
         runs = dict(zip(jobs, pool.map(lambda j: train_one(args, j[0], j[1], threads), jobs)))
     res = summarise(args, runs)
-    name = args.name or (f"{args.scene}_{args.images}_{args.minutes:g}min_{'_'.join(args.variants)}_"
+    name = args.name or (f"{args.scene}_{args.images}_{args.minutes:g}min_{'_'.join(v.partition('@')[0] for v in args.variants)}_"
                          f"{len(args.seeds)}seed{'s' if len(args.seeds) > 1 else ''}"
                          + ("_validation" if args.validation else ""))
     path = record.stem("scene_trade", name)
