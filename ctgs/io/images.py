@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -179,23 +180,80 @@ def _write_error(path: str, tmp: str, detail: str) -> OSError:
 
 
 def _verify_written(path: str, tmp: str, width: int, height: int, channels: int, notes: str = "") -> None:
-    """Read the just-written file back whole: a write that failed silently (an empty or cut file) is an OSError
-    here, before the temporary becomes `path`."""
+    """Check the just-written file whole: a write that failed silently (an empty or cut file) is an OSError here,
+    before the temporary becomes `path`. PNG and JPEG (renders, strips, image pyramids) are checked by their structure
+    (every PNG chunk's CRC, the JPEG end marker, the size in the header) without decoding: a decoder's read-back needs
+    stderr silenced for libpng's own line on a cut file, and that silence is process-wide (a progress display in
+    another thread would lose its output). Other formats are read back through OpenImageIO."""
     if os.path.getsize(tmp) == 0:
         raise _write_error(path, tmp, "the written file is empty")
-    with stderr_silenced():  # libpng prints its own line for a cut file; the OSError says it
-        inp = oiio.ImageInput.open(tmp)
-        if inp is None:
-            raise _write_error(path, tmp, f"the written file does not read back ({_oiio_message()})")
-        try:
-            spec = inp.spec()
-            pixels = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
-            if pixels is None or inp.has_error or (spec.width, spec.height, spec.nchannels) != (width, height,
-                                                                                                 channels):
-                raise _write_error(path, tmp, f"the written file does not read back whole "
-                                   f"({_first_line(notes or inp.geterror() or 'size differs')})")
-        finally:
-            inp.close()
+    ext = os.path.splitext(tmp)[1].lower()
+    if ext in (".png", ".jpg", ".jpeg"):
+        with open(tmp, "rb") as f:
+            data = f.read()
+        problem = _png_problem(data, width, height, channels) if ext == ".png" else _jpeg_problem(data, width, height)
+        if problem:
+            raise _write_error(path, tmp, f"the written file does not read back whole ({problem}"
+                               + (f"; {_first_line(notes)}" if notes else "") + ")")
+        return
+    inp = oiio.ImageInput.open(tmp)
+    if inp is None:
+        raise _write_error(path, tmp, f"the written file does not read back ({_oiio_message()})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+        if pixels is None or inp.has_error or (spec.width, spec.height, spec.nchannels) != (width, height, channels):
+            raise _write_error(path, tmp, f"the written file does not read back whole "
+                               f"({_first_line(notes or inp.geterror() or 'size differs')})")
+    finally:
+        inp.close()
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}  # colour type -> channels
+
+
+def _png_problem(data: bytes, width: int, height: int, channels: int) -> str | None:
+    """Why `data` is not a whole PNG of this size, or None: the signature, IHDR, every chunk's CRC and IEND last."""
+    if not data.startswith(_PNG_SIGNATURE):
+        return "no PNG signature"
+    pos, seen_ihdr = len(_PNG_SIGNATURE), False
+    while pos + 12 <= len(data):
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind, end = data[pos + 4:pos + 8], pos + 12 + length
+        if end > len(data):
+            return f"chunk {kind!r} cut short"
+        if zlib.crc32(data[pos + 4:pos + 8 + length]) != int.from_bytes(data[end - 4:end], "big"):
+            return f"chunk {kind!r} damaged"
+        if kind == b"IHDR":
+            w, h = int.from_bytes(data[pos + 8:pos + 12], "big"), int.from_bytes(data[pos + 12:pos + 16], "big")
+            c = _PNG_CHANNELS.get(data[pos + 17], 0)
+            if (w, h, c) != (width, height, channels):
+                return f"{w}x{h}x{c} written, {width}x{height}x{channels} meant"
+            seen_ihdr = True
+        if kind == b"IEND":
+            return None if seen_ihdr and end == len(data) else "IEND before the image header or not last"
+        pos = end
+    return "no IEND chunk (cut short)"
+
+
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _jpeg_problem(data: bytes, width: int, height: int) -> str | None:
+    """Why `data` is not a whole JPEG of this size, or None: SOI first, a frame header of this size, EOI last."""
+    if not data.startswith(b"\xff\xd8"):
+        return "no JPEG start marker"
+    if not data.endswith(b"\xff\xd9"):
+        return "no JPEG end marker (cut short)"
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF:
+        marker, length = data[pos + 1], int.from_bytes(data[pos + 2:pos + 4], "big")
+        if marker in _JPEG_SOF:
+            h, w = int.from_bytes(data[pos + 5:pos + 7], "big"), int.from_bytes(data[pos + 7:pos + 9], "big")
+            return None if (w, h) == (width, height) else f"{w}x{h} written, {width}x{height} meant"
+        pos += 2 + length
+    return "no JPEG frame header"
 
 
 def resize_image(pixels: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -229,12 +229,25 @@ _STEP_KEYS = (("features", ("images_dir", "files", "max_image_size", "max_featur
               ("matches", ("matcher",)), ("mapping", ("mapper",)))
 
 
+def _read_fingerprint(path: str) -> dict | None:
+    """The inputs a previous run recorded, or None when there is none or it cannot be read (a damaged file means the
+    previous work cannot be trusted: every step is redone)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            previous = json.load(f)
+    except FileNotFoundError:
+        return None
+    except (ValueError, UnicodeDecodeError):
+        print(f"ctgs: {path}: unreadable (damaged); the SfM steps are redone from the photos", file=sys.stderr)
+        return None
+    return previous if isinstance(previous, dict) else None
+
+
 def _prepare_work(work: str, fingerprint: dict, force: bool) -> None:
     """Reuse a previous run's work folder only for the steps whose inputs and options are unchanged."""
     path = os.path.join(work, "inputs.json")
-    if os.path.isdir(work) and not force and os.path.isfile(path):
-        with open(path) as f:
-            previous = json.load(f)
+    previous = _read_fingerprint(path) if os.path.isdir(work) and not force else None
+    if previous is not None:
         if previous == fingerprint:
             return
         for step, keys in _STEP_KEYS:

@@ -132,6 +132,35 @@ def test_image_writes_are_read_back_whole(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["a.png", "b.jpg", "c.exr", "d.tif"]
 
 
+@pytest.mark.parametrize("name", ["a.png", "b.jpg", "c.png"])
+def test_a_cut_or_damaged_png_or_jpeg_is_found_by_its_structure(tmp_path, name):
+    channels = 4 if name == "c.png" else 3
+    pixels = np.random.default_rng(1).random((13, 11, channels)).astype(np.float32)
+    images.write_image(str(tmp_path / name), pixels)
+    data = (tmp_path / name).read_bytes()
+    check = ((lambda d, w, h: images._png_problem(d, w, h, channels)) if name.endswith(".png")
+             else images._jpeg_problem)
+    assert check(data, 11, 13) is None
+    assert check(data, 12, 13)  # another size
+    for cut in (len(data) // 3, len(data) - 1):
+        assert check(data[:cut], 11, 13)
+    if name.endswith(".png"):  # one flipped byte inside the image data: a CRC no longer matches
+        flipped = bytearray(data)
+        flipped[len(data) // 2] ^= 0xFF
+        assert "damaged" in check(bytes(flipped), 11, 13)
+
+
+def test_checking_a_written_png_leaves_stderr_alone(tmp_path, monkeypatch):
+    """Renders are written while a progress display runs in another thread: the check after the write must not
+    point the process's stderr elsewhere, even for a moment."""
+    def no_redirect():
+        raise AssertionError("stderr redirected")
+
+    monkeypatch.setattr(images, "stderr_silenced", no_redirect)
+    images.write_image(str(tmp_path / "view.png"), np.zeros((5, 6, 3), np.float32))
+    images.write_image(str(tmp_path / "view.jpg"), np.zeros((5, 6, 3), np.float32))
+
+
 def test_checkpoints_keep_the_one_before_and_fall_back_to_it(tmp_path, capsys):
     run = str(tmp_path)
     os.makedirs(os.path.join(run, "checkpoints"))

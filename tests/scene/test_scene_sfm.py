@@ -279,3 +279,17 @@ def test_a_really_full_disk_is_one_line(tmp_path, monkeypatch, tiny_demo_master)
     finally:
         subprocess.run(["umount", str(small)], check=True)
 
+
+
+def test_a_damaged_record_of_the_inputs_redoes_every_step(tmp_path, capsys):
+    """inputs.json cut by a crash (or overwritten): the steps it vouched for are redone, with one line saying so."""
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "database.db").write_bytes(b"features of other photos")
+    (work / "inputs.json").write_bytes(b'{"images_dir": "/ph')
+    fingerprint = {"images_dir": str(tmp_path), "files": [["a.jpg", 1, 2]], "max_image_size": 0, "max_features": 0,
+                   "matcher": "exhaustive", "mapper": "incremental"}
+    sfm._prepare_work(str(work), fingerprint, force=False)
+    assert os.listdir(work) == ["inputs.json"]
+    assert json.loads((work / "inputs.json").read_text()) == fingerprint
+    assert "inputs.json: unreadable (damaged)" in capsys.readouterr().err
