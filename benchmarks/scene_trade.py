@@ -135,7 +135,7 @@ def summarise(args, runs: dict) -> dict:
                "texel_content": texel_content(run, args.content_views) if not args.no_content else None}
         rows.append(row)
     return {"scene": args.scene, "images": args.images, "minutes": args.minutes, "seeds": args.seeds,
-            "variants": args.variants, "baseline_preset": args.baseline_preset, "parallel": args.parallel,
+            "variants": args.variants, "baseline_preset": args.baseline_preset, "parallel": args.parallel, "threads": args.threads,
             "split": "validation (validation_holdout 8)" if args.validation else "test (every 8th photo)",
             "commit": record.commit(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "processor": platform.processor()},
@@ -145,7 +145,8 @@ def summarise(args, runs: dict) -> dict:
 def markdown(res: dict) -> str:
     out = [f"# {res['scene']} {res['images']}: {', '.join(res['variants'])} at {res['minutes']:g} minutes each",
            "", f"Split: {res['split']}. Commit {res['commit']}, {res['date_utc']}, {res['machine']['cpus']}-core "
-           f"{res['machine']['processor'] or 'x86'} machine, {res['parallel']} run(s) at a time; load average "
+           f"{res['machine']['processor'] or 'x86'} machine, {res['parallel']} run(s) at a time, "
+           f"{res.get('threads', '?')} thread(s) each; load average "
            f"{res['load_average_start'][0]:.1f} at the start, {res['load_average_end'][0]:.1f} at the end.", "",
            "| variant | seed | PSNR | SSIM | LPIPS | wall min | its | primitives | texels | params | params/value | "
            "FPS | MB | open | texel~energy rho |", "|---|---:|" + "---:|" * 13]
@@ -206,6 +207,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--work", required=True, help="folder for the runs (reused when finished)")
     ap.add_argument("--parallel", type=int, default=1, help="runs at once (threads = cores / parallel each)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="threads per run (default cores / parallel; set it when another sweep shares the machine)")
     ap.add_argument("--validation", action="store_true", help="score a validation split of the training views")
     ap.add_argument("--content-views", type=int, default=8, help="views of the texel-size analysis")
     ap.add_argument("--no-content", action="store_true", help="skip the texel-size analysis")
@@ -213,7 +216,8 @@ def main() -> None:
     args = ap.parse_args()
     args.scene_dir, args.work = os.path.abspath(args.scene_dir), os.path.abspath(args.work)  # the runs' cwd is the repo
     args.load_start = os.getloadavg()
-    threads = max(1, (os.cpu_count() or 2) // max(args.parallel, 1))
+    threads = args.threads or max(1, (os.cpu_count() or 2) // max(args.parallel, 1))
+    args.threads = threads
     jobs = [(v, s) for s in args.seeds for v in args.variants]
     with ThreadPoolExecutor(max(args.parallel, 1)) as pool:
         runs = dict(zip(jobs, pool.map(lambda j: train_one(args, j[0], j[1], threads), jobs)))
