@@ -28,6 +28,7 @@ RESULTS = os.path.join(ROOT, "benchmarks", "results")
 #   ("trade", scale, row name)      rows of a trade.py record
 #   ("paired", run label)           runs of a paired.py record
 #   ("equal_time", method)          the test-split run of an equal_time.py record (ca | 2dgs)
+#   ("scene_trade", variant)        the rows (seeds) of a scene_trade.py record for one variant
 HERZ_EQUAL_TIME_192 = ["equal_time/herzjesu25_192_d64bc36.json", "equal_time/herzjesu25_192_seed1_d64bc36.json", "equal_time/herzjesu25_192_seed2_1c1d1a1.json",
                        "equal_time/herzjesu25_192_seed3_1c1d1a1.json"] + [
     f"equal_time/herzjesu25_192_seed{s}_edb494c.json" for s in range(4, 8)]
@@ -185,6 +186,10 @@ def runs_of(path: str, selector: tuple) -> tuple[list[dict], str]:
     elif kind == "equal_time":
         picked = [{"psnr": r["psnr"], "wall_min": r["wall_s"] / 60, "params": r["params"],
                    "iterations": r["iterations"]} for r in rec["test"] if r["method"] == selector[1]]
+        source = rec["commit"]
+    elif kind == "scene_trade":
+        picked = [{"psnr": r["psnr"], "wall_min": r["wall_seconds"] / 60, "params": r["params"],
+                   "iterations": r["iterations"]} for r in rec["rows"] if r["variant"] == selector[1]]
         source = rec["commit"]
     else:
         raise ValueError(f"unknown selector {selector!r}")

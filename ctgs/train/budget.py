@@ -113,6 +113,7 @@ class Plan:
     calib_step_s: float = 0.0  # forward+backward of the initial model
     calib_render_s: float = 0.0  # forward only (E, evaluation)
     calib_textured_step_s: float = 0.0  # content-aware: a training step with the textures started (0: not measured)
+    calib_error_view_s: float = 0.0  # content-aware: E's render of one view with the textures started (0: not measured)
     replans: int = 0
     history: list = field(default_factory=list)  # (it, planned N, predicted end s) at a few points
 
@@ -153,17 +154,28 @@ class BudgetPlanner:
         self._window_cache: tuple = (None, None)
 
     # ---- measurements ------------------------------------------------------------------------------
-    def calibrate(self, step_s: float, render_s: float, textured_step_s: float | None = None) -> int:
+    def calibrate(self, step_s: float, render_s: float, textured_step_s: float | None = None,
+                  error_view_s: float | None = None) -> int:
         """Initial plan from the timed training step (step_s) and forward (render_s) of the initial model and, for
-        a content-aware run, its training step with the textures started (textured_step_s)."""
+        a content-aware run, its training step with the textures started (textured_step_s) and E's render of one
+        view with them (error_view_s)."""
         self.plan.calib_step_s, self.plan.calib_render_s = step_s, render_s
         if textured_step_s and self.cfg.method == "content_aware":
             self.plan.calib_textured_step_s = textured_step_s
             self.jump = max(textured_step_s / max(step_s, 1e-12), 1.0)
         self.base = self.base_calib = step_s
-        # E: a render with error statistics per view it uses (about two plain forwards' cost)
         e_views = min(self.n_train, self.cfg.error_views) if self.cfg.error_views > 0 else self.n_train
-        self.t_routine = 2 * e_views * render_s
+        if error_view_s and self.cfg.method == "content_aware":
+            # E's render measured with the textures started: per unit of g (the prediction multiplies by the jump,
+            # which is the training step's, forward and backward: a forward alone grows less with the textures).
+            # The guess below (two plain forwards per view, times the jump and the growth) put a routine of a
+            # bonsai252 run (64 views at 200x133) at about 58 s where one took about 13 s: the plan of 900 s was 14
+            # iterations, and the first routines, an evaluation and the texture start came at that plan's fractions.
+            self.plan.calib_error_view_s = error_view_s
+            self.t_routine = e_views * error_view_s / (self.jump if self.plan.calib_textured_step_s else 1.0)
+        else:
+            # E: a render with error statistics per view it uses (about two plain forwards' cost)
+            self.t_routine = 2 * e_views * render_s
         self.t_eval = max(self.n_test, 1) * render_s
         self.t_ckpt = 0.05
         self.t_save = 0.2
@@ -340,12 +352,12 @@ class BudgetPlanner:
         return max(0, math.floor(hi / period + 1e-9) - math.floor(lo / period + 1e-9))
 
     def _count_routines(self, c: TrainConfig, it: int, n: int) -> int:
+        """Full routines left (E over the views: the routine's cost). The late downscales after the routine window
+        render nothing (a pass over the textures): their cost is left to the measured steps."""
         if c.method != "content_aware":
             return 0
         start, end = schedule.routine_window(c)
-        full = self._count(c, c.routine_every, max(it, start - 1), min(end, n - 1))
-        late = self._count(c, c.late_downscale_every, max(it, end, start), n - 1)
-        return full + late
+        return self._count(c, c.routine_every, max(it, start - 1), min(end, n - 1))
 
     def _solve(self, it: int) -> int:
         """The largest n (> it) whose predicted end fits SAFETY x the budget left."""
@@ -371,6 +383,7 @@ class BudgetPlanner:
         return {"time_budget_s": p.budget_s, "planned_iterations_initial": p.initial_iterations,
                 "calibration_step_s": round(p.calib_step_s, 5), "calibration_render_s": round(p.calib_render_s, 5),
                 "calibration_textured_step_s": round(p.calib_textured_step_s, 5),
+                "calibration_error_view_s": round(p.calib_error_view_s, 5),
                 "texture_jump": round(self.jump, 3) if self.cfg.method == "content_aware" else None,
                 # where the textures started, and where the schedule puts them (texture_start / 30000 of the run):
                 # the start is fixed early from the speed measured then, so a load on the machine during the

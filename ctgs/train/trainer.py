@@ -28,6 +28,7 @@ from ctgs.train.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.budget import BudgetPlanner
 from ctgs.train.config import TrainConfig
 from ctgs.train.densify import RESET_OPACITY, GradAccumulator, densify_and_prune, reset_opacity
+from ctgs.train.error import compute_E
 from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
 from ctgs.train.exposure import Exposure
 from ctgs.train.fill import fill_points
@@ -351,11 +352,11 @@ class Trainer:
             self._check_finite(term)
         (self.cfg.lambda_normal * term).backward()
 
-    def _calibrate(self) -> tuple[float, float, float | None]:
+    def _calibrate(self) -> tuple[float, float, float | None, float | None]:
         """Median seconds, timed on a copy of the model and optimiser (the run's own are not touched), of a
         training step as the loop takes it (forward+backward, Adam), of a forward on a training view, and for a
-        content-aware run whose textures have not started, of a training step once they have (None otherwise):
-        the planner's texture-start jump."""
+        content-aware run whose textures have not started, of a training step once they have and of E's render of
+        one view (None otherwise): the planner's texture-start jump and routine cost."""
         model, opt = self.model, self.opt
         try:
             self.model, self.opt = copy.deepcopy(model), copy.deepcopy(opt)
@@ -363,13 +364,15 @@ class Trainer:
             with torch.no_grad():
                 render_s = _median_seconds(lambda: self.render_fn(self.model.render_inputs(),
                                                                    self.train_views[0].camera), device=self.device)
-            textured_s = None
+            textured_s = error_view_s = None
             if self.cfg.method == "content_aware" and not self.textures_started:
                 self._start_textures()
                 textured_s = self._time_steps(schedule.texture_start(self.cfg) + 1)
+                error_view_s = _median_seconds(lambda: compute_E(self.model, self.train_views[:1], self.render_fn,
+                                                                 self.cfg.lambda_ssim), device=self.device)
         finally:
             self.model, self.opt = model, opt
-        return step_s, render_s, textured_s
+        return step_s, render_s, textured_s, error_view_s
 
     def _start_textures(self) -> None:
         """Allocate self.model's textures (the run's texture start; the calibration does it on its copy)."""
@@ -591,7 +594,9 @@ class Trainer:
                 budget = size_budget.fit(model, opt, cfg)
                 yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean()),
                                                     **(budget or {})})
-            kind = schedule.routine_kind(cfg, it, self._shift)
+            # Routines refine textures: none before they start (a --time-budget run holds its texture start until
+            # the plan rests on measured steps, while a short first plan's calendar may already call for routines).
+            kind = schedule.routine_kind(cfg, it, self._shift) if self.textures_started else None
             if kind == "full":
                 # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops;
                 # on a GPU about the lean order's time, 1.5x its peak memory: docs/guide/gpu.md)

@@ -195,7 +195,7 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
     before = {n: getattr(t.model, n).detach().clone() for n in ALL_PARAMS}
     moments = {n: t.opt.exp_avg[n].clone() for n in ALL_PARAMS}
-    step_s, render_s, textured_s = t._calibrate()
+    step_s, render_s, textured_s, _ = t._calibrate()
     assert step_s > 0 and render_s > 0
     assert (textured_s is not None and textured_s > 0) if method == "content_aware" else textured_s is None
     assert not t.textures_started and t.model.num_texels == 0
@@ -459,3 +459,36 @@ def test_a_real_run_with_a_slow_texture_start_still_uses_its_budget(tmp_path, mo
                          sets=("threads=1",))
     assert slow["left"] == 0  # the slow steps happened
     assert 0.95 * 30 <= summary["wall_seconds"] <= 1.05 * 30, summary["plan_history"]
+
+
+def test_a_short_first_plan_runs_no_routine_before_the_texture_start(tmp_path, monkeypatch):
+    """A first plan of a few iterations (a slow calibration on a busy machine) puts the routine calendar's first
+    dates at iterations 1, 2, 3, while the texture start waits for a plan made from measured steps: no routine may run
+    before it (one did, and its reallocation gave every untextured primitive a texture: 9.5M texels on a bonsai252
+    run at 200x133, 16 s for its first step)."""
+    import json
+
+    from click.testing import CliRunner
+
+    from ctgs.cli import main
+    from ctgs.scene.demo import make_demo_scene
+
+    calibrate = BudgetPlanner.calibrate
+
+    def short_first_plan(self, *args, **kwargs):
+        calibrate(self, *args, **kwargs)
+        self.plan.initial_iterations = self.plan.iterations = 6
+        return 6
+
+    monkeypatch.setattr(BudgetPlanner, "calibrate", short_first_plan)
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=48, height=36, points=150)
+    run = tmp_path / "run"
+    result = CliRunner().invoke(main, ["train", scene_dir, "-o", str(run), "--preset", "fast", "--time-budget", "0.2",
+                                       "-q", "--set", "threads=1", "--set", "log_every=1"])
+    assert result.exit_code == 0, result.output
+    events = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    routines = [e for e in events if e["type"] == "routine"]
+    assert routines and routines[0]["kind"] == "texture_start", routines[:3]
+    start = routines[0]["it"]
+    assert start >= budget_mod.REPLAN_MIN_ITERS
+    assert all(e["texels"] == 0 for e in events if e["type"] == "step" and e["it"] < start)

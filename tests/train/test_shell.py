@@ -224,7 +224,7 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
         cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,
                              preset="fast")
         t = Trainer(cfg, _load_scene(cfg), str(tmp_path / f"run{expected}"))
-        step_s, render_s, textured_s = t._calibrate()
+        step_s, render_s, textured_s, _ = t._calibrate()
         assert step_s > 0 and render_s > 0 and textured_s > 0
         # three timed steps before and three after the texture start, each through composite with a shell
         assert calls["composite"] == expected
