@@ -304,7 +304,7 @@ Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_thread
 }
 
 // texel_activation_backward_cpu(y, grad_y + texel_abs_backward_cpu(y, weight, tex_offset, tex_res, scale)) in
-// one pass, bit for bit (ctgs/fused.py: the texture regulariser's gradient folded into the activation's).
+// one pass, bit for bit (ctgs/ops/fused.py: the texture regulariser's gradient folded into the activation's).
 Tensor texel_activation_backward_l1_cpu(Tensor y, Tensor grad_y, Tensor weight, Tensor tex_offset, Tensor tex_res,
                                         double scale, int64_t num_threads) {
   check_texel_l1(y, weight, tex_offset, tex_res);

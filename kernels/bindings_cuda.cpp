@@ -3,7 +3,7 @@
 // the raw-pointer cores in kernels/cuda on the current CUDA stream. Same functions, arguments and outputs as
 // the CPU binding (kernels/bindings.cpp), so ctgs/render dispatches to either the same way.
 #ifndef CTGS_WITH_CUDA
-#error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (ctgs/render/_ext_cuda.py)"
+#error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (ctgs/ops/ext_cuda.py)"
 #endif
 
 #include <c10/cuda/CUDAStream.h>

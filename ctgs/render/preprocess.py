@@ -8,8 +8,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ctgs.model.geometry import quat_to_rotmat
+from ctgs.ops.dispatch import compiled, fusable_here
 from ctgs.render.camera import Camera
+from ctgs.render.geometry import quat_to_rotmat
 from ctgs.render.sh import view_color
 
 
@@ -20,30 +21,6 @@ class CameraSpacePrims:
     mu_c: torch.Tensor  # [N, 3] centres, camera space, world units
     Rc: torch.Tensor  # [N, 3, 3] camera-space rotation, columns tangent u, tangent v, normal
     colors: torch.Tensor  # [N, 3] SH(view dir) + 0.5, unclamped
-
-
-def compiled(device: torch.device):
-    """The compiled extension holding the per-primitive kernels for tensors on `device` and its name suffix:
-    (module, "cpu") or (module, "cuda")."""
-    if device.type == "cuda":
-        from ctgs.render._ext_cuda import load_cuda
-
-        return load_cuda(), "cuda"
-    from ctgs.fused import cpu_ext
-
-    return cpu_ext(), "cpu"
-
-
-def fusable_here(*tensors: torch.Tensor) -> bool:
-    """Whether the compiled per-primitive kernels apply: contiguous float CPU tensors with the CPU extension
-    (ctgs.fused.fusable), or contiguous float CUDA tensors with the CUDA extension."""
-    if tensors and tensors[0].is_cuda:
-        from ctgs.render._ext_cuda import cuda_fusable
-
-        return cuda_fusable(*tensors)
-    from ctgs.fused import fusable
-
-    return fusable(*tensors)
 
 
 class _CameraSpace(torch.autograd.Function):

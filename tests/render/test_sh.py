@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ctgs import fused
+from ctgs.ops import fused
 from ctgs.render.sh import sh_to_color, view_color, view_dirs
 
 TOL = {torch.float32: 2e-6, torch.float64: 1e-13}
