@@ -22,8 +22,7 @@ from ctgs.evaluation.report import (METRICS_SCHEMA, METRICS_VERSION, OPEN_ALPHA,
                                     write_metrics_json, write_per_image_csv)
 from ctgs.formats.model_format import read_model
 from ctgs.formats.readers import gaussian_file_ending, read_gaussian_file
-from ctgs.io import atomic
-from ctgs.io.images import write_image
+from ctgs.io import atomic, images
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.psnr import gain_matched_psnr, masked_psnr, psnr
 from ctgs.metrics.ssim import ssim
@@ -211,7 +210,7 @@ def _write_views(out: str, views: list, renders: list, alphas: list, times: list
         rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3,
                                  float(open_px.float().mean()), masked_psnr(rgb, gt, ~open_px), veil,
                                  *gain_matched_psnr(rgb, gt)))
-        write_image(os.path.join(out, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
+        images.write_image(os.path.join(out, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
         gts.append(gt)
 
     order = sorted(range(len(rows)), key=lambda i: rows[i].psnr)
@@ -222,7 +221,7 @@ def _write_views(out: str, views: list, renders: list, alphas: list, times: list
     strips = []
     for rank, i in [("worst", i) for i in worst] + [("best", i) for i in best]:
         name = f"{rank}_{os.path.splitext(rows[i].name)[0]}.png"
-        write_image(os.path.join(out, "strips", name), strip(gts[i].numpy(), renders[i].numpy()))
+        images.write_image(os.path.join(out, "strips", name), strip(gts[i].numpy(), renders[i].numpy()))
         strips.append(name)
     write_per_image_csv(os.path.join(out, "per_image.csv"), rows)
 
