@@ -1,25 +1,35 @@
-"""Which compiled extension serves tensors on a device: the per-primitive kernels (camera space, SH colour)
-exist on the CPU (ctgs.ops.fused's extension) and on a GPU (ctgs.ops.ext_cuda)."""
+"""The compiled ops both backends have, declared once: each op's name and schema here (torch.library), its kernels
+registered by the extension of each device (TORCH_LIBRARY_IMPL: kernels/bindings.cpp for the CPU,
+kernels/bindings_cuda.cpp for CUDA). `torch.ops.ctgs.<op>(...)` runs the kernel of its tensors' device, once that
+device's extension is loaded: `fusable_here` loads it, and says whether the kernels apply."""
 
 from __future__ import annotations
 
 import torch
 
-from ctgs.ops.ext_cuda import cuda_fusable, load_cuda
-from ctgs.ops.fused import cpu_ext, fusable
+from ctgs.ops.ext_cuda import cuda_fusable
+from ctgs.ops.fused import fusable
 
+SCHEMAS = (
+    # {mu_c [N, 3], Rc [N, 3, 3]}: world -> camera space of the means and quaternions for view [4, 4]
+    "camera_space(Tensor means, Tensor quats, Tensor view, int num_threads) -> Tensor[]",
+    # {grad_means [N, 3], grad_quats [N, 4]} of camera_space for its upstream gradients
+    "camera_space_backward(Tensor quats, Tensor view, Tensor grad_mu_c, Tensor grad_Rc, int num_threads) -> Tensor[]",
+    # colors [N, 3] = SH_degree(normalize(means - center)) + 0.5
+    "sh_color(Tensor means, Tensor center, Tensor sh, int degree, int num_threads) -> Tensor",
+    # {grad_means [N, 3], grad_sh [N, K, 3]} of sh_color for the upstream gradient grad_colors [N, 3]
+    "sh_color_backward(Tensor means, Tensor center, Tensor sh, int degree, Tensor grad_colors, int num_threads)"
+    " -> Tensor[]",
+)
 
-def compiled(device: torch.device):
-    """The compiled extension holding the per-primitive kernels for tensors on `device` and its name suffix:
-    (module, "cpu") or (module, "cuda")."""
-    if device.type == "cuda":
-        return load_cuda(), "cuda"
-    return cpu_ext(), "cpu"
+_library = torch.library.Library("ctgs", "DEF")
+for _schema in SCHEMAS:
+    _library.define(_schema)
 
 
 def fusable_here(*tensors: torch.Tensor) -> bool:
     """Whether the compiled per-primitive kernels apply: contiguous float CPU tensors with the CPU extension
-    (ctgs.ops.fused.fusable), or contiguous float CUDA tensors with the CUDA extension."""
+    (ctgs.ops.fused.fusable), or contiguous float CUDA tensors with the CUDA extension; either is loaded here."""
     if tensors and tensors[0].is_cuda:
         return cuda_fusable(*tensors)
     return fusable(*tensors)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ctgs.ops.dispatch import compiled, fusable_here
+from ctgs.ops.dispatch import fusable_here
 from ctgs.render.camera import Camera
 from ctgs.render.geometry import quat_to_rotmat
 from ctgs.render.sh import view_color
@@ -29,18 +29,16 @@ class _CameraSpace(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, view):
-        ext, dev = compiled(means.device)
         ctx.save_for_backward(quats, view)
-        return tuple(getattr(ext, f"camera_space_{dev}")(means, quats, view, torch.get_num_threads()))
+        return tuple(torch.ops.ctgs.camera_space(means, quats, view, torch.get_num_threads()))
 
     @staticmethod
     def backward(ctx, grad_mu_c, grad_Rc):
         quats, view = ctx.saved_tensors
-        ext, dev = compiled(quats.device)
         n = quats.shape[0]
         grad_mu_c = quats.new_zeros(n, 3) if grad_mu_c is None else grad_mu_c.contiguous()
         grad_Rc = quats.new_zeros(n, 3, 3) if grad_Rc is None else grad_Rc.contiguous()
-        gm, gq = getattr(ext, f"camera_space_backward_{dev}")(quats, view, grad_mu_c, grad_Rc, torch.get_num_threads())
+        gm, gq = torch.ops.ctgs.camera_space_backward(quats, view, grad_mu_c, grad_Rc, torch.get_num_threads())
         return (gm if ctx.needs_input_grad[0] else None), (gq if ctx.needs_input_grad[1] else None), None
 
 

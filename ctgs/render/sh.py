@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.ops.dispatch import compiled, fusable_here
+from ctgs.ops.dispatch import fusable_here
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -54,17 +54,15 @@ class _ShColor(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, sh, center, degree):
-        ext, dev = compiled(means.device)
         ctx.save_for_backward(means, sh, center)
         ctx.degree = degree
-        return getattr(ext, f"sh_color_{dev}")(means, center, sh, degree, torch.get_num_threads())
+        return torch.ops.ctgs.sh_color(means, center, sh, degree, torch.get_num_threads())
 
     @staticmethod
     def backward(ctx, grad_colors):
         means, sh, center = ctx.saved_tensors
-        ext, dev = compiled(means.device)
-        gm, gs = getattr(ext, f"sh_color_backward_{dev}")(means, center, sh, ctx.degree, grad_colors.contiguous(),
-                                                          torch.get_num_threads())
+        gm, gs = torch.ops.ctgs.sh_color_backward(means, center, sh, ctx.degree, grad_colors.contiguous(),
+                                                  torch.get_num_threads())
         return (gm if ctx.needs_input_grad[0] else None), (gs if ctx.needs_input_grad[1] else None), None, None
 
 
