@@ -145,13 +145,13 @@ class _TorchPreprocess:
     kernels of kernels/cuda/dense.cu: the backend as it was before those kernels (the `ours_torchpre` rows)."""
 
     def __enter__(self):
-        import ctgs.render._ext_cuda as ec
+        import ctgs.ops.ext_cuda as ec
 
         self._saved, ec.cuda_fusable = getattr(ec, "cuda_fusable", None), lambda *t: False
         return self
 
     def __exit__(self, *exc):
-        import ctgs.render._ext_cuda as ec
+        import ctgs.ops.ext_cuda as ec
 
         if self._saved is not None:
             ec.cuda_fusable = self._saved
@@ -300,7 +300,7 @@ def tile_pairs(s, cam, device) -> int:
 
     if device.type != "cuda":
         return -1
-    from ctgs.render._ext_cuda import load_cuda
+    from ctgs.ops.ext_cuda import load_cuda
 
     with torch.no_grad():
         p = to_camera_space(s.means, s.quats, s.sh, cam, 3)

@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.render import Camera, SurfelInputs, render  # noqa: E402
-from ctgs.render._ext import load_cpu  # noqa: E402
+from ctgs.ops.ext import load_cpu  # noqa: E402
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0, dtype=torch.float32) -> tuple[SurfelInputs, Camera]:

@@ -82,7 +82,7 @@ def side_env(tree: str) -> dict:
 
 
 def build(tree: str) -> None:
-    code = ("from ctgs.render._ext import load_cpu; import ctgs, sys; m = load_cpu(); "
+    code = ("from ctgs.ops.ext import load_cpu; import ctgs, sys; m = load_cpu(); "
             "assert ctgs.__file__.startswith(sys.argv[1]), ctgs.__file__; print(m.__file__)")
     r = subprocess.run([sys.executable, "-c", code, tree], cwd=tree, env=side_env(tree), capture_output=True,
                        text=True)

@@ -3,17 +3,17 @@
 Exports RUN_DIR with `ctgs export --format ctgs|ply|splat|spz|compressed-ply|sog|glb-splats|glb` (and `ctgs compress` of the
 ctgs folder),
 reads every file back and renders the run's test views from it:
-- ctgs, ctgs K-means: ctgs.io.model_format.read_model, our CPU renderer (exact model);
+- ctgs, ctgs K-means: ctgs.formats.model_format.read_model, our CPU renderer (exact model);
 - ply (3DGS PLY), splat, spz, compressed-ply, sog, glb-splats (KHR_gaussian_splatting), and ply / spz / sog with
-  --bake-textures (a splat per texel: ctgs.io.bake): read back as untextured surfels (ctgs.io.plain_ply / splat /
+  --bake-textures (a splat per texel: ctgs.formats.bake): read back as untextured surfels (ctgs.formats.plain_ply / splat /
   spz / playcanvas / gltf_splats), our CPU renderer
   (so the figure is what the file holds, not what some viewer's EWA splatting makes of it);
-- glb: read with pygltflib (ctgs.io.gltf.read_glb), drawn by a headless OpenGL renderer
+- glb: read with pygltflib (ctgs.formats.gltf.read_glb), drawn by a headless OpenGL renderer
   (benchmarks/glb_render.py: moderngl + EGL, Mesa llvmpipe here), quads sorted back to front per view,
   in two colour pipelines (blending in image space as our renderer does, and sRGB-correct linear blending
   as three.js/Blender do). Without moderngl/EGL the glb row says so and carries no PSNR.
 The .glb is also checked with the Khronos glTF validator (npm gltf-validator, installed into the ctgs
-cache as tests/io/test_export_cli.py does) when node/npm are present.
+cache as tests/formats/test_export_cli.py does) when node/npm are present.
 A diagnostic row renders the exact model with its SH cut to the DC band: the part of the ply/splat/glb
 loss that comes from dropping view dependence rather than from the format itself.
 
@@ -39,8 +39,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests", "io"))
 
-from ctgs.io.model_format import read_model  # noqa: E402
-from ctgs.io.run_model import load_run  # noqa: E402
+from ctgs.formats.model_format import read_model  # noqa: E402
+from ctgs.train.run_model import load_run  # noqa: E402
 import record  # noqa: E402 (benchmarks/record.py)
 from record import write_record  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
@@ -99,7 +99,7 @@ def validate_glb(path: str) -> dict:
 
 
 def glb_rows(path: str, views, exact: list[torch.Tensor], nbytes: int, validation: dict) -> list[dict]:
-    from ctgs.io.gltf import read_glb
+    from ctgs.formats.gltf import read_glb
 
     glb = read_glb(path)
     try:
@@ -154,11 +154,11 @@ def main() -> None:
     run = load_run(args.run_dir)
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
     views = scene.test
-    from ctgs.io.gltf_splats import read_glb_splats
-    from ctgs.io.plain_ply import read_plain_ply
-    from ctgs.io.playcanvas import read_compressed_ply, read_sog
-    from ctgs.io.splat import read_splat
-    from ctgs.io.spz import read_spz
+    from ctgs.formats.gltf_splats import read_glb_splats
+    from ctgs.formats.plain_ply import read_plain_ply
+    from ctgs.formats.playcanvas import read_compressed_ply, read_sog
+    from ctgs.formats.splat import read_splat
+    from ctgs.formats.spz import read_spz
 
     rows = []
     exact, _ = read_model(files["ctgs"])
@@ -172,17 +172,17 @@ def main() -> None:
             ("splat", read_splat(files["splat"]), os.path.getsize(files["splat"]),
              "read_splat -> untextured surfels, CPU renderer"),
             ("spz (v3)", read_spz(files["spz"]), os.path.getsize(files["spz"]),
-             "read_spz (matches Niantic's reader: tests/io/test_spz.py) -> untextured surfels, CPU renderer"),
+             "read_spz (matches Niantic's reader: tests/formats/test_spz.py) -> untextured surfels, CPU renderer"),
             ("compressed-ply (PlayCanvas)", read_compressed_ply(files["compressed-ply"]),
              os.path.getsize(files["compressed-ply"]),
-             "read_compressed_ply (matches splat-transform's reader: tests/io/test_playcanvas.py) -> untextured "
+             "read_compressed_ply (matches splat-transform's reader: tests/formats/test_playcanvas.py) -> untextured "
              "surfels, CPU renderer"),
             ("sog (PlayCanvas)", read_sog(files["sog"]), os.path.getsize(files["sog"]),
-             "read_sog (matches splat-transform's reader: tests/io/test_playcanvas.py) -> untextured surfels, "
+             "read_sog (matches splat-transform's reader: tests/formats/test_playcanvas.py) -> untextured surfels, "
              "CPU renderer"),
             ("glb-splats (KHR_gaussian_splatting)", read_glb_splats(files["glb-splats"]),
              os.path.getsize(files["glb-splats"]),
-             "read_glb_splats (the file splat-transform writes from our PLY: tests/io/test_gltf_splats.py) -> "
+             "read_glb_splats (the file splat-transform writes from our PLY: tests/formats/test_gltf_splats.py) -> "
              "untextured surfels, CPU renderer"),
             ("ply (3DGS), --bake-textures", read_plain_ply(files["ply_baked"]), os.path.getsize(files["ply_baked"]),
              "read_plain_ply -> untextured surfels (a splat per texel), CPU renderer"),

@@ -1,7 +1,7 @@
 """Headless OpenGL render of a ctgs .glb (textured quads) from a ctgs camera, for benchmarks/export_formats.py.
 
 moderngl on an EGL context (Mesa's llvmpipe where there is no GPU: `pip install moderngl`, needs libEGL).
-The glb is read with ctgs.io.gltf.read_glb (pygltflib) and drawn as a glTF viewer draws it: unlit base
+The glb is read with ctgs.formats.gltf.read_glb (pygltflib) and drawn as a glTF viewer draws it: unlit base
 colour texture (LINEAR filtering, no mipmaps, as the file's sampler says), alpha blending
 (src_alpha, one_minus_src_alpha), no depth test, double-sided, plus one thing a plain viewer does not do:
 quads sorted back to front by their centre's camera depth for every view (splat viewers sort; three.js
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ctgs.io.gltf import GlbModel
+from ctgs.formats.gltf import GlbModel
 from ctgs.render.camera import Camera
 
 GL_SRGB8_ALPHA8 = 0x8C43

@@ -169,7 +169,7 @@ def make_snapshot(args) -> None:
 def profile(args) -> dict:
     import torch
 
-    from ctgs.render._ext import load_cpu
+    from ctgs.ops.ext import load_cpu
     from ctgs.stages.train import _load_scene, resolve_config
     from ctgs.train.trainer import Trainer
 

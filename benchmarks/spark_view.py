@@ -1,7 +1,7 @@
 """Our .spz / PLY / .splat / compressed PLY / SOG exports in a third-party Gaussian viewer: Spark (sparkjs.dev, three.js) in headless Chromium.
 
 ctgs's own checks read an exported file back with our reader and draw it with our renderer (export_formats.py);
-Niantic's reader agrees with ours on every array (tests/io/test_spz.py). What neither shows is what a user sees in
+Niantic's reader agrees with ours on every array (tests/formats/test_spz.py). What neither shows is what a user sees in
 the viewers they have. This loads each file into Spark 2.2 (npm @sparkjsdev/spark with three.js 0.180, installed
 into the ctgs cache), places three.js's camera at each test view of the run (COLMAP's right-down-front camera turned
 into three.js's right-up-back frame, as spz stores the scene, PLY and .splat turned into it by the usual half
@@ -34,10 +34,10 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from ctgs.io.run_model import load_run  # noqa: E402
+from ctgs.train.run_model import load_run  # noqa: E402
 import record  # noqa: E402 (benchmarks/record.py)
 from record import write_record  # noqa: E402
-from ctgs.io.readers import read_gaussian_file  # noqa: E402
+from ctgs.formats.readers import read_gaussian_file  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
 from ctgs.resources import cache_dir  # noqa: E402

@@ -35,10 +35,10 @@ from types import SimpleNamespace
 
 import torch
 
-from ctgs.io.run_model import load_run
+from ctgs.train.run_model import load_run
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim as ssim_of
-from ctgs.metrics.report import OPEN_ALPHA  # rendered alpha below it: the background shows
+from ctgs.evaluation.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
 from ctgs.stages.train import _load_scene
 from ctgs.train.shell import far_mask, scene_sphere

@@ -1,5 +1,8 @@
 """Errors a user can cause. The CLI prints them as one line and exits non-zero, without a traceback."""
 
+import errno
+import os
+
 
 class UserError(Exception):
     """Bad input or environment: the message names the file/cause and the fix."""
@@ -50,25 +53,20 @@ _FIXES = {
 def machine_fault(exc: OSError) -> bool:
     """Whether `exc` is the machine's (permissions, a device or mount failing), not a damaged file: a reader's
     OSError on a cut file (torch's EINVAL) is the file's, and is said as such."""
-    import errno as _errno
-
-    return exc.errno in (_errno.EACCES, _errno.EPERM, _errno.EIO, _errno.ENODEV, _errno.ENXIO, _errno.ESTALE,
-                         _errno.ENOTCONN)
+    return exc.errno in (errno.EACCES, errno.EPERM, errno.EIO, errno.ENODEV, errno.ENXIO, errno.ESTALE,
+                         errno.ENOTCONN)
 
 
 def describe_os_error(exc: OSError) -> str:
     """One line for an operating-system error: the path it names, what happened and the fix."""
-    import errno as _errno
-    import os as _os
-
-    name = _errno.errorcode.get(exc.errno or -1, "")
+    name = errno.errorcode.get(exc.errno or -1, "")
     what, fix = _FIXES.get(name, (None, "check the path and the device, then run again"))
-    standard = _os.strerror(exc.errno) if exc.errno else ""
+    standard = os.strerror(exc.errno) if exc.errno else ""
     detail = exc.strerror or standard or str(exc)
     if what is None:
         what = detail
     elif detail != standard:  # a message of ours or a library's (what and how much): keep it
         what = f"{what} ({detail})"
     paths = [p for p in (exc.filename, exc.filename2) if p is not None]
-    where = " -> ".join(_os.fsdecode(p) for p in paths) if paths else "(no file named)"
+    where = " -> ".join(os.fsdecode(p) for p in paths) if paths else "(no file named)"
     return " ".join(f"{where}: {what}; {fix}".split())

@@ -304,7 +304,7 @@ Tensor texel_activation_backward_cpu(Tensor y, Tensor grad_y, int64_t num_thread
 }
 
 // texel_activation_backward_cpu(y, grad_y + texel_abs_backward_cpu(y, weight, tex_offset, tex_res, scale)) in
-// one pass, bit for bit (ctgs/fused.py: the texture regulariser's gradient folded into the activation's).
+// one pass, bit for bit (ctgs/ops/fused.py: the texture regulariser's gradient folded into the activation's).
 Tensor texel_activation_backward_l1_cpu(Tensor y, Tensor grad_y, Tensor weight, Tensor tex_offset, Tensor tex_res,
                                         double scale, int64_t num_threads) {
   check_texel_l1(y, weight, tex_offset, tex_res);
@@ -565,6 +565,14 @@ std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res
 
 }  // namespace
 
+// The CPU kernels of the ops both backends have (torch.ops.ctgs.<op>; their schemas: ctgs/ops/dispatch.py).
+TORCH_LIBRARY_IMPL(ctgs, CPU, m) {
+  m.impl("camera_space", &camera_space_cpu);
+  m.impl("camera_space_backward", &camera_space_backward_cpu);
+  m.impl("sh_color", &sh_color_cpu);
+  m.impl("sh_color_backward", &sh_color_backward_cpu);
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, C++/OpenMP CPU backend (see docs/reference/renderer.md)";
   m.def("forward_cpu", &forward_cpu, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
@@ -585,12 +593,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "gradient of texel_activation_cpu with texel_abs_backward_cpu's gradient added to grad_y first");
   m.def("accumulate_pairs_cpu", &accumulate_pairs_cpu,
         "per-primitive count, contrib and error sums over a forward's blended pairs");
-  m.def("sh_color_cpu", &sh_color_cpu, "SH(normalize(mean - centre)) + 0.5 per primitive");
-  m.def("sh_color_backward_cpu", &sh_color_backward_cpu, "gradient of sh_color_cpu w.r.t. means and SH");
   m.def("surfel_values_ok_cpu", &surfel_values_ok_cpu,
         "whether the surfel tensors pass render()'s value checks (false: run the PyTorch checks for the message)");
-  m.def("camera_space_cpu", &camera_space_cpu, "{mu_c, Rc}: world -> camera space of means and quaternions");
-  m.def("camera_space_backward_cpu", &camera_space_backward_cpu, "gradient of camera_space_cpu w.r.t. means, quats");
   m.def("photometric_loss_cpu", &photometric_loss_cpu,
         "(1 - l) L1 + l (1 - SSIM) of render and ground truth, its gradient and the error image, fused");
   m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");

@@ -3,7 +3,7 @@
 // the raw-pointer cores in kernels/cuda on the current CUDA stream. Same functions, arguments and outputs as
 // the CPU binding (kernels/bindings.cpp), so ctgs/render dispatches to either the same way.
 #ifndef CTGS_WITH_CUDA
-#error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (ctgs/render/_ext_cuda.py)"
+#error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (ctgs/ops/ext_cuda.py)"
 #endif
 
 #include <c10/cuda/CUDAStream.h>
@@ -271,17 +271,20 @@ std::vector<Tensor> jagged_remap_cuda(std::vector<Tensor> buffers, Tensor old_re
 
 }  // namespace
 
+// The CUDA kernels of the ops both backends have (torch.ops.ctgs.<op>; their schemas: ctgs/ops/dispatch.py).
+TORCH_LIBRARY_IMPL(ctgs, CUDA, m) {
+  m.impl("camera_space", &camera_space_cuda);
+  m.impl("camera_space_backward", &camera_space_backward_cuda);
+  m.impl("sh_color", &sh_color_cuda);
+  m.impl("sh_color_backward", &sh_color_backward_cuda);
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, CUDA backend (see docs/reference/renderer.md)";
   m.def("forward_cuda", &forward_cuda, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
         "tile_list, count, contrib, err)");
   m.def("backward_cuda", &backward_cuda, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
         "v_texel_size, v_textures, v_background)");
-  m.def("camera_space_cuda", &camera_space_cuda, "{mu_c, Rc}: world -> camera space of means and quaternions");
-  m.def("camera_space_backward_cuda", &camera_space_backward_cuda,
-        "gradient of camera_space_cuda w.r.t. means, quats");
-  m.def("sh_color_cuda", &sh_color_cuda, "SH(normalize(mean - centre)) + 0.5 per primitive");
-  m.def("sh_color_backward_cuda", &sh_color_backward_cuda, "gradient of sh_color_cuda w.r.t. means and SH");
   m.def("jagged_remap_cuda", &jagged_remap_cuda, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
 }

@@ -24,7 +24,7 @@ from pathlib import Path
 
 KERNELS = Path(__file__).resolve().parent  # the folder checked: where this script ships with the sources
 ARCHS = ("80", "90")  # A100 and H100/H200
-# Same code-generation flags as the JIT build (ctgs/render/_ext_cuda.py) where they matter to validity.
+# Same code-generation flags as the JIT build (ctgs/ops/ext_cuda.py) where they matter to validity.
 NVCC_FLAGS = ["-c", "-std=c++17", "-O2", "-fmad=false", "-I", str(KERNELS / "include"), "-Werror", "all-warnings"]
 
 

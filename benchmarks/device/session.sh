@@ -45,8 +45,8 @@ cat "$R/machine.json"
 stamp "extensions"
 python3 -c "
 import torch
-from ctgs.render._ext import load_cpu
-from ctgs.render._ext_cuda import load_cuda
+from ctgs.ops.ext import load_cpu
+from ctgs.ops.ext_cuda import load_cuda
 load_cpu(); load_cuda(); print('extensions ok')
 " || echo "extension load FAILED"
 

@@ -22,7 +22,7 @@ def prebuilt_manifest(name: str, flags: dict) -> dict:
 
     import torch
 
-    import ctgs.render._ext as _ext
+    import ctgs.ops.ext as _ext
 
     h = _ext.hash_kernel_sources(hashlib.sha256())
     return {"name": name, "sources": h.hexdigest()[:16], "flags": repr(sorted((k, list(v)) for k, v in flags.items())),
@@ -33,7 +33,7 @@ if os.environ.get("CTGS_PREBUILT") == "1":
     import importlib.util
     import json
 
-    import ctgs.render._ext as _ext
+    import ctgs.ops.ext as _ext
 
     _orig_jit_build = _ext.jit_build
 

@@ -13,11 +13,13 @@ its `filename` set to the final path, so the CLI's one line names the file the u
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
 import shutil
 import signal
+import socket
 import tempfile
 import threading
 import time
@@ -42,9 +44,6 @@ _TEMP_NAME = re.compile(r"^\..+" + re.escape(TMP_TAG) + r"(?:(\d+)-([0-9a-f]{6})
 def _host_tag() -> str:
     """6 hex digits of this machine's name: a process id only says whether its writer is alive on the machine
     that wrote it (a folder on a network share is written by several)."""
-    import hashlib
-    import socket
-
     return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:6]
 
 
@@ -226,6 +225,7 @@ def torch_save(obj, path: str, *, fsync: bool = True) -> None:
 
     Ctrl-C and SIGTERM wait until the file is in place (signals_deferred): a checkpoint takes a fraction of a second,
     and a stop that lands inside torch.save otherwise ends in torch's own error instead of a clean stop."""
+    # torch only for torch_save: demo-scene, sfm and fetch write files without it
     import torch
 
     try:

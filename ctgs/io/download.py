@@ -43,6 +43,7 @@ def sha256_file(path: str, progress=None) -> str:
 
 
 def _progress_bar(quiet: bool):
+    # rich only where a progress bar is drawn
     from rich.progress import (BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn,
                                TransferSpeedColumn)
 

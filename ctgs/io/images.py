@@ -14,6 +14,7 @@ read back before it takes its final name (OIIO can report success for a file a f
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import sys
 import zlib
@@ -167,8 +168,6 @@ def write_image(path: str, array: np.ndarray, *, bits: int | None = None, half: 
 def _write_error(path: str, tmp: str, detail: str) -> OSError:
     """An OSError for a failed image write: ENOSPC when the disk holding `path` is full (OIIO does not pass on
     errno), EIO otherwise. The CLI prints it as one line naming `path`."""
-    import errno
-
     try:
         st = os.statvfs(os.path.dirname(os.path.abspath(tmp)))
         full = st.f_bavail * st.f_frsize < 64 * 1024

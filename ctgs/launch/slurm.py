@@ -30,6 +30,7 @@ import time
 import tomllib
 
 from ctgs.errors import UserError
+from ctgs.scene.scene_vars import scene_vars
 
 JOBS_FILE = "jobs.json"
 LOG_NAME = "slurm.log"  # in each scene's run folder
@@ -329,8 +330,6 @@ def submit(args) -> int:
             sc[key] = int(value)
     extra = sc["extra"] + shlex.split(args.sbatch_opts or "")
     # A scene no manifest lists fails here, not on the node an hour later.
-    from ctgs.io.scene_vars import scene_vars
-
     for s in scenes:
         scene_vars(s)
     _need("sbatch")
@@ -412,6 +411,7 @@ def wait(runs: str, scenes: list[str], jobs: dict, poll: float = 2.0) -> int:
 
 def resumed(run_dir: str) -> int:
     """The job script's line on a restart: the iteration of the checkpoint the training resumes from."""
+    # Imported here: a checkpoint needs torch, which `make status` and submitting on a login node do not.
     from ctgs.train.checkpoint import load_checkpoint
 
     state = load_checkpoint(run_dir)

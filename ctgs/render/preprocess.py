@@ -8,8 +8,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ctgs.model.geometry import quat_to_rotmat
+from ctgs.ops.dispatch import fusable_here
 from ctgs.render.camera import Camera
+from ctgs.render.geometry import quat_to_rotmat
 from ctgs.render.sh import view_color
 
 
@@ -22,48 +23,22 @@ class CameraSpacePrims:
     colors: torch.Tensor  # [N, 3] SH(view dir) + 0.5, unclamped
 
 
-def compiled(device: torch.device):
-    """The compiled extension holding the per-primitive kernels for tensors on `device` and its name suffix:
-    (module, "cpu") or (module, "cuda")."""
-    if device.type == "cuda":
-        from ctgs.render._ext_cuda import load_cuda
-
-        return load_cuda(), "cuda"
-    from ctgs.fused import cpu_ext
-
-    return cpu_ext(), "cpu"
-
-
-def fusable_here(*tensors: torch.Tensor) -> bool:
-    """Whether the compiled per-primitive kernels apply: contiguous float CPU tensors with the CPU extension
-    (ctgs.fused.fusable), or contiguous float CUDA tensors with the CUDA extension."""
-    if tensors and tensors[0].is_cuda:
-        from ctgs.render._ext_cuda import cuda_fusable
-
-        return cuda_fusable(*tensors)
-    from ctgs.fused import fusable
-
-    return fusable(*tensors)
-
-
 class _CameraSpace(torch.autograd.Function):
     """(mu_c, Rc) of camera_space_torch in one compiled pass each way (kernels/include/ctgs/preprocess.h:
     kernels/cpu/camera.cpp on the CPU, kernels/cuda/dense.cu on a GPU)."""
 
     @staticmethod
     def forward(ctx, means, quats, view):
-        ext, dev = compiled(means.device)
         ctx.save_for_backward(quats, view)
-        return tuple(getattr(ext, f"camera_space_{dev}")(means, quats, view, torch.get_num_threads()))
+        return tuple(torch.ops.ctgs.camera_space(means, quats, view, torch.get_num_threads()))
 
     @staticmethod
     def backward(ctx, grad_mu_c, grad_Rc):
         quats, view = ctx.saved_tensors
-        ext, dev = compiled(quats.device)
         n = quats.shape[0]
         grad_mu_c = quats.new_zeros(n, 3) if grad_mu_c is None else grad_mu_c.contiguous()
         grad_Rc = quats.new_zeros(n, 3, 3) if grad_Rc is None else grad_Rc.contiguous()
-        gm, gq = getattr(ext, f"camera_space_backward_{dev}")(quats, view, grad_mu_c, grad_Rc, torch.get_num_threads())
+        gm, gq = torch.ops.ctgs.camera_space_backward(quats, view, grad_mu_c, grad_Rc, torch.get_num_threads())
         return (gm if ctx.needs_input_grad[0] else None), (gq if ctx.needs_input_grad[1] else None), None
 
 

@@ -16,6 +16,8 @@ import torch
 
 from typing import Callable
 
+from ctgs.ops.ext import load_cpu
+from ctgs.ops.ext_cuda import load_cuda
 from ctgs.render.camera import Camera
 from ctgs.render.preprocess import to_camera_space
 from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
@@ -23,12 +25,8 @@ from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
 
 def _load(device: str):
     if device == "cuda":
-        from ctgs.render._ext_cuda import load_cuda
-
         ext = load_cuda()
         return ext.forward_cuda, ext.backward_cuda
-    from ctgs.render._ext import load_cpu
-
     ext = load_cpu()
     return ext.forward_cpu, ext.backward_cpu
 
@@ -100,8 +98,6 @@ def rasterize_error_fn(s: SurfelInputs, camera: Camera, sh_degree: int, backgrou
     kernel lists every blended (pixel, primitive, w) and the statistics are sums over that list (the same
     pairs and weights a second render with the error image would blend). No gradients.
     check_error(e) validates the error image."""
-    from ctgs.render._ext import load_cpu
-
     with torch.no_grad():
         prims = to_camera_space(s.means, s.quats, s.sh, camera, sh_degree)
         k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)

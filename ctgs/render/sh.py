@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from ctgs.ops.dispatch import fusable_here
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -52,21 +54,15 @@ class _ShColor(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, sh, center, degree):
-        from ctgs.render.preprocess import compiled
-
-        ext, dev = compiled(means.device)
         ctx.save_for_backward(means, sh, center)
         ctx.degree = degree
-        return getattr(ext, f"sh_color_{dev}")(means, center, sh, degree, torch.get_num_threads())
+        return torch.ops.ctgs.sh_color(means, center, sh, degree, torch.get_num_threads())
 
     @staticmethod
     def backward(ctx, grad_colors):
-        from ctgs.render.preprocess import compiled
-
         means, sh, center = ctx.saved_tensors
-        ext, dev = compiled(means.device)
-        gm, gs = getattr(ext, f"sh_color_backward_{dev}")(means, center, sh, ctx.degree, grad_colors.contiguous(),
-                                                          torch.get_num_threads())
+        gm, gs = torch.ops.ctgs.sh_color_backward(means, center, sh, ctx.degree, grad_colors.contiguous(),
+                                                  torch.get_num_threads())
         return (gm if ctx.needs_input_grad[0] else None), (gs if ctx.needs_input_grad[1] else None), None, None
 
 
@@ -74,8 +70,6 @@ def view_color(means: torch.Tensor, sh: torch.Tensor, center: torch.Tensor, degr
     """[N, 3] = sh_to_color(sh, view_dirs(means, center), degree): differentiable w.r.t. means and sh (not the
     centre). On the CPU and on a GPU one compiled pass each way instead of ~150 small PyTorch ops per training
     step; the same values to float rounding (tests/render/test_sh.py, tests/render/test_cuda_backend.py)."""
-    from ctgs.render.preprocess import fusable_here
-
     if (not center.requires_grad and 0 <= degree <= 3 and sh.ndim == 3 and sh.shape[2] == 3
             and sh.shape[1] >= num_sh_coeffs(degree) and means.ndim == 2 and means.shape[1] == 3
             and sh.dtype == means.dtype and sh.device == means.device):

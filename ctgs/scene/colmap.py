@@ -82,6 +82,7 @@ def import_pycolmap():
     folder stays). SIGTERM gets back the handler Python had before the import (the CLI's: stop like Ctrl-C);
     the crash signals (SIGSEGV, SIGABRT, ...) keep glog's trace."""
     before = signal.getsignal(signal.SIGTERM)
+    # here, between saving and putting back the SIGTERM handler its import replaces
     import pycolmap
 
     if threading.current_thread() is threading.main_thread():

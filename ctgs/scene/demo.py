@@ -42,6 +42,7 @@ def _unit(v) -> np.ndarray:
 
 def _photo(name: str, tint=(1.0, 1.0, 1.0)) -> np.ndarray:
     """A scikit-image sample photo as float [H, W, 3] in [0, 1] (grey ones tinted)."""
+    # scikit-image only while the demo scene is made
     import skimage.data
 
     img = getattr(skimage.data, name)().astype(np.float64) / 255.0
@@ -156,6 +157,7 @@ def _nearest_distance(rect: Rect, centers: np.ndarray) -> float:
 def _prefilter(rects: list[Rect], centers: np.ndarray, focal: float) -> None:
     """Crop photos to their surface's aspect and shrink them to ~1 texel per pixel at the closest view
     (a one-level mipmap: bilinear + supersampling alone would alias on far, minified surfaces)."""
+    # scikit-image only while the demo scene is made
     from skimage.transform import resize
 
     for rect in rects:

@@ -51,6 +51,7 @@ def _safe_relative(member: str, prefix: str) -> PurePosixPath | None:
 
 def _extract(archive: str, fmt: str, prefixes: dict[str, str], staging: dict[str, Path], quiet: bool) -> set[str]:
     """Extract members under each scene's prefix into its staging folder; returns scenes that got files."""
+    # rich only where a progress bar is drawn
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
 
     found: set[str] = set()

@@ -14,6 +14,7 @@ matched, photos registered) from the database and the worker's progress file. py
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import hashlib
 import json
@@ -31,6 +32,7 @@ from dataclasses import asdict, dataclass, field, fields
 from ctgs.errors import UserError
 from ctgs.io import atomic
 from ctgs.io.images import image_info, list_images, read_image, resize_image, stderr_silenced, write_image
+from ctgs.scene import sfm_pairs
 from ctgs.scene.align import umeyama  # noqa: F401  (moved to ctgs.scene.align; kept importable from here)
 from ctgs.scene.colmap import import_pycolmap
 
@@ -184,6 +186,7 @@ def _mark(work: str, step: str, seconds: float, cpu_seconds: float = 0.0) -> Non
 
 def _cpu_seconds() -> float:
     """CPU time of this process and of its finished children (the workers)."""
+    # Unix only
     import resource
 
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -296,8 +299,6 @@ def _count_rows(database: str, table: str) -> int | None:
 def _die_with_parent() -> None:  # pragma: no cover (runs in the child between fork and exec)
     """The worker ends when `ctgs sfm` does (SIGTERM ends the parent at once, see run_sfm)."""
     try:
-        import ctypes
-
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
@@ -415,8 +416,6 @@ def _match(work: str, opts: SfmOptions, matcher: str = "exhaustive", progress: P
     if matcher == "exhaustive":
         total = n * (n - 1) // 2
     else:
-        from ctgs.scene import sfm_pairs
-
         progress("matches", 0, None, f"choosing pairs ({matcher})")
         names, pairs, _ = sfm_pairs.make_pairs(db, matcher, neighbours=RETRIEVAL_NEIGHBOURS,
                                                overlap=RETRIEVAL_OVERLAP if matcher == "retrieval" else

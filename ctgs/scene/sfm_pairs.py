@@ -19,6 +19,8 @@ import time
 
 import numpy as np
 
+from ctgs.scene.colmap import import_pycolmap
+
 # Visual words of the capture's vocabulary, and the descriptors it is trained on / each photo is described by.
 VOCABULARY_WORDS = 1024
 VOCABULARY_SAMPLE = 60_000
@@ -28,8 +30,6 @@ ASSIGN_CHUNK = 32_768
 
 def read_descriptors(database_path: str) -> tuple[list[str], list[np.ndarray]]:
     """(image names sorted, each image's SIFT descriptors as float32 [N, 128]) from a COLMAP database."""
-    from ctgs.scene.colmap import import_pycolmap
-
     pycolmap = import_pycolmap()
     db = pycolmap.Database.open(database_path)
     try:
@@ -53,6 +53,7 @@ def _nearest_word(x: np.ndarray, words: np.ndarray) -> np.ndarray:
 
 def similarity(descriptors: list[np.ndarray], *, seed: int = 0) -> np.ndarray:
     """[N, N] cosine similarity of the photos' TF-IDF bags of visual words (diagonal set to -inf)."""
+    # scikit-learn takes about a second to import: loaded only where it is used
     from sklearn.cluster import MiniBatchKMeans
 
     rng = np.random.default_rng(seed)

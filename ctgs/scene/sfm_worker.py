@@ -129,6 +129,7 @@ CALLS = {"extract": extract, "match": match, "map_incremental": map_incremental,
 def main(argv: list[str]) -> int:
     with open(argv[1]) as f:
         job = json.load(f)
+    # in the worker process only, once its job is read (pycolmap is heavy to import)
     import pycolmap
 
     pycolmap.logging.logtostderr = True  # no glog files in /tmp

@@ -41,9 +41,9 @@ def command(model_dir: str, out_dir: str, target: str, texels: str | None, codeb
     import time
     from dataclasses import asdict, replace
 
-    from ctgs.io.compress import TARGETS, compress_model
-    from ctgs.io.model_format import read_model, write_packed_model
-    from ctgs.io.packed import XZ_STREAM_BYTES
+    from ctgs.formats.compress import TARGETS, compress_model
+    from ctgs.formats.model_format import read_model, write_packed_model
+    from ctgs.formats.packed import XZ_STREAM_BYTES
 
     if os.path.abspath(model_dir) == os.path.abspath(out_dir):
         raise UserError(f"{out_dir}: output must differ from the input model folder")

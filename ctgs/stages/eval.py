@@ -8,12 +8,12 @@ import os
 import click
 
 from ctgs.errors import UserError
-from ctgs.metrics.report import OPEN_ALPHA
+from ctgs.evaluation.report import OPEN_ALPHA
 
 # The worst test view gets a line when at least this share of its pixels is open.
 OPEN_NOTE = 0.01
 # ... and when one primitive centred outside it carries at least this share of its blending weight (a veil; over
-# the training views of 24 herzjesu25 runs the largest was 12%: ctgs.metrics.evaluate.veil_share).
+# the training views of 24 herzjesu25 runs the largest was 12%: ctgs.evaluation.evaluate.veil_share).
 VEIL_NOTE = 0.15
 # a view whose photo is this much brighter or darker than the render (least-squares gain) gets a note: the capture's
 # exposures differ, which no model of the scene can predict for a new view (ctgs.metrics.psnr.gain_matched_psnr)
@@ -46,7 +46,7 @@ def _paper_rows(metrics: list[dict]) -> dict:
 
 def _table(paths: tuple[str, ...], out: str) -> None:
     from ctgs.io import atomic
-    from ctgs.metrics.report import METRICS_SCHEMA, build_table
+    from ctgs.evaluation.report import METRICS_SCHEMA, build_table
 
     metrics = []
     for p in paths:
@@ -104,7 +104,7 @@ def command(run_dirs, model_dir, out_dir, backend, device, lpips, lpips_weights,
         return
     if len(run_dirs) != 1:
         raise UserError(f"eval takes one RUN_DIR (got {len(run_dirs)}); use --table to aggregate several")
-    from ctgs.metrics.evaluate import EvalOptions, evaluate
+    from ctgs.evaluation.evaluate import EvalOptions, evaluate
 
     run_dir = run_dirs[0]
     if out_dir is None:

@@ -32,7 +32,7 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
 
     from ctgs.io import atomic
     from ctgs.io.images import write_image
-    from ctgs.io.run_model import load_run, with_scene
+    from ctgs.train.run_model import load_run, with_scene
     from ctgs.render import render
     from ctgs.scene.loader import load_scene
 
@@ -51,7 +51,7 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     model = run.model
     check_same_frame(run.world_origin, scene, run.run_dir)
     if model_dir is not None:
-        from ctgs.io.model_format import read_model
+        from ctgs.formats.model_format import read_model
 
         model, files = read_model(model_dir, device=device)
         check_same_frame(files.manifest.get("source", {}).get("world_origin"), scene, model_dir)

@@ -15,8 +15,8 @@ def resolve_bundle(model_dir: str, scene_dir: str | None, tmp_root: str) -> tupl
     a plain model folder, whose bundle is then built into tmp_root (the model folder is left untouched).
     """
     from ctgs.errors import UserError
-    from ctgs.io.model_format import MANIFEST, read_manifest, read_model
-    from ctgs.io.web_bundle import BUNDLE_JSON, WEB_SUBDIR, read_bundle_json, scene_cameras, write_web_bundle
+    from ctgs.formats.model_format import MANIFEST, read_manifest, read_model
+    from ctgs.formats.web_bundle import BUNDLE_JSON, WEB_SUBDIR, read_bundle_json, scene_cameras, write_web_bundle
 
     cameras = scene_cameras(scene_dir) if scene_dir else None
     if os.path.isfile(os.path.join(model_dir, BUNDLE_JSON)):

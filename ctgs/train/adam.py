@@ -11,7 +11,7 @@ import os
 
 import torch
 
-from ctgs import fused
+from ctgs.ops import fused
 
 PRIM_PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 TEX_PARAM = "textures_raw"
@@ -33,7 +33,7 @@ class SurfelAdam:
     def step(self, model, lrs: dict) -> None:
         """One Adam step; lrs maps a parameter name to a float or a broadcastable tensor (SH bands).
 
-        On the CPU one fused pass per parameter (ctgs.fused), which also counts the non-finite
+        On the CPU one fused pass per parameter (ctgs.ops.fused), which also counts the non-finite
         results: afterwards `nonfinite` names the parameters the step made NaN/Inf and `unchecked` those it
         updated without counting (the PyTorch path), for the trainer's guard.
         """

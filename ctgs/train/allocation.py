@@ -13,6 +13,9 @@ surfaces, their kind photo/flat/smooth, frame and area). Two measures, both repo
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from ctgs.render.geometry import quat_to_rotmat
 
 # A primitive belongs to a surface if its centre lies within this distance of the plane (world units)
 # and inside the rectangle grown by this fraction: the demo scene is a box room ~5 units across.
@@ -52,10 +55,6 @@ def texel_position_density_by_kind(model, meta: dict) -> dict[str, float]:
     Near the demo box (0.9 units across, less than 7x PLANE_TOL) texels of one face also count on the
     perpendicular face next to it.
     """
-    import torch
-
-    from ctgs.model.geometry import quat_to_rotmat
-
     counts: dict = {}
     if model.num_texels == 0:
         return _per_area(counts, meta)

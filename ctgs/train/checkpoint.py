@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import pickle
 import random
+import shutil
 import sys
 import zipfile
 
@@ -67,8 +68,6 @@ def save_checkpoint(run_dir: str, state: dict) -> str:
             os.link(path, link)
             os.replace(link, prev)
         except OSError:  # a filesystem without hard links: a copy
-            import shutil
-
             with atomic.atomic_path(prev) as tmp:
                 shutil.copyfile(path, tmp)
     atomic.torch_save(state, path)

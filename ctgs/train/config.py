@@ -9,10 +9,13 @@ the run), so no config needs retuning when the image size or the iteration count
 from __future__ import annotations
 
 import ast
+import difflib
+import os
 import tomllib
 from dataclasses import asdict, dataclass, field, fields
 
 from ctgs.errors import UserError
+from ctgs.resources import resolve_config
 
 METHODS = ("content_aware", "2dgs", "fixed_texture")
 
@@ -257,8 +260,6 @@ def describe_keys() -> list[tuple[str, object, str]]:
 
 
 def _unknown_key(key: str, source: str) -> UserError:
-    import difflib
-
     close = difflib.get_close_matches(key, list(field_names()), n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]!r}?" if close else ""
     return UserError(f"{source}: unknown config key {key!r}{hint} (`ctgs train --list-keys` lists every key)")
@@ -333,15 +334,11 @@ PRESETS = ("preview", "fast", "balanced", "paper")
 
 def config_path(name_or_path: str) -> str:
     """A path stays a path; a bare name (`default`, `2dgs`, `fast`) is the shipped configs/<name>.toml."""
-    from ctgs.resources import resolve_config
-
     return resolve_config(name_or_path)
 
 
 def _apply_file(cfg: TrainConfig, path: str) -> None:
     """Apply a TOML file and the chain of `base` files it names (relative to the file), base first."""
-    import os
-
     chain = []
     p = path
     while p:

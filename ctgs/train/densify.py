@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.model.geometry import quat_to_rotmat
+from ctgs.render.geometry import quat_to_rotmat
 from ctgs.train import edit
 
 SPLIT_CHILDREN = 2

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.fused import error_image as fused_error_image
+from ctgs.ops.fused import error_image as fused_error_image
 from ctgs.metrics.ssim import ssim_map
 
 

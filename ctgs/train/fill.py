@@ -29,6 +29,7 @@ def _image(view) -> np.ndarray:
 
 def fill_points(points: np.ndarray, views: list) -> tuple[np.ndarray, np.ndarray]:
     """(xyz [M, 3], rgb [M, 3] in [0, 1]): the fill points of the training `views` (module docstring)."""
+    # scikit-learn takes about a second to import: loaded only where it is used
     from sklearn.neighbors import NearestNeighbors
 
     pts = np.asarray(points, np.float64).reshape(-1, 3)

@@ -7,6 +7,7 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.model.surfels import SurfelModel
+from ctgs.render.geometry import frames_from_normals, rotmat_to_quat
 
 SH_C0 = 0.28209479177387814
 
@@ -39,6 +40,7 @@ def farthest_point_subsample(points: np.ndarray, k: int, seed: int = 0) -> np.nd
 
 def knn_scale(points: np.ndarray) -> np.ndarray:
     """Per point sqrt(mean squared distance to its 3 nearest neighbours) [P], world units (3DGS)."""
+    # scikit-learn takes about a second to import: loaded only where it is used
     from sklearn.neighbors import NearestNeighbors
 
     k = min(4, len(points))
@@ -51,6 +53,7 @@ def knn_scale(points: np.ndarray) -> np.ndarray:
 def pca_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
     """Per point the unit normal [P, 3] of the plane through its k nearest neighbours (itself included):
     the eigenvector of the smallest eigenvalue of their covariance. Sign arbitrary (surfels are two-sided)."""
+    # scikit-learn takes about a second to import: loaded only where it is used
     from sklearn.neighbors import NearestNeighbors
 
     pts = np.asarray(points, dtype=np.float64)
@@ -86,8 +89,6 @@ def init_model(points: np.ndarray, colors: np.ndarray, *, max_points: int, opaci
     scale = torch.from_numpy(knn_scale(np.asarray(points, dtype=np.float64)).astype(np.float32))
     gen = torch.Generator().manual_seed(seed)
     if normals:
-        from ctgs.model.geometry import frames_from_normals, rotmat_to_quat
-
         nrm = torch.from_numpy(pca_normals(points)).float()
         quats = rotmat_to_quat(frames_from_normals(nrm, gen))
     elif random_rotation:

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ctgs.fused import photometric_loss, texel_l1
-from ctgs.model.geometry import quat_to_rotmat
+from ctgs.ops.fused import photometric_loss, texel_l1
+from ctgs.render import render
 from ctgs.render.constants import CUTOFF_RHO, FILTER_INV_SQUARE, MAX_ALPHA, MIN_ALPHA
+from ctgs.render.geometry import quat_to_rotmat
 
 # surfel_pixel_rect (kernels/include/ctgs/bounds.h): the screen-space fallback box around the projected
 # centre, in pixels, and the object-space corners at +-3 sigma (CUTOFF_RHO = 9).
@@ -101,8 +102,6 @@ def texture_weights(model, camera, cfg, stats=None, rasterized=None) -> torch.Te
     weights = rasterized.to(model.means.dtype)
     if cfg.texture_reg_transmittance:
         if stats is None:
-            from ctgs.render import render
-
             with torch.no_grad():
                 zeros = model.means.new_zeros(camera.height, camera.width)
                 stats = render(model.render_inputs(), camera, backend=cfg.backend, sh_degree=model.sh_degree,
@@ -115,7 +114,7 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, st
                   rasterized=None, textures=None) -> LossTerms:
     """render, gt: [H, W, 3] in [0, 1]; stats: the view's ErrorStats, if rendered; rasterized: the render's
     [N] mask of rasterized primitives, if it has one (see texture_weights); textures: the activated texel
-    offsets the render used (SurfelInputs.textures), if the caller kept them (see ctgs.fused.texel_l1)."""
+    offsets the render used (SurfelInputs.textures), if the caller kept them (see ctgs.ops.fused.texel_l1)."""
     # (1 - l) L1 + l (1 - SSIM): one fused pass, gradient included, on the CPU (kernels/cpu/ssim.cpp).
     total, l1, s = photometric_loss(render, gt, cfg.lambda_ssim)
     if cfg.lambda_opacity > 0:

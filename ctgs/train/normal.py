@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.model.geometry import quat_to_rotmat
+from ctgs.render import render
+from ctgs.render.geometry import quat_to_rotmat
 from ctgs.render.sh import SH_C0
 from ctgs.render.types import SurfelInputs
 
@@ -49,8 +50,6 @@ def normal_inputs(inputs: SurfelInputs, camera) -> SurfelInputs:
 def render_normals(inputs: SurfelInputs, camera, backend: str = "auto"):
     """RenderOutput of `normal_inputs` over a black background: rgb = (N_r + alpha) / 2 (see `blended_normal`),
     alpha and depth as in a colour render of `inputs`."""
-    from ctgs.render import render
-
     return render(normal_inputs(inputs, camera), camera, backend=backend, sh_degree=0,
                   background=inputs.means.new_zeros(3))
 

@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+from ctgs.train import schedule
 from ctgs.train.config import TrainConfig
 from ctgs.train.size_budget import primitive_cap
 
@@ -127,8 +128,6 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
 
     sizes: {"label": (width, height)}; iterations: {"label": iterations}.
     """
-    from ctgs.train import schedule
-
     rows = []
     for key, rule in (("tau_tr_start", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
                       ("tau_tr_end", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),

@@ -11,7 +11,7 @@ RUN_DIR/train_summary.json  {"iterations", "train_seconds", "backend", "device",
                             eval_peak: the periodic evaluation with the highest PSNR ({"it", "psnr", "ssim", "views"})
 RUN_DIR/checkpoints/        resume state;  RUN_DIR/log.jsonl  per-step / per-routine records
 
-Reading a finished run is ctgs.io.run_model.load_run (weights only: model.pt holds no pickled objects).
+Reading a finished run is ctgs.train.run_model.load_run (weights only: model.pt holds no pickled objects).
 """
 
 from __future__ import annotations

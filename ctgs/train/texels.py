@@ -5,35 +5,16 @@ Texel size = k_min * 2**t2p_exp (world units). Resolutions are powers of two, ca
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 
-from ctgs.render.constants import CUTOFF_RHO, MIN_ALPHA
+from ctgs.model import jagged
+from ctgs.model.extent import CUTOFF_SIGMA, active_half_extent, active_resolution, texel_size
+from ctgs.render.constants import CUTOFF_RHO
 from ctgs.train import edit
+from ctgs.train.kmin import compute_k_min
 
-# The renderer's cutoffs: alpha < MIN_ALPHA is skipped, and nothing is drawn past rho = CUTOFF_RHO (3 sigma).
-CUTOFF_SIGMA = math.sqrt(CUTOFF_RHO)
 LOGIT_EPS = 1e-4  # activated texels are stored as logits; keep them finite at +-1
-
-
-def active_half_extent(model) -> torch.Tensor:
-    """[N, 2] half extent (world units) where the surfel can reach alpha >= 1/255: the official code's
-    sqrt(2 ln(255 o)) sigma, capped at 3 sigma (0 if the opacity can never reach 1/255)."""
-    o = model.opacities.detach()
-    r = torch.sqrt(2 * torch.log((o / MIN_ALPHA).clamp_min(1.0))).clamp(max=CUTOFF_SIGMA)  # [N] sigmas
-    return r[:, None] * model.scales.detach()
-
-
-def texel_size(model) -> torch.Tensor:
-    """[N] world units per texel (content-aware mode: isotropic)."""
-    return model.k_min * torch.pow(2.0, model.t2p_exp.to(model.k_min.dtype))
-
-
-def active_resolution(model) -> torch.Tensor:
-    """[N, 2] texels across the active extent on each axis (not rounded)."""
-    return 2 * active_half_extent(model) / texel_size(model)[:, None]
 
 
 ALLOC_MODES = ("pow2", "mult4")
@@ -124,8 +105,6 @@ def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = N
     new_res = model.tex_res.clone()
     new_res[sel] = model.tex_res[sel] * 2
     if crop is not None:
-        from ctgs.train.kmin import compute_k_min
-
         cameras, cap, mode, sigma = crop
         k_min, seen = compute_k_min(model.means.detach(), cameras, return_seen=True)
         exp = model.t2p_exp.to(k_min.dtype) - sel.to(k_min.dtype)
@@ -133,8 +112,6 @@ def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = N
         use = sel & seen
         new_res[use] = torch.minimum(new_res[use], target[use])
     bufs = [model.textures_raw.detach(), opt.exp_avg["textures_raw"], opt.exp_avg_sq["textures_raw"]]
-    from ctgs.model import jagged
-
     blocks = []
     for ru, rv, prims in _groups(model.tex_res, sel):
         vals = [jagged.blocks(b, model.tex_offset, prims, ru, rv).repeat_interleave(2, 1).repeat_interleave(2, 2)
@@ -168,8 +145,6 @@ def texel_weights(model, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
 def _roundtrips(model, sel: torch.Tensor):
     """Yield (ru, rv, prims, down, E_d) per resolution group of the selected primitives: the x2 bicubic
     antialiased downsampling of their activated textures [G, 3, rv/2, ru/2] and E_d [G] (see downscale)."""
-    from ctgs.model import jagged
-
     for ru, rv, prims in _groups(model.tex_res, sel):
         raw = jagged.blocks(model.textures_raw.detach(), model.tex_offset, prims, ru, rv)  # [G, rv, ru, 3]
         act = (2 * torch.sigmoid(raw) - 1).permute(0, 3, 1, 2)  # [G, 3, rv, ru]
@@ -198,8 +173,6 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torc
     (E_d < tau_ds, resolution > 2 on both axes) keep the downsampled texture, t2p_exp + 1; their Adam
     moments are 2x2 averaged. Returns (accepted [N] bool, E_d [N] with NaN where not evaluated).
     """
-    from ctgs.model import jagged
-
     n = model.num_primitives
     e_d = torch.full((n,), float("nan"), device=model.means.device)
     sel = candidates & (model.tex_res.min(1).values > 2)
@@ -290,8 +263,6 @@ def trim_res(model, eps: float) -> torch.Tensor:
     the crop changes each texture lookup by less than eps per channel: every rendered colour (a weighted sum
     of lookups, weights <= 1, then max(., 0)) moves by less than eps.
     """
-    from ctgs.model import jagged
-
     res = model.tex_res.long()
     n = res.shape[0]
     if model.num_texels == 0 or n == 0:

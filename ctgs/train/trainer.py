@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from ctgs import fused
+from ctgs.ops import fused
 from ctgs.errors import Terminated, UserError
 from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim

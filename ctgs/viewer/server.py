@@ -18,7 +18,7 @@ from http import HTTPStatus
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import unquote, urlsplit
 
-from ctgs.io.web_bundle import BUNDLE_JSON, read_bundle_json
+from ctgs.formats.web_bundle import BUNDLE_JSON, read_bundle_json
 
 STATIC_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "static")
 HOST = "127.0.0.1"

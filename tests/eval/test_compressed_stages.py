@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from fixture_run import make_run
 from ctgs.cli import main
 from ctgs.io.images import read_image
-from ctgs.io.model_format import read_model
+from ctgs.formats.model_format import read_model
 from ctgs.metrics.psnr import psnr
 
 MODES = [("scalar", "256"), ("vector", "64"), ("f16", None)]

@@ -90,7 +90,7 @@ def test_eval_on_the_training_views(run_dir, tmp_path):
     _eval(str(val), "--split", "train", "--backend", "reference", "--no-lpips")
     mv = json.load(open(val / "eval-train" / "metrics.json"))
     assert [r["name"] for r in mv["per_image"]] == [n for i, n in enumerate(names) if i % 3 != 1]
-    from ctgs.metrics.report import build_table
+    from ctgs.evaluation.report import build_table
 
     md, _ = build_table([m, {**m, "split": "test"}])
     assert "(training views)" in md  # never averaged with the test figures
@@ -168,9 +168,9 @@ def test_open_pixels_and_psnr_over_the_covered_ones(run_dir, tmp_path):
     """Each view's open share (rendered alpha < OPEN_ALPHA) and PSNR over the other pixels, against a direct render."""
     import torch
 
-    from ctgs.io.run_model import load_run
+    from ctgs.train.run_model import load_run
     from ctgs.metrics.psnr import masked_psnr, psnr
-    from ctgs.metrics.report import OPEN_ALPHA
+    from ctgs.evaluation.report import OPEN_ALPHA
     from ctgs.render import render
     from ctgs.scene import load_scene
 
@@ -267,7 +267,7 @@ def test_eval_an_exported_gaussian_file(run_dir, tmp_path):
     _eval(run_dir, "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e0"))
     base = json.load(open(tmp_path / "e0" / "metrics.json"))
     assert m["psnr"] != base["psnr"] and base["exported_file"] is None  # textures folded: not the exact model
-    from ctgs.metrics.report import variant
+    from ctgs.evaluation.report import variant
 
     assert variant(m) == "exported .sog"
     (tmp_path / "x.txt").write_text("x")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from ctgs.errors import UserError
-from ctgs.metrics.report import build_table
+from ctgs.evaluation.report import build_table
 from ctgs.scene.manifests import load_manifest
 from ctgs.stages.eval import _paper_rows
 

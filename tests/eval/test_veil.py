@@ -1,4 +1,4 @@
-"""ctgs.metrics.evaluate.veil_share: one primitive centred outside the view, blended in front of the scene."""
+"""ctgs.evaluation.evaluate.veil_share: one primitive centred outside the view, blended in front of the scene."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "render"))
 from scenes import make_surfels, pinhole  # noqa: E402
 
-from ctgs.metrics.evaluate import veil_share  # noqa: E402
+from ctgs.evaluation.evaluate import veil_share  # noqa: E402
 
 W, H, F = 48, 36, 40.0
 WALL = dict(mean=[0.0, 0.0, 5.0], scale=[20.0, 20.0], opacity=0.99)  # centred in the view, fills it

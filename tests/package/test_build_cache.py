@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-import ctgs.render._ext as ext
+import ctgs.ops.ext as ext
 import ctgs.resources as resources
 from ctgs.errors import UserError
 
@@ -156,7 +156,7 @@ def test_missing_nvcc_named(monkeypatch):
     import torch
     from torch.utils import cpp_extension
 
-    import ctgs.render._ext_cuda as ext_cuda
+    import ctgs.ops.ext_cuda as ext_cuda
 
     monkeypatch.setattr(ext_cuda, "_cuda_module", None)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # pretend a GPU, never build

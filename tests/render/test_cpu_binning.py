@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-import ctgs.render._ext as ext
+import ctgs.ops.ext as ext
 
 
 def _tile_lists(dtype, n: int, depth_step: float | None, seed: int = 0):

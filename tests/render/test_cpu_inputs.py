@@ -12,7 +12,7 @@ import pytest
 import torch
 from scenes import make_surfels, pinhole
 
-import ctgs.render._ext as ext
+import ctgs.ops.ext as ext
 import ctgs.render.api as api
 from ctgs.errors import UserError
 from ctgs.render import render
@@ -151,7 +151,7 @@ def test_poisoned_outputs_are_all_overwritten(monkeypatch):
 
 
 def test_import_does_not_build_extension():
-    code = ("import ctgs, ctgs.render, ctgs.render.api, ctgs.render._ext as e, sys; "
+    code = ("import ctgs, ctgs.render, ctgs.render.api, ctgs.ops.ext as e, sys; "
             "assert e._cpu_module is None; assert 'torch.utils.cpp_extension' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -262,6 +262,6 @@ def test_validation_never_builds_the_extension():
     """render(backend='reference') validates its inputs without loading (or building) the CPU extension."""
     here = os.path.dirname(os.path.abspath(__file__))
     code = (f"import torch, sys; sys.path.insert(0, {here!r}); from scenes import random_scene; "
-            "import ctgs.render._ext as e; from ctgs.render import render; c = random_scene(5); "
+            "import ctgs.ops.ext as e; from ctgs.render import render; c = random_scene(5); "
             "render(c.surfels, c.camera, backend='reference'); assert e._cpu_module is None")
     subprocess.run([sys.executable, "-c", code], check=True)

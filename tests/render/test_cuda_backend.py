@@ -182,8 +182,8 @@ def _case(seed: int, dtype: torch.dtype, n: int = 60, width: int = 64, height: i
 def test_tile_lists_identical_to_cpu(dtype, n, width, height):
     """Same pairs, same per-tile order (centre depth, then index) as the CPU binning, bit for bit.
     "multi-batch": ~700 surfels on 3x3 tiles put more than one shared-memory batch in every tile."""
-    from ctgs.render._ext import load_cpu
-    from ctgs.render._ext_cuda import load_cuda
+    from ctgs.ops.ext import load_cpu
+    from ctgs.ops.ext_cuda import load_cuda
     from ctgs.render.preprocess import to_camera_space
 
     s, cam = _case(3, dtype, n, width, height)
@@ -263,7 +263,7 @@ def test_preprocess_kernels_match_pytorch(dtype):
     """The per-primitive kernels (kernels/cuda/dense.cu: camera space, SH colour of every degree) against
     their PyTorch definitions on the same device, values and gradients; with the edge cases the CPU kernels
     are tested on: a zero quaternion (norm clamped), a mean at the camera centre (direction 0)."""
-    from ctgs.model.geometry import quat_to_rotmat
+    from ctgs.render.geometry import quat_to_rotmat
     from ctgs.render.preprocess import camera_space, camera_space_torch
     from ctgs.render.sh import sh_to_color, view_color, view_dirs
 

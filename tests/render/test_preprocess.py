@@ -9,7 +9,7 @@ import pytest
 import torch
 from scenes import look_at
 
-from ctgs import fused
+from ctgs.ops import fused
 from ctgs.render.preprocess import _CameraSpace, camera_space, camera_space_torch
 
 TOL = {torch.float32: 3e-6, torch.float64: 1e-13}

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ctgs import fused
+from ctgs.ops import fused
 from ctgs.render.sh import sh_to_color, view_color, view_dirs
 
 TOL = {torch.float32: 2e-6, torch.float64: 1e-13}
@@ -47,19 +47,19 @@ def test_view_color_gradcheck_and_threads():
     means, sh, center = _inputs(23, 16, torch.float64, 4)
     means, sh = means[1:].clone().requires_grad_(), sh[1:].clone().requires_grad_()
     assert torch.autograd.gradcheck(lambda m, s: view_color(m, s, center, 3), (means, sh))
-    ext = fused.cpu_ext()
+    assert fused.cpu_ext() is not None  # loaded: its kernels serve torch.ops.ctgs on the CPU
     m, s, c = _inputs(1000, 9, torch.float32, 5)
-    outs = [ext.sh_color_cpu(m, c, s, 2, t) for t in (1, 2, 3)]
+    outs = [torch.ops.ctgs.sh_color(m, c, s, 2, t) for t in (1, 2, 3)]
     assert all(torch.equal(o, outs[0]) for o in outs)
     gc = torch.ones(1000, 3)
-    grads = [ext.sh_color_backward_cpu(m, c, s, 2, gc, t) for t in (1, 2)]
+    grads = [torch.ops.ctgs.sh_color_backward(m, c, s, 2, gc, t) for t in (1, 2)]
     assert all(torch.equal(a, b) for a, b in zip(*grads))
 
 
 def test_view_color_rejects_a_degree_the_coefficients_cannot_hold():
     means, sh, center = _inputs(10, 4, torch.float32)
     with pytest.raises(RuntimeError, match="degree"):
-        fused.cpu_ext().sh_color_cpu(means, center, sh, 2, 1)
+        torch.ops.ctgs.sh_color(means, center, sh, 2, 1)
     # The Python entry falls back to PyTorch, which raises its own error for a missing coefficient.
     with pytest.raises(IndexError):
         view_color(means, sh, center, 2)

@@ -1,4 +1,4 @@
-"""The fused CPU kernels of the training loop (ctgs.fused, kernels/cpu/dense.cpp) against the PyTorch
+"""The fused CPU kernels of the training loop (ctgs.ops.fused, kernels/cpu/dense.cpp) against the PyTorch
 expressions they replace: Adam (scalar and per-element learning rates, the non-finite count), the
 texel L1 regulariser (value, gradient, gradcheck) and the photometric loss (kernels/cpu/ssim.cpp: value,
 gradient, error image, gradcheck, threads), in float32 and float64."""
@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from ctgs import fused
+from ctgs.ops import fused
 from ctgs.train.adam import BETA1, BETA2, SurfelAdam
 
 # One fused pass vs PyTorch's chain of ops: the same formula, rounded in a different order.

@@ -11,7 +11,7 @@ import torch
 import train_helpers as th
 from ctgs.model.surfels import SurfelModel, jagged_offsets
 from ctgs.render import render
-from ctgs.render._ext import load_cpu
+from ctgs.ops.ext import load_cpu
 from ctgs.render.camera import Camera
 from ctgs.render.constants import MIN_ALPHA
 from ctgs.render.preprocess import to_camera_space

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from ctgs.model.geometry import rotmat_to_quat
+from ctgs.render.geometry import rotmat_to_quat
 from ctgs.render import render
 from ctgs.render.camera import Camera
 from ctgs.render.types import SurfelInputs

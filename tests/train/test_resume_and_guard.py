@@ -15,7 +15,7 @@ import torch
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.train.events import Step
-from ctgs.io.run_model import load_run
+from ctgs.train.run_model import load_run
 from ctgs.train.trainer import Trainer, TrainingDiverged
 from ctgs.stages.train import resolve_config, _load_scene
 from ctgs.errors import UserError

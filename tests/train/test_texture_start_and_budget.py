@@ -71,7 +71,7 @@ def test_init_from_points():
 
 
 def test_rotation_quaternion_round_trip_and_normal_frames():
-    from ctgs.model.geometry import frames_from_normals, quat_to_rotmat, rotmat_to_quat
+    from ctgs.render.geometry import frames_from_normals, quat_to_rotmat, rotmat_to_quat
 
     g = torch.Generator().manual_seed(0)
     q = torch.randn(2000, 4, generator=g, dtype=torch.float64)
@@ -90,7 +90,7 @@ def test_rotation_quaternion_round_trip_and_normal_frames():
 
 
 def test_init_normals_lie_in_the_local_plane():
-    from ctgs.model.geometry import quat_to_rotmat
+    from ctgs.render.geometry import quat_to_rotmat
     from ctgs.train.init import pca_normals
 
     rng = np.random.default_rng(1)

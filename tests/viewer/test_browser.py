@@ -16,7 +16,7 @@ from click.testing import CliRunner
 
 from ctgs.cli import main
 from ctgs.io.images import read_rgb, write_image
-from ctgs.io.web_bundle import read_bundle_json
+from ctgs.formats.web_bundle import read_bundle_json
 from ctgs.viewer.capture import ViewerPage
 from ctgs.viewer.headless import Browser, BrowserError, find_chromium
 from ctgs.viewer.server import ViewerServer
@@ -43,7 +43,7 @@ def _cli(*args: str) -> None:
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory) -> dict:
     """Tiny trained demo: run folder, web bundle, `ctgs render` PNGs (textures on) and textures-off PNGs."""
-    from ctgs.io.run_model import load_run
+    from ctgs.train.run_model import load_run
     from ctgs.render import render
     from ctgs.scene.loader import load_scene
 

@@ -17,7 +17,7 @@ from urllib.parse import quote
 
 import pytest
 
-from ctgs.io.web_bundle import BUNDLE_JSON, write_web_bundle
+from ctgs.formats.web_bundle import BUNDLE_JSON, write_web_bundle
 from ctgs.viewer.capture import PANEL_CSS_PX, READY_TIMEOUT_S
 from ctgs.viewer.headless import Browser, BrowserError, find_chromium
 from ctgs.viewer.server import ViewerServer

@@ -14,8 +14,8 @@ import pytest
 from click.testing import CliRunner
 
 from ctgs.cli import main
-from ctgs.io.model_format import write_model
-from ctgs.io.web_bundle import write_web_bundle
+from ctgs.formats.model_format import write_model
+from ctgs.formats.web_bundle import write_web_bundle
 from ctgs.render import constants
 from ctgs.stages.view import resolve_bundle
 from ctgs.viewer.server import STATIC_DIR, ViewerServer

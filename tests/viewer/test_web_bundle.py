@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from ctgs.errors import UserError
-from ctgs.io.web_bundle import (BUNDLE_JSON, SNORM8_MAX, pack_atlas, read_bundle_json, read_web_bundle,
+from ctgs.formats.web_bundle import (BUNDLE_JSON, SNORM8_MAX, pack_atlas, read_bundle_json, read_web_bundle,
                                 write_web_bundle)
 from ctgs.render import render
 from viewer_models import camera, psnr, textured_model
