@@ -70,8 +70,12 @@ def test_a_checkpoint_of_the_earlier_trainer_resumes(scene, tmp_path, method):
     # The whole run's checkpoint at iteration 30 (kept as prev.pt after the final one): where this machine computes
     # the first 30 iterations as the writer's did, everything after must be bit-identical too.
     mine = torch.load(os.path.join(reference, "checkpoints", "prev.pt"), map_location="cpu", weights_only=False)
-    assert mine["iteration"] == CHECKPOINT_AT and set(old) <= set(mine)
+    assert mine["iteration"] == CHECKPOINT_AT
     if _same_state(old["model"], mine["model"]):
+        # the strategy's state is kept under the keys it had (content-aware: textures_started; 2dgs: the gradient
+        # statistics since the last densification, "acc")
+        key = "acc" if method == "2dgs" else "textures_started"
+        assert key in mine and (_same_state(old[key], mine[key]) if method == "2dgs" else old[key] == mine[key])
         assert _same_state(resumed.model.state_dict(), whole.model.state_dict())
         assert log == ref
     else:  # another CPU's arithmetic: the resumed run is the same training, to rounding

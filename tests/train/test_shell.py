@@ -169,6 +169,7 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
     from ctgs.train import routines, shell, trainer as trainer_mod
+    from ctgs.train.strategies import content_aware
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=300)
@@ -190,9 +191,9 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
         seen.append((before, int(background(model).sum()), stats))
         return stats
 
-    monkeypatch.setattr(trainer_mod, "full_routine", watched)
+    monkeypatch.setattr(content_aware, "full_routine", watched)
     t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
-    t.estimator = None  # its calibration renders a copy (covered below, with --time-budget); count the run's only
+    t.time.estimator = None  # its calibration renders a copy (covered below, with --time-budget); count the run's only
     far0 = int(shell.far_mask(t.model.means, *t.sphere).sum())
     assert far0 > 0
     for _ in t.run():
@@ -209,6 +210,7 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
     from ctgs.train import shell, trainer as trainer_mod
+    from ctgs.train.calibration import calibrate
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=64, height=48, points=200)
@@ -224,7 +226,7 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
         cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,
                              preset="fast")
         t = Trainer(cfg, _load_scene(cfg), str(tmp_path / f"run{expected}"))
-        step_s, render_s, textured_s = t._calibrate()
+        step_s, render_s, textured_s = calibrate(t)
         assert step_s > 0 and render_s > 0 and textured_s > 0
         # three timed steps before and three after the texture start, each through composite with a shell
         assert calls["composite"] == expected
