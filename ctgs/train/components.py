@@ -16,7 +16,27 @@ from ctgs.train.events import Estimated, Planned, Routine
 from ctgs.train.exposure import Exposure
 from ctgs.train.hooks import Component
 from ctgs.train.normal import normal_loss
+from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere
 from ctgs.train.virtual import coverage_loss, virtual_views
+
+
+class Shell(Component):
+    """init_shell: the sphere that tells the far shell's primitives (initial points: ctgs.train.init.scene_model) from
+    the scene's; training renders composite the scene over them where the view sees past the SfM points (two renders:
+    ctgs.train.shell), and the content-aware routines never split or upscale them."""
+
+    def __init__(self, scene, train_views, device):
+        self.sphere = scene_sphere(scene.points, scene.train)
+        # per training view, the pixels where the shell may show in training renders
+        self.open_px = {v.name: torch.from_numpy(open_mask(scene.points, v.camera)).to(device) for v in train_views}
+
+    def far(self, model) -> torch.Tensor:
+        """[N] bool: model's primitives on the far shell."""
+        return far_mask(model.means, *self.sphere)
+
+    def render(self, tr, inputs, view, bg):
+        return composite(tr.render_fn, inputs, view.camera, self.far(tr.model), self.open_px[view.name],
+                         tr.background if bg is None else bg)
 
 
 class VirtualCoverage(Component):
@@ -214,10 +234,11 @@ class TimeBudget(Component):
 
 
 def make_components(tr, scene) -> list[Component]:
-    """The components of tr's run, in calling order: gradients of the extra terms after the strategy's statistics
+    """The components of tr's run, in calling order: the extra terms' gradients after the strategy's statistics
     (virtual views, then the normal term); at the end the size budget's fit, then the exposure gains' record."""
     cfg = tr.cfg
-    parts = [VirtualCoverage(cfg, scene, tr.train_views, tr.device) if cfg.virtual_coverage > 0 else None,
+    parts = [Shell(scene, tr.train_views, tr.device) if cfg.init_shell > 0 else None,
+             VirtualCoverage(cfg, scene, tr.train_views, tr.device) if cfg.virtual_coverage > 0 else None,
              NormalTerm() if cfg.lambda_normal > 0 else None,
              SizeBudget() if cfg.max_params > 0 else None,
              ExposureCompensation(cfg, tr.train_views, tr.device) if cfg.exposure_comp else None,

@@ -7,7 +7,9 @@ strategy first, then on each component in the order of `Trainer.parts`; each kee
 to resume goes into the checkpoint under its own keys. `tr` is the Trainer (model, optimiser, config, views, log).
 
 One iteration (Trainer._train_step):
-    train_render(tr, rgb, view) -> rgb   the step's training render, before the loss (exposure gains)
+    render(tr, inputs, view, bg) -> (rgb, rasterized) | None   the step's training render, by the first part that
+                                         makes it (init_shell: two renders composited); None: a plain render
+    train_render(tr, rgb, view) -> rgb   that render, before the loss (exposure gains)
     post_backward(tr, it, view)          after the loss's backward, before the optimiser: gradient statistics, and
                                          terms rendered and back-propagated on their own (their gradients add up)
     post_step(tr, it)                    after the optimiser step
@@ -39,6 +41,9 @@ class Component:
 
     def begin(self, tr):
         return ()
+
+    def render(self, tr, inputs, view, bg):
+        return None
 
     def train_render(self, tr, rgb, view):
         return rgb

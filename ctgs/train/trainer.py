@@ -32,7 +32,6 @@ from ctgs.train.init import scene_model
 from ctgs.train.kmin import compute_k_min, view_coverage
 from ctgs.train.loss import training_loss
 from ctgs.train.run import write_outputs
-from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere
 from ctgs.train.strategies import make_strategy
 
 
@@ -106,16 +105,11 @@ class Trainer:
         self.near = float(scene.train[0].camera.near) if scene.train else None  # the scene's (loader.near_plane)
         self.num_sfm_points = len(scene.points)
         self.world_origin = [float(x) for x in getattr(scene, "origin", (0.0, 0.0, 0.0))]  # saved with the model
-        # init_shell: the sphere that tells the shell's far primitives from the scene's (ctgs.train.shell.far_mask).
-        self.sphere = scene_sphere(scene.points, scene.train) if cfg.init_shell > 0 else None
         self.train_views = make_views(scene.train, self.device)
         self.test_views = make_views(scene.test, self.device)
         if not self.train_views:
             raise UserError(f"{scene.root}: no training images (check --images and holdout)")
         self.cameras = [v.camera for v in self.train_views]
-        # init_shell: per training view, the pixels where the shell may show in training renders (shell.composite).
-        self.open_px = None if self.sphere is None else {
-            v.name: torch.from_numpy(open_mask(scene.points, v.camera)).to(self.device) for v in self.train_views}
         self.pixels = float(np.median([v.camera.width * v.camera.height for v in self.train_views]))
         # max_params_per_value: the size budget from the observed values (an explicit max_params wins)
         budgeted = rules.with_size_budget(cfg, self.observed_values())
@@ -257,13 +251,13 @@ class Trainer:
 
     # ---- loop ------------------------------------------------------------------------------------
     def _training_render(self, inputs, view, bg):
-        """(rgb, rasterized) of a training step: one render over `bg` (None: cfg.background), or with init_shell
-        the scene composited over the far primitives where the view sees past the SfM points (two renders)."""
-        if self.open_px is None:
-            out = self.render_fn(inputs, view.camera, background=bg)
-            return out.rgb, out.rasterized
-        return composite(self.render_fn, inputs, view.camera, far_mask(self.model.means, *self.sphere),
-                         self.open_px[view.name], self.background if bg is None else bg)
+        """(rgb, rasterized) of a training step over `bg` (None: cfg.background): one render, or a part's (init_shell:
+        the scene composited over the far primitives where the view sees past the SfM points, two renders)."""
+        for part in self.parts:
+            if (out := part.render(self, inputs, view, bg)) is not None:
+                return out
+        out = self.render_fn(inputs, view.camera, background=bg)
+        return out.rgb, out.rasterized
 
     def run(self):
         cfg = self.cfg

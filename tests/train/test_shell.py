@@ -168,7 +168,7 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     (shell) primitive, so their number never grows in a routine (upscales: the unit test above)."""
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
-    from ctgs.train import routines, shell, trainer as trainer_mod
+    from ctgs.train import components, routines, shell
     from ctgs.train.strategies import content_aware
     from ctgs.train.trainer import Trainer
 
@@ -181,7 +181,7 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
         calls["composite"] += 1
         return shell.composite(*a, **k)
 
-    monkeypatch.setattr(trainer_mod, "composite", counted)
+    monkeypatch.setattr(components, "composite", counted)
     seen = []
     real_full = routines.full_routine
 
@@ -194,7 +194,7 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     monkeypatch.setattr(content_aware, "full_routine", watched)
     t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
     t.time.estimator = None  # its calibration renders a copy (covered below, with --time-budget); count the run's only
-    far0 = int(shell.far_mask(t.model.means, *t.sphere).sum())
+    far0 = int(shell.far_mask(t.model.means, *t.part(components.Shell).sphere).sum())
     assert far0 > 0
     for _ in t.run():
         pass
@@ -209,7 +209,7 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
     step, not a single render, or the plan undercounts every step."""
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
-    from ctgs.train import shell, trainer as trainer_mod
+    from ctgs.train import components, shell
     from ctgs.train.calibration import calibrate
     from ctgs.train.trainer import Trainer
 
@@ -220,7 +220,7 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
         calls["composite"] += 1
         return shell.composite(*a, **k)
 
-    monkeypatch.setattr(trainer_mod, "composite", counted)
+    monkeypatch.setattr(components, "composite", counted)
     for sets, expected in ((["init_shell=20", "threads=1"], 6), (["threads=1"], 0)):
         calls["composite"] = 0
         cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,

@@ -8,11 +8,11 @@ from __future__ import annotations
 import os
 
 from ctgs.train import schedule, size_budget, texels
+from ctgs.train.components import Shell
 from ctgs.train.densify import RESET_OPACITY, reset_opacity
 from ctgs.train.events import Routine
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.routines import full_routine, late_routine
-from ctgs.train.shell import far_mask
 from ctgs.train.strategies.base import Strategy
 
 
@@ -65,10 +65,9 @@ class ContentAware(Strategy):
         # on a GPU about the lean order's time, 1.5x its peak memory: docs/guide/gpu.md)
         lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
         gains = tr.exposure.view_gains() if tr.exposure is not None and cfg.exposure_in_E else None
-        # init_shell: the far primitives the split/upscale ranking leaves out
-        far = None if tr.sphere is None else (lambda model: far_mask(model.means, *tr.sphere))
-        return full_routine(tr.model, tr.opt, cfg, it, tr.train_views, tr.render_fn, tr.cameras, far, lean=lean,
-                            gains=gains)
+        shell = tr.part(Shell)  # init_shell: the far primitives the split/upscale ranking leaves out
+        return full_routine(tr.model, tr.opt, cfg, it, tr.train_views, tr.render_fn, tr.cameras,
+                            None if shell is None else shell.far, lean=lean, gains=gains)
 
     def finish(self, tr):
         if tr.cfg.texture_trim > 0:
