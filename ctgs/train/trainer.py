@@ -27,7 +27,7 @@ from ctgs.train import rules, schedule
 from ctgs.train.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.components import ExposureCompensation, TimeBudget, make_components
 from ctgs.train.config import TrainConfig
-from ctgs.train.events import Checkpoint, Done, Eval, Routine, Step
+from ctgs.train.events import Checkpoint, Done, Eval, Step
 from ctgs.train.init import scene_model
 from ctgs.train.kmin import compute_k_min, view_coverage
 from ctgs.train.loss import training_loss
