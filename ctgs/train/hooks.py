@@ -1,8 +1,8 @@
 """The one interface through which the training loop (ctgs.train.trainer.Trainer) calls what a run is made of.
 
 A run is a *strategy* (how its primitives and textures change: ctgs.train.strategies, chosen by config `method`) and a
-list of *components* (a feature the config turns on: exposure compensation, virtual views, the depth-normal term, the
-size budget, the time budget: ctgs.train.components). Both are `Component`s: the trainer calls every hook on the
+list of *components* (a feature the config turns on: the far shell, virtual views, the depth-normal term, the size
+budget, exposure compensation, the time budget: ctgs.train.components). Both are `Component`s: the trainer calls every hook on the
 strategy first, then on each component in the order of `Trainer.parts`; each keeps its own state, and what it needs
 to resume goes into the checkpoint under its own keys. `tr` is the Trainer (model, optimiser, config, views, log).
 
