@@ -7,7 +7,6 @@ checkpoints/last.pt and log.jsonl up to it; config.toml is written here, as the 
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 
@@ -18,6 +17,7 @@ from ctgs.io.run_model import load_run
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import resolve_config, train_main
 from ctgs.train.run import write_config
+from train_helpers import run_log
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 FIXTURES = os.path.join(ROOT, "tests", "data", "resume_736cf4e")
@@ -29,21 +29,12 @@ SETS = ("iterations=60", "schedule_scale=0.04", "checkpoint_every=750", "backend
 # so the checkpoint holds 10 steps of gradient statistics; opacity reset at 40.
 METHODS = {"content_aware": (), "2dgs": ("method='2dgs'", "densify_every=500", "densify_from=0",
                                          "opacity_reset_every=1000")}
-CLOCK_FIELDS = ("seconds", "wall")
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     return make_demo_scene(str(tmp_path_factory.mktemp("scene") / "demo"), num_views=10, width=48, height=36,
                            points=300)
-
-
-def _log(run: str) -> list[dict]:
-    rows = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
-    for r in rows:
-        for clock in CLOCK_FIELDS:
-            r.pop(clock, None)
-    return rows
 
 
 def _same_state(a: dict, b: dict) -> bool:
@@ -65,7 +56,7 @@ def test_a_checkpoint_of_the_earlier_trainer_resumes(scene, tmp_path, method):
     train_main(scene, run, resume=True, quiet=True)
     resumed, whole = load_run(run), load_run(reference)
     assert resumed.iteration == whole.iteration == 60
-    log, ref = _log(run), _log(reference)
+    log, ref = run_log(run), run_log(reference)
     assert [r["it"] for r in log if r["type"] == "step"] == list(range(1, 61))
     # The whole run's checkpoint at iteration 30 (kept as prev.pt after the final one): where this machine computes
     # the first 30 iterations as the writer's did, everything after must be bit-identical too.
