@@ -7,6 +7,7 @@ copy, a filesystem that lost its last writes in a power cut) falls back to it, w
 
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import random
@@ -118,3 +119,29 @@ def load_checkpoint(run_dir: str) -> dict | None:
         return state
     raise UserError(f"{'; '.join(problems)}: no readable checkpoint to resume from; restart the run without "
                     "--resume into a new folder (-o)")
+
+
+def _json_record(line: str) -> bool:
+    try:
+        return isinstance(json.loads(line), dict)
+    except ValueError:
+        return False
+
+
+def cut_log(log_path: str, lines: int) -> int:
+    """On resume: keep the first `lines` lines of the run's log (those written up to its checkpoint: the rest will be
+    produced again); a damaged log (not UTF-8, cut lines) loses its unreadable lines, not the run. Returns the count
+    kept."""
+    raw = open(log_path, "rb").read().decode("utf-8", "replace") if os.path.exists(log_path) else ""
+    kept = [line for line in raw.splitlines()[:lines] if _json_record(line)]
+    atomic.write_text(log_path, "".join(line + "\n" for line in kept))  # a failed write names the log
+    return len(kept)
+
+
+def rerun_hint(run_dir: str) -> str:
+    """What a diverged run keeps and how to go on: from its last checkpoint, or from the start."""
+    last = load_checkpoint(run_dir)
+    if last is None:
+        return "no checkpoint was written yet; lower the learning rates (--set lr_...) and retrain"
+    return (f"last good checkpoint {checkpoint_path(run_dir)} (iteration {last['iteration']}) kept; "
+            f"lower the learning rates (--set lr_...) and rerun with --resume")

@@ -8,6 +8,8 @@ import torch
 from ctgs.errors import UserError
 from ctgs.model.surfels import SurfelModel
 from ctgs.render.geometry import frames_from_normals, rotmat_to_quat
+from ctgs.train.fill import fill_points
+from ctgs.train.shell import shell_points
 
 SH_C0 = 0.28209479177387814
 
@@ -114,3 +116,16 @@ def init_model(points: np.ndarray, colors: np.ndarray, *, max_points: int, opaci
         k_min=torch.ones(n), t2p_exp=torch.zeros(n, dtype=torch.int32), tex_res=tex_res,
         tex_offset=torch.cumsum(sizes, 0) - sizes, sh_degree=0, texture_mode=texture_mode,
     )
+
+
+def scene_model(scene, cfg, max_points: int, texture_mode: str) -> SurfelModel:
+    """init_model for a scene and a config: its SfM points capped at max_points, then the extra initial points, the
+    far shell's (init_shell) and the fill's (init_fill)."""
+    extra = shell_points(scene.points, scene.train, cfg.init_shell) if cfg.init_shell > 0 else (None, None)
+    if cfg.init_fill:
+        fill = fill_points(scene.points, scene.train)
+        extra = tuple(f if e is None else np.concatenate([e, f]) for e, f in zip(extra, fill))
+    return init_model(scene.points, scene.point_colors, max_points=max_points, opacity=cfg.init_opacity,
+                      max_sh_degree=cfg.max_sh_degree, random_rotation=cfg.random_rotation, normals=cfg.init_normals,
+                      texture_mode=texture_mode, fixed_res=cfg.fixed_texture_res, seed=cfg.seed,
+                      extra_points=extra[0], extra_colors=extra[1])

@@ -25,7 +25,7 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
     console = Console(stderr=True)
     # Time left: the cost model's (budget.py) where the run has one, which counts the growth of the step cost
     # still ahead and the routines; a --time-budget run's is its budget's end. Otherwise rich's (recent speed).
-    modelled = trainer.planner is not None or trainer.estimator is not None
+    modelled = trainer.time.clock is not None
     columns = [TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(),
                TextColumn("{task.fields[speed]:>6.1f} it/s"), TimeElapsedColumn(), TextColumn("ETA"),
                TextColumn("{task.fields[left]}") if modelled else TimeRemainingColumn(),
@@ -53,7 +53,7 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                     f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in ev.stats.items()))
             elif isinstance(ev, Planned):
                 progress.update(task, total=ev.iterations)
-                end_at = trainer.planner.start + ev.budget_s
+                end_at = trainer.time.planner.start + ev.budget_s
                 if ev.it == trainer.it and not planned_once:
                     planned_once = True
                     progress.console.log(f"time budget {ev.budget_s / 60:.1f} min: planned {ev.iterations} iterations "
@@ -61,7 +61,7 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                     if ev.it == 0 and (line := _short_plan(trainer, ev)):
                         progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
             elif isinstance(ev, Estimated):
-                end_at = trainer.estimator.start + ev.wall_s
+                end_at = trainer.time.estimator.start + ev.wall_s
                 if estimates_shown < 2:  # the calibration's and the first from measured steps; later ones: the ETA
                     estimates_shown += 1
                     progress.console.print("ctgs train: " + estimate_line(ev.it, ev.iterations, ev.wall_s),
@@ -75,7 +75,7 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
 
 def _short_plan(trainer, ev: Planned) -> str | None:
     """The warning for a fresh run whose first plan is shorter than any measured run (shown quiet or not)."""
-    return short_plan_warning(ev.iterations, ev.budget_s, trainer.planner.plan.calib_step_s, trainer.pixels)
+    return short_plan_warning(ev.iterations, ev.budget_s, trainer.time.planner.plan.calib_step_s, trainer.pixels)
 
 
 def _clock(seconds: float) -> str:

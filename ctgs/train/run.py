@@ -72,10 +72,8 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     if peak is not None:
         views = ("validation" if cfg.validation_holdout > 0 else "test") if trainer.test_views else "training"
         summary["eval_peak"] = {**peak, "views": views}
-    if trainer.planner is not None:
-        summary.update(trainer.planner.summary())
-    elif trainer.estimator is not None:
-        summary.update(trainer.estimator.summary())
+    if trainer.time.clock is not None:  # the time budget's plan, or a fixed run's estimates
+        summary.update(trainer.time.clock.summary())
     summary_path = os.path.join(trainer.run_dir, "train_summary.json")
     atomic.write_json(summary_path, summary)
     # model.pt last: it marks a finished run, so a failed write (a full disk) leaves a run that --resume finishes

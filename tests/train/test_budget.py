@@ -187,6 +187,7 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
     from ctgs.train.adam import ALL_PARAMS
+    from ctgs.train.calibration import calibrate
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=64, height=48, points=200)
@@ -195,10 +196,10 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
     before = {n: getattr(t.model, n).detach().clone() for n in ALL_PARAMS}
     moments = {n: t.opt.exp_avg[n].clone() for n in ALL_PARAMS}
-    step_s, render_s, textured_s, _ = t._calibrate()
+    step_s, render_s, textured_s, _ = calibrate(t)
     assert step_s > 0 and render_s > 0
     assert (textured_s is not None and textured_s > 0) if method == "content_aware" else textured_s is None
-    assert not t.textures_started and t.model.num_texels == 0
+    assert not t.strategy.textures_started and t.model.num_texels == 0
     for n in ALL_PARAMS:
         assert torch.equal(getattr(t.model, n).detach(), before[n]), n
         assert torch.equal(t.opt.exp_avg[n], moments[n]) and all(v == 0 for v in t.opt.steps.values()), n
@@ -267,7 +268,7 @@ def test_a_fixed_run_says_its_wall_time_and_trains_as_it_would_without(tmp_path,
 
     from ctgs.cli import main
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.train.trainer import Trainer
+    from ctgs.train import calibration
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=48, height=36, points=150)
     args = ["--preset", "fast", "--iterations", "90", "--set", "threads=1"]
@@ -287,7 +288,7 @@ def test_a_fixed_run_says_its_wall_time_and_trains_as_it_would_without(tmp_path,
     best = max(tests, key=lambda r: (r["psnr"], -r["it"]))  # the run's own evaluations, the earliest of a tie
     assert summary["eval_peak"] == {"it": best["it"], "psnr": best["psnr"], "ssim": best["ssim"], "views": "test"}
 
-    monkeypatch.setattr(Trainer, "_calibrate", lambda self: (0.01, 0.005, 0.02))
+    monkeypatch.setattr(calibration, "calibrate", lambda trainer: (0.01, 0.005, 0.02))
     result = CliRunner().invoke(main, ["train", scene_dir, "-o", str(tmp_path / "b"), "-q", *args])
     assert result.exit_code == 0, result.output
     a = torch.load(tmp_path / "a" / "model.pt", weights_only=True)["model"]
@@ -348,14 +349,14 @@ def test_calibration_timings_wait_for_queued_cuda_kernels(monkeypatch):
     them before and after each repetition (checked without a GPU: torch.cuda.synchronize replaced by a counter)."""
     import torch
 
-    from ctgs.train import trainer as trainer_mod
+    from ctgs.train.calibration import median_seconds
 
     calls = []
     monkeypatch.setattr(torch.cuda, "synchronize", lambda device=None: calls.append(device))
-    assert trainer_mod._median_seconds(lambda: None, reps=3, device=torch.device("cuda", 0)) >= 0
+    assert median_seconds(lambda: None, reps=3, device=torch.device("cuda", 0)) >= 0
     assert len(calls) == 6
     calls.clear()
-    trainer_mod._median_seconds(lambda: None, reps=3, device=torch.device("cpu"))
+    median_seconds(lambda: None, reps=3, device=torch.device("cpu"))
     assert not calls
 
 
@@ -449,7 +450,7 @@ def test_a_real_run_with_a_slow_texture_start_still_uses_its_budget(tmp_path, mo
     slow = {"left": 6}
 
     def training_render(self, inputs, view, bg):
-        if self.textures_started and slow["left"] > 0 and self.it > 0:
+        if self.strategy.textures_started and slow["left"] > 0 and self.it > 0:
             slow["left"] -= 1
             time_mod.sleep(0.5)
         return real(self, inputs, view, bg)

@@ -66,11 +66,11 @@ def test_prune_opacity_zero_resets_to_3dgs_value_and_stays_finite(scene, tmp_pat
 def test_full_routines_run_lean_unless_switched_off(scene, tmp_path, monkeypatch, env, lean):
     """CTGS_LEAN_ROUTINE=0 gives the trainer's full routines the paper's order (lean=False; the same final state,
     tests/train/test_routines_image.py); unset, the lean order."""
-    from ctgs.train import trainer as trainer_mod
+    from ctgs.train.strategies import content_aware
 
     calls = []
-    real = trainer_mod.full_routine
-    monkeypatch.setattr(trainer_mod, "full_routine", lambda *a, **k: (calls.append(k.get("lean")), real(*a, **k))[1])
+    real = content_aware.full_routine
+    monkeypatch.setattr(content_aware, "full_routine", lambda *a, **k: (calls.append(k.get("lean")), real(*a, **k))[1])
     if env is None:
         monkeypatch.delenv("CTGS_LEAN_ROUTINE", raising=False)
     else:

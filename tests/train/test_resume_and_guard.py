@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -19,6 +18,7 @@ from ctgs.train.run_model import load_run
 from ctgs.train.trainer import Trainer, TrainingDiverged
 from ctgs.stages.train import resolve_config, _load_scene
 from ctgs.errors import UserError
+from train_helpers import run_log
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -26,7 +26,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 # (routine_margin=0; split threshold 2 texels and texel exponents down to 0, so it splits and upscales),
 # texture reallocations every 10 (50 and 60 change the allocation). Log every step.
 ROUTINE_AT = 40
-CLOCK_FIELDS = ("seconds", "wall")  # time readings in log.jsonl: the only fields a resumed run may change
 SETS = ("iterations=60", "schedule_scale=0.04", "checkpoint_every=750", "backend='cpu'", "max_init_points=200",
         "threads=1", "routine_margin=0", "tau_tr_start=2.0", "tau_tr_end=2.0", "min_t2p_exp=0", "start_texels=4.0",
         "log_every=1")
@@ -56,15 +55,6 @@ def _same_models(a, b):
             assert value == sb[name], name
 
 
-def _log(run: str) -> list[dict]:
-    """log.jsonl without its clock readings."""
-    rows = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
-    for r in rows:
-        for clock in CLOCK_FIELDS:
-            r.pop(clock, None)
-    return rows
-
-
 def test_resume_across_a_full_routine_is_bit_identical(scene, reference_run, tmp_path):
     run = str(tmp_path / "interrupted")
     cfg = resolve_config(scene, run, None, None, SETS, None, False, None, None, preset="fast")
@@ -83,7 +73,7 @@ def test_resume_across_a_full_routine_is_bit_identical(scene, reference_run, tmp
     a, b = load_run(run), load_run(reference_run)
     assert a.iteration == 60
     _same_models(a.model, b.model)
-    log, ref = _log(run), _log(reference_run)
+    log, ref = run_log(run), run_log(reference_run)
     assert log == ref
     # What the resumed part went through, from its log: a full routine that split and upscaled, and a
     # texture reallocation (outside any routine) that changed the allocation.

@@ -168,7 +168,8 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     (shell) primitive, so their number never grows in a routine (upscales: the unit test above)."""
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
-    from ctgs.train import routines, shell, trainer as trainer_mod
+    from ctgs.train import components, routines, shell
+    from ctgs.train.strategies import content_aware
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=300)
@@ -180,7 +181,7 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
         calls["composite"] += 1
         return shell.composite(*a, **k)
 
-    monkeypatch.setattr(trainer_mod, "composite", counted)
+    monkeypatch.setattr(components, "composite", counted)
     seen = []
     real_full = routines.full_routine
 
@@ -190,10 +191,10 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
         seen.append((before, int(background(model).sum()), stats))
         return stats
 
-    monkeypatch.setattr(trainer_mod, "full_routine", watched)
+    monkeypatch.setattr(content_aware, "full_routine", watched)
     t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
-    t.estimator = None  # its calibration renders a copy (covered below, with --time-budget); count the run's only
-    far0 = int(shell.far_mask(t.model.means, *t.sphere).sum())
+    t.time.estimator = None  # its calibration renders a copy (covered below, with --time-budget); count the run's only
+    far0 = int(shell.far_mask(t.model.means, *t.part(components.Shell).sphere).sum())
     assert far0 > 0
     for _ in t.run():
         pass
@@ -208,7 +209,8 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
     step, not a single render, or the plan undercounts every step."""
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
-    from ctgs.train import shell, trainer as trainer_mod
+    from ctgs.train import components, shell
+    from ctgs.train.calibration import calibrate
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=64, height=48, points=200)
@@ -218,13 +220,13 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
         calls["composite"] += 1
         return shell.composite(*a, **k)
 
-    monkeypatch.setattr(trainer_mod, "composite", counted)
+    monkeypatch.setattr(components, "composite", counted)
     for sets, expected in ((["init_shell=20", "threads=1"], 6), (["threads=1"], 0)):
         calls["composite"] = 0
         cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,
                              preset="fast")
         t = Trainer(cfg, _load_scene(cfg), str(tmp_path / f"run{expected}"))
-        step_s, render_s, textured_s, _ = t._calibrate()
+        step_s, render_s, textured_s, _ = calibrate(t)
         assert step_s > 0 and render_s > 0 and textured_s > 0
         # three timed steps before and three after the texture start, each through composite with a shell
         assert calls["composite"] == expected

@@ -84,6 +84,7 @@ def test_virtual_coverage_trains_and_raises_alpha_between_cameras(tmp_path):
     from ctgs.render import render
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.train.components import VirtualCoverage
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=64, height=48, points=300)
@@ -98,13 +99,13 @@ def test_virtual_coverage_trains_and_raises_alpha_between_cameras(tmp_path):
 
     on = train(str(tmp_path / "on"), ["virtual_coverage=1.0", "virtual_every=1"])
     off = train(str(tmp_path / "off"), [])
-    assert len(on.virtual) > 0 and off.virtual == []
+    assert len(on.part(VirtualCoverage).views) > 0 and off.part(VirtualCoverage) is None
 
     def mean_alpha(t: Trainer) -> float:
         with torch.no_grad():
             inp = t.model.render_inputs()
             return float(np.mean([float(coverage_loss(render(inp, v.camera, sh_degree=t.model.sh_degree).alpha, v))
-                                  for v in on.virtual]))
+                                  for v in on.part(VirtualCoverage).views]))
 
     assert mean_alpha(on) < 0.8 * mean_alpha(off)  # (1 - alpha) on the virtual views: 0.04-0.14 vs 0.13-0.24
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+import os
 
 import torch
 
@@ -13,6 +15,7 @@ from ctgs.train.adam import SurfelAdam
 
 W, H, F = 64, 48, 60.0
 BACKEND = "cpu"
+CLOCK_FIELDS = ("seconds", "wall")  # time readings in log.jsonl: the only fields a resumed run may change
 
 
 def camera(z_shift: float = 0.0) -> Camera:
@@ -68,3 +71,12 @@ def smooth_texture(res: int, scale_texels: float, amp: float = 1.5) -> torch.Ten
 
 def logit(p: float) -> float:
     return math.log(p / (1 - p))
+
+
+def run_log(run: str) -> list[dict]:
+    """A run's log.jsonl without its clock readings."""
+    rows = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
+    for r in rows:
+        for clock in CLOCK_FIELDS:
+            r.pop(clock, None)
+    return rows

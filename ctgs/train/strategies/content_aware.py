@@ -1,0 +1,78 @@
+"""The content-aware strategy (the paper's method): textures allocated at texture_start; then on the schedule's
+calendar the full routine (error E over the training views, split, texel up/downscaling, prune, reallocation:
+ctgs.train.routines), after the routine window the late downscale-only pass, texture reallocations in between;
+after the last iteration the texture trim."""
+
+from __future__ import annotations
+
+import os
+
+from ctgs.train import schedule, size_budget, texels
+from ctgs.train.components import Shell
+from ctgs.train.densify import RESET_OPACITY, reset_opacity
+from ctgs.train.events import Routine
+from ctgs.train.kmin import compute_k_min
+from ctgs.train.routines import full_routine, late_routine
+from ctgs.train.strategies.base import Strategy
+
+
+class ContentAware(Strategy):
+    texture_mode = "content_aware"
+    starts_textures = True
+
+    def __init__(self):
+        self.textures_started = False
+
+    def restore(self, tr, state: dict) -> None:
+        self.textures_started = bool(state.get("textures_started", tr.it >= schedule.texture_start(tr.cfg)))
+
+    def checkpoint(self) -> dict:
+        return {"textures_started": self.textures_started}
+
+    def start_textures(self, tr) -> None:
+        """Allocate tr.model's textures (the run's texture start; the calibration does it on its copy)."""
+        cfg = tr.cfg
+        tr.model.k_min = compute_k_min(tr.model.means.detach(), tr.cameras)
+        texels.start_textures(tr.model, tr.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
+                              cfg.texture_alloc, cfg.texture_sigma)
+
+    def step_end(self, tr, it: int):
+        cfg, model, opt, shift = tr.cfg, tr.model, tr.opt, tr.time.shift
+        # --time-budget: not before the plan rests on measured steps (BudgetPlanner.measured_plan)
+        if not self.textures_started and it >= schedule.texture_start(cfg) and tr.time.textures_may_start:
+            self.textures_started = True
+            self.start_textures(tr)
+            budget = size_budget.fit(model, opt, cfg)
+            yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean()),
+                                                **(budget or {})})
+        # Routines refine textures: none before they start (a --time-budget run holds its texture start until
+        # the plan rests on measured steps, while a short first plan's calendar may already call for routines).
+        kind = schedule.routine_kind(cfg, it, shift) if self.textures_started else None
+        if kind == "full":
+            yield Routine(it, "full", self.full_routine(tr, it))
+            if schedule.content_opacity_reset(cfg, it, shift):
+                value = max(2.0 * cfg.prune_opacity, RESET_OPACITY)  # prune_opacity = 0 would give 0
+                reset_opacity(model, opt, value)
+                yield Routine(it, "opacity_reset", {"value": value})
+        elif kind == "late":
+            yield Routine(it, "late", late_routine(model, opt, cfg, tr.cameras))
+        elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it, shift):
+            texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
+            if (budget := size_budget.fit(model, opt, cfg)) is not None:
+                yield Routine(it, "budget", budget)
+
+    def full_routine(self, tr, it: int) -> dict:
+        cfg = tr.cfg
+        # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops;
+        # on a GPU about the lean order's time, 1.5x its peak memory: docs/guide/gpu.md)
+        lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
+        gains = tr.exposure.view_gains() if tr.exposure is not None and cfg.exposure_in_E else None
+        shell = tr.part(Shell)  # init_shell: the far primitives the split/upscale ranking leaves out
+        return full_routine(tr.model, tr.opt, cfg, it, tr.train_views, tr.render_fn, tr.cameras,
+                            None if shell is None else shell.far, lean=lean, gains=gains)
+
+    def finish(self, tr):
+        if tr.cfg.texture_trim > 0:
+            # Model only what the textures hold: texels below texture_trim in every channel go (texels.trim;
+            # idempotent, so a resumed run that trims again changes nothing).
+            yield Routine(tr.it, "trim", texels.trim(tr.model, tr.opt, tr.cfg.texture_trim))

@@ -1,0 +1,50 @@
+"""The baselines' strategy: 3DGS/2DGS adaptive density control (ctgs.train.densify), clone / split by the view-space
+positional gradient accumulated over the steps, prune, opacity reset."""
+
+from __future__ import annotations
+
+from ctgs.train import schedule
+from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
+from ctgs.train.events import Routine
+from ctgs.train.strategies.base import Strategy
+
+
+class Densify(Strategy):
+    """`2dgs`: untextured surfels."""
+
+    texture_mode = "none"
+    prune_rules = "opacity below its threshold, or larger than 0.1 x the scene extent"
+
+    def __init__(self):
+        self.acc = None  # the gradient statistics since the last densification
+
+    def initialize(self, tr) -> None:
+        self.acc = GradAccumulator(tr.model.num_primitives, tr.device)
+
+    def restore(self, tr, state: dict) -> None:
+        self.initialize(tr)
+        self.acc.load_state_dict({k: v.to(tr.device) for k, v in state["acc"].items()})
+
+    def checkpoint(self) -> dict:
+        return {"acc": {k: v.cpu() for k, v in self.acc.state_dict().items()}}
+
+    def post_backward(self, tr, it: int, view) -> None:
+        # the loss's gradient only: terms back-propagated after this hook are not in the statistics
+        if it <= schedule.at(tr.cfg, tr.cfg.densify_until):
+            self.acc.add_view(tr.model.means, tr.model.means.grad, view.camera)
+
+    def step_end(self, tr, it: int):
+        cfg, shift = tr.cfg, tr.time.shift
+        if schedule.densify_active(cfg, it, shift):
+            prune_big = it > schedule.at(cfg, cfg.opacity_reset_every)
+            yield Routine(it, "densify", densify_and_prune(tr.model, tr.opt, self.acc, cfg, tr.extent, tr.gen,
+                                                           prune_big))
+        if schedule.opacity_reset(cfg, it, shift):
+            reset_opacity(tr.model, tr.opt)
+            yield Routine(it, "opacity_reset", {})
+
+
+class FixedTexture(Densify):
+    """`fixed_texture`: the same densification, a fixed_texture_res^2 texture per primitive that stretches with it."""
+
+    texture_mode = "fixed"

@@ -1,0 +1,78 @@
+"""Training strategies and components (ctgs.train.strategies, ctgs.train.components): one strategy per method, the
+parts a config turns on, and the order in which the trainer calls their hooks (ctgs.train.hooks)."""
+
+from __future__ import annotations
+
+import pytest
+
+from ctgs.scene.demo import make_demo_scene
+from ctgs.stages.train import _load_scene, resolve_config
+from ctgs.train import components
+from ctgs.train.config import METHODS
+from ctgs.train.events import Step
+from ctgs.train.hooks import Component
+from ctgs.train.strategies import STRATEGIES, ContentAware, Densify, FixedTexture, make_strategy
+from ctgs.train.trainer import Trainer
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_demo_scene(str(tmp_path_factory.mktemp("scene") / "demo"), num_views=6, width=48, height=36,
+                           points=200)
+
+
+def _trainer(scene, run, sets=()):
+    cfg = resolve_config(scene, run, None, 20, ("threads=1", "backend='cpu'", *sets), None, False, None, None,
+                         preset="fast")
+    return Trainer(cfg, _load_scene(cfg), run)
+
+
+def test_every_method_has_its_strategy_and_texture_mode():
+    assert set(STRATEGIES) == set(METHODS)
+    modes = {m: make_strategy(m).texture_mode for m in METHODS}
+    assert modes == {"content_aware": "content_aware", "2dgs": "none", "fixed_texture": "fixed"}
+    assert isinstance(make_strategy("fixed_texture"), Densify) and make_strategy("content_aware").starts_textures
+
+
+def test_a_run_holds_the_parts_its_config_turns_on_in_calling_order(scene, tmp_path):
+    plain = _trainer(scene, str(tmp_path / "plain"), ("exposure_comp=false", "max_params_per_value=0"))
+    assert [type(p) for p in plain.parts] == [ContentAware, components.TimeBudget]
+    assert plain.exposure is None and plain.part(components.Shell) is None
+    every = _trainer(scene, str(tmp_path / "every"), ("method='fixed_texture'", "init_shell=20",
+                                                      "virtual_coverage=0.1", "lambda_normal=0.1", "max_params=50000",
+                                                      "exposure_comp=true"))
+    assert [type(p) for p in every.parts] == [FixedTexture, components.Shell, components.VirtualCoverage,
+                                             components.NormalTerm, components.SizeBudget,
+                                             components.ExposureCompensation, components.TimeBudget]
+    assert every.strategy is every.parts[0] and every.exposure is every.part(components.ExposureCompensation)
+
+
+class Recorder(Component):
+    """A component that records each hook called on it: (hook, the trainer's iteration then)."""
+
+    def __init__(self):
+        self.calls = []
+
+    def __getattribute__(self, name):
+        attr = object.__getattribute__(self, name)
+        if name in ("calls", "__class__", "__dict__") or not callable(attr) or name.startswith("_"):
+            return attr
+
+        def record(*args, **kwargs):
+            self.calls.append((name, args[0].it if args else None))
+            return attr(*args, **kwargs)
+        return record
+
+
+def test_the_hooks_are_called_in_their_order_within_each_iteration(scene, tmp_path):
+    t = _trainer(scene, str(tmp_path / "run"), ("checkpoint_every=1500", "log_every=1"))  # a checkpoint every iteration
+    t.time.estimator = None  # (its calibration times the hooks of training steps on a copy)
+    rec = Recorder()
+    t.parts.append(rec)
+    for ev in t.run():
+        if isinstance(ev, Step) and ev.it == 2:
+            break
+    step = ["render", "train_render", "post_backward", "post_step", "step_end", "timed_step", "log_fields"]
+    # iteration 1: its checkpoint (written with each part's state), timed; then after_step
+    assert rec.calls == [("begin", 0), *[(h, 1) for h in step], ("checkpoint", None), ("timed", 1),
+                         ("after_step", 1), *[(h, 2) for h in step]]
