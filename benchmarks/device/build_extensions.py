@@ -23,7 +23,7 @@ os.environ.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
 os.environ.setdefault("CUDA_HOME", "/usr/local/cuda")
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from ctgs.render import _ext, _ext_cuda  # noqa: E402
+from ctgs.ops import ext as _ext, ext_cuda as _ext_cuda  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sitecustomize import prebuilt_manifest  # noqa: E402

@@ -13,7 +13,7 @@ import shutil
 import pytest
 import torch
 
-from ctgs.io.run_model import load_run
+from ctgs.train.run_model import load_run
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import resolve_config, train_main
 from ctgs.train.run import write_config
