@@ -17,8 +17,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # The stages are loaded one at a time by the CLI (ctgs/cli.py): what a stage imports inside its command is its own
 # start-up cost, not a floor's.
 LATE_BY_DESIGN = ("ctgs/stages/", "ctgs/cli.py")
-# Not yet moved up: the Trainer's two (render_fn, _finish), left to the Trainer's reorganisation into strategies.
-NOT_YET = {("ctgs/train/trainer.py", "ctgs.render"), ("ctgs/train/trainer.py", "ctgs.train.run")}
 
 
 def _lint(root: str) -> subprocess.CompletedProcess:
@@ -65,9 +63,7 @@ def _late_imports():
             def visit(node, inside):
                 for child in ast.iter_child_nodes(node):
                     if inside and isinstance(child, (ast.Import, ast.ImportFrom)):
-                        module = child.module if isinstance(child, ast.ImportFrom) else child.names[0].name
-                        if (rel, module) not in NOT_YET:
-                            yield rel, child.lineno, lines
+                        yield rel, child.lineno, lines
                     yield from visit(child, inside or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)))
 
             yield from visit(ast.parse(source), False)

@@ -22,6 +22,7 @@ from ctgs.io import atomic
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.ops import fused
+from ctgs.render import render
 from ctgs.train import checkpoint as ckpt
 from ctgs.train import rules, schedule
 from ctgs.train.adam import ALL_PARAMS, SurfelAdam
@@ -192,8 +193,6 @@ class Trainer:
 
     # ---- rendering -------------------------------------------------------------------------------
     def render_fn(self, inputs, camera, error_image=None, background=None):
-        from ctgs.render import render
-
         return render(inputs, camera, backend=self.cfg.backend, sh_degree=self.model.sh_degree,
                       background=self.background if background is None else background, error_image=error_image)
 
