@@ -48,7 +48,19 @@ def size_budget_points(record: str, scale: str) -> list:
 
 
 MIN_PSNR_SPAN = 2.0  # dB: the least PSNR range a panel shows (the seed spread of one herzjesu25 run is ~1 dB)
+BONSAI_15 = "scene_trade/bonsai252_images_4_15min_fast_2dgs_3seeds_531a0a8.json"
+BONSAI_60 = "scene_trade/bonsai252_images_4_60min_balanced_1seed_531a0a8.json"
+BONSAI_10 = "scene_trade/bonsai252_images_4_10min_fast_2dgs_1seed_db41397.json"
 REGISTRY = {
+    "bonsai252": {
+        "200x133": [
+            ("content-aware", "fast, --time-budget 15", [(BONSAI_15, ("scene_trade", "fast"))]),
+            ("content-aware", "balanced, --time-budget 60", [(BONSAI_60, ("scene_trade", "balanced"))]),
+            ("content-aware", "fast at 0.4 primitives per pixel, --time-budget 10", [(BONSAI_10, ("scene_trade", "fast"))]),
+            ("2dgs", "the same 15 min", [(BONSAI_15, ("scene_trade", "2dgs"))]),
+            ("2dgs", "the same 10 min", [(BONSAI_10, ("scene_trade", "2dgs"))]),
+        ],
+    },
     "herzjesu25": {
         "192x128": [
             ("content-aware", "preview (1000 it.)", [("trade/herzjesu25_preview_66660b4.json", ("trade", "images_8", "ca_preview"))]),
@@ -312,8 +324,10 @@ def write(scene: str, points: list[dict]) -> None:
 def main() -> None:
     import argparse
 
-    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
-    for scene in REGISTRY:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", choices=sorted(REGISTRY), action="append", help="only these scenes (default: all)")
+    args = ap.parse_args()
+    for scene in args.scene or REGISTRY:
         write(scene, summarise(scene))
         print(f"wrote benchmarks/results/trade_summary/{scene}.md and .png")
 
