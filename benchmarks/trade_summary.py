@@ -51,9 +51,11 @@ MIN_PSNR_SPAN = 2.0  # dB: the least PSNR range a panel shows (the seed spread o
 BONSAI_15 = "scene_trade/bonsai252_images_4_15min_fast_2dgs_3seeds_531a0a8.json"
 BONSAI_60 = "scene_trade/bonsai252_images_4_60min_balanced_1seed_531a0a8.json"
 BONSAI_10 = "scene_trade/bonsai252_images_4_10min_fast_2dgs_1seed_db41397.json"
+BONSAI_15P = "scene_trade/bonsai252_images_4_15min_preview_1seed_531a0a8.json"
 REGISTRY = {
     "bonsai252": {
         "200x133": [
+            ("content-aware", "preview, --time-budget 15", [(BONSAI_15P, ("scene_trade", "preview"))]),
             ("content-aware", "fast, --time-budget 15", [(BONSAI_15, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60", [(BONSAI_60, ("scene_trade", "balanced"))]),
             ("content-aware", "fast at 0.4 primitives per pixel, --time-budget 10", [(BONSAI_10, ("scene_trade", "fast"))]),
