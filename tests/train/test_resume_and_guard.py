@@ -17,7 +17,7 @@ from ctgs.train.events import Step
 from ctgs.train.run_model import load_run
 from ctgs.train.trainer import Trainer, TrainingDiverged
 from ctgs.stages.train import resolve_config, _load_scene
-from ctgs.errors import UserError
+from ctgs.errors import Terminated, UserError
 from train_helpers import run_log
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -155,11 +155,30 @@ def test_sigterm_stops_training_like_ctrl_c_and_leaves_a_resumable_run(scene, tm
     assert os.path.exists(ckpt) and not os.path.exists(os.path.join(run, "model.pt"))
 
 
-def test_sigterm_before_the_first_checkpoint_removes_the_run_folder(scene, tmp_path):
+def test_sigterm_before_the_first_checkpoint_removes_the_run_folder(scene, tmp_path, monkeypatch, capsys):
+    """A stop before the first step: the folder this command made goes (nothing half-written stays)."""
+    def stopped_at_once(self):
+        raise Terminated(signal.SIGTERM)
+        yield  # a generator, as Trainer.run
+
+    monkeypatch.setattr(Trainer, "run", stopped_at_once)
+    run = str(tmp_path / "term_early")
+    with pytest.raises(Terminated):
+        train_main(scene, run, preset="fast", sets=SETS, quiet=True)
+    assert "stopped before the first checkpoint" in capsys.readouterr().err and not os.path.exists(run)
+
+
+def test_sigterm_as_soon_as_the_run_folder_exists_leaves_no_folder_or_a_resumable_one(scene, tmp_path):
+    """The same through a real signal, sent the moment the folder appears: wherever it lands (setup, or the first
+    step, which then ends and is checkpointed), the folder is gone or holds a checkpoint `--resume` continues."""
     run = str(tmp_path / "term_early")
     code, err = _train_then_terminate(scene, run, os.path.isdir, sets=("iterations=100000",))
     assert code == 143 and "stack trace" not in err and "Traceback" not in err, err
-    assert "before the first checkpoint" in err and not os.path.exists(run)
+    if "before the first checkpoint" in err:
+        assert not os.path.exists(run)
+    else:
+        assert f"-o {run} --resume" in err and os.path.exists(os.path.join(run, "checkpoints", "last.pt")), err
+        assert not os.path.exists(os.path.join(run, "model.pt"))
 
 
 def _logged_steps(run: str) -> int:
