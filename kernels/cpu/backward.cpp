@@ -345,7 +345,10 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   timer.lap(PROF_BWD_SETUP);
 
   const std::vector<int> order = tile_order(bins.offsets, num_tiles, nt);
-#pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
+  // Tiles dealt round-robin, heaviest first (static, not dynamic): which thread sums which tile's gradients, and so
+  // the order of every float sum, does not depend on the machine's load, and a run is the same idle or loaded
+  // (textures past MAX_PRIVATE_TEXEL_BYTES are summed with atomics, in the order the threads reach them).
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
   for (int k = 0; k < num_tiles; ++k) {
     const int tile = order[k];
     const int tid = omp_get_thread_num();
