@@ -79,6 +79,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
                          time_budget, max_params)
     created = not os.path.exists(run_dir)
+    trainer = None
     try:
         scene = _load_scene(cfg)
         trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
@@ -91,6 +92,8 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         # Nothing half-written: a run folder this invocation created goes if no checkpoint made it resumable.
         from ctgs.train.checkpoint import has_checkpoint
 
+        if isinstance(exc, (KeyboardInterrupt, Terminated)) and trainer is not None:
+            trainer.checkpoint_on_stop()
         resumable = has_checkpoint(run_dir)
         if created and not resumable:
             shutil.rmtree(run_dir, ignore_errors=True)

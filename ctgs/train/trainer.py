@@ -185,7 +185,15 @@ class Trainer:
 
     def _save_checkpoint(self) -> str:
         self._check_finite(None, full=True)
-        return ckpt.save_checkpoint(self.run_dir, self._state())  # the one before stays as prev.pt
+        path = ckpt.save_checkpoint(self.run_dir, self._state())  # the one before stays as prev.pt
+        self.saved_it = self.it
+        return path
+
+    def checkpoint_on_stop(self) -> None:
+        """Ctrl-C or SIGTERM that landed between two steps (a log line, an evaluation, the progress display): the
+        last step is whole, and is checkpointed unless it already is (a stop during a step is, by _whole_step)."""
+        if self.it > getattr(self, "saved_it", 0):
+            self._save_checkpoint()
 
     def log(self, record: dict) -> None:
         atomic.append_text(self.log_path, json.dumps(record) + "\n")  # a full disk: OSError naming the log
