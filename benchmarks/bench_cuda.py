@@ -302,15 +302,15 @@ def tile_pairs(s, cam, device) -> int:
         return -1
     from ctgs.ops.ext_cuda import load_cuda
 
+    load_cuda()
     with torch.no_grad():
         p = to_camera_space(s.means, s.quats, s.sh, cam, 3)
         k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)
-        outs = load_cuda().forward_cuda(p.mu_c.contiguous(), p.Rc.contiguous(), s.scales.contiguous(),
-                                        s.opacities.contiguous(), p.colors.contiguous(), k.contiguous(),
-                                        s.textures.contiguous(), s.tex_res.contiguous(), s.tex_offset.contiguous(),
-                                        torch.zeros(3, device=device), float(cam.fx), float(cam.fy), float(cam.cx),
-                                        float(cam.cy), int(cam.width), int(cam.height), float(cam.near), None, 0,
-                                        False)
+        outs = torch.ops.ctgs.rasterize_forward(
+            p.mu_c.contiguous(), p.Rc.contiguous(), s.scales.contiguous(), s.opacities.contiguous(),
+            p.colors.contiguous(), k.contiguous(), s.textures.contiguous(), s.tex_res.contiguous(),
+            s.tex_offset.contiguous(), torch.zeros(3, device=device), float(cam.fx), float(cam.fy), float(cam.cx),
+            float(cam.cy), int(cam.width), int(cam.height), float(cam.near), None, 0, False)
     return int(outs[6].numel())
 
 

@@ -120,7 +120,9 @@ def install(timers: Timers, ext) -> None:
     timers.wrap(routines, "compute_E", "compute_E")
     timers.wrap(texels, "realloc", "realloc")
 
-    fwd, bwd = ext.forward_cpu, ext.backward_cpu
+    # the rasterizer's two ops (commits before the op registry: the module's functions)
+    fwd, bwd = ((ext.forward_cpu, ext.backward_cpu) if hasattr(ext, "forward_cpu")
+                else (torch.ops.ctgs.rasterize_forward, torch.ops.ctgs.rasterize_backward))
 
     # Commits before this work (e363f40) have no kernel counters: their forward/backward stay whole.
     counters = getattr(ext, "profile_counters", lambda reset: {})

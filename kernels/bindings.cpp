@@ -1,5 +1,6 @@
-// The only file that knows torch: checks every tensor (shape, dtype, device, contiguity), allocates
-// outputs and dispatches float/double to the raw-pointer cores in kernels/cpu (and, later, kernels/cuda).
+// The CPU backend's only file that knows torch: checks every tensor (shape, dtype, device, contiguity), allocates
+// outputs, dispatches float/double to the raw-pointer cores in kernels/cpu, and registers each as the CPU kernel of
+// an op declared in ctgs/ops/schemas.py (kernels/bindings_cuda.cpp does the same for CUDA).
 #include <torch/extension.h>
 
 #include <cmath>
@@ -513,9 +514,11 @@ std::vector<Tensor> photometric_loss_cpu(Tensor x, Tensor y, double lambda_ssim,
 
 // New jagged buffers [T', C] where new primitive j holds src[j]'s texels re-centred (ctgs/model/jagged.py
 // remap, which checks the arguments): buffers [T, C] each, old_res [N, 2] int32, old_off [N] int64,
-// src [N'] int64, shift [N', 2] int64, new_res [N', 2] int32, new_off [N'] int64.
+// src [N'] int64, shift [N', 2] int64, new_res [N', 2] int32, new_off [N'] int64; new_rows = T', the end of
+// the new layout (the CUDA kernel needs it without reading the layout back; here it is checked).
 std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res, Tensor old_off, Tensor src,
-                                     Tensor shift, Tensor new_res, Tensor new_off, int64_t num_threads) {
+                                     Tensor shift, Tensor new_res, Tensor new_off, int64_t new_rows_given,
+                                     int64_t num_threads) {
   const int64_t N = old_res.size(0), M = src.size(0);
   check_tensor(old_res, "old_res", "[N, 2] int32", {N, 2}, at::kInt);
   check_tensor(old_off, "old_off", "[N] int64", {N}, at::kLong);
@@ -535,6 +538,8 @@ std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res
     TORCH_CHECK(noff[j] >= 0, "jagged_remap: new_off must be >= 0");
     new_rows = std::max<int64_t>(new_rows, noff[j] + int64_t(nres[2 * j]) * nres[2 * j + 1]);
   }
+  TORCH_CHECK(new_rows_given == new_rows, "jagged_remap: new_rows = ", new_rows_given, " but the new layout ends at row ",
+              new_rows);
   int64_t packed_rows = 0;  // every row written iff the new layout has no gaps (jagged_offsets packs)
   for (int64_t j = 0; j < M; ++j) packed_rows += int64_t(nres[2 * j]) * nres[2 * j + 1];
   const int threads = int(num_threads > 0 ? num_threads : at::get_num_threads());
@@ -565,39 +570,33 @@ std::vector<Tensor> jagged_remap_cpu(std::vector<Tensor> buffers, Tensor old_res
 
 }  // namespace
 
-// The CPU kernels of the ops both backends have (torch.ops.ctgs.<op>; their schemas: ctgs/ops/dispatch.py).
+// The CPU kernels of ctgs's ops (torch.ops.ctgs.<op>; their schemas: ctgs/ops/schemas.py). The first seven have
+// CUDA kernels too (kernels/bindings_cuda.cpp); the rest are CPU-only passes, whose callers use PyTorch elsewhere.
 TORCH_LIBRARY_IMPL(ctgs, CPU, m) {
+  m.impl("rasterize_forward", &forward_cpu);
+  m.impl("rasterize_backward", &backward_cpu);
   m.impl("camera_space", &camera_space_cpu);
   m.impl("camera_space_backward", &camera_space_backward_cpu);
   m.impl("sh_color", &sh_color_cpu);
   m.impl("sh_color_backward", &sh_color_backward_cpu);
+  m.impl("jagged_remap", &jagged_remap_cpu);
+  m.impl("rasterize_pairs", &forward_pairs_cpu);
+  m.impl("accumulate_pairs", &accumulate_pairs_cpu);
+  m.impl("adam_step", &adam_step_cpu);
+  m.impl("texel_l1_forward", &texel_l1_forward_cpu);
+  m.impl("texel_l1_backward", &texel_l1_backward_cpu);
+  m.impl("texel_abs_forward", &texel_abs_forward_cpu);
+  m.impl("texel_abs_backward", &texel_abs_backward_cpu);
+  m.impl("texel_activation", &texel_activation_cpu);
+  m.impl("texel_activation_backward", &texel_activation_backward_cpu);
+  m.impl("texel_activation_backward_l1", &texel_activation_backward_l1_cpu);
+  m.impl("surfel_values_ok", &surfel_values_ok_cpu);
+  m.impl("photometric_loss", &photometric_loss_cpu);
 }
 
+// The module torch's loader imports; the ops above are reached through torch.ops.ctgs, not through it.
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, C++/OpenMP CPU backend (see docs/reference/renderer.md)";
-  m.def("forward_cpu", &forward_cpu, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
-        "tile_list, count, contrib, err, setup_prims, setup_spans; the last two are opaque, for backward_cpu)");
-  m.def("forward_pairs_cpu", &forward_pairs_cpu, "forward that also returns every blended (pix, prim, w) "
-        "(returns rgb, alpha, depth, pix, prim, w)");
-  m.def("backward_cpu", &backward_cpu, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
-        "v_texel_size, v_textures, v_background); setup_prims, setup_spans: forward_cpu's, or None to recompute");
-  m.def("adam_step_cpu", &adam_step_cpu, "fused Adam step in place; returns the count of non-finite results");
-  m.def("texel_l1_forward_cpu", &texel_l1_forward_cpu, "sum over primitives of weight x sum of |2 sigmoid(raw) - 1| over their texels");
-  m.def("texel_l1_backward_cpu", &texel_l1_backward_cpu, "scale * gradient of texel_l1_forward_cpu w.r.t. raw");
-  m.def("texel_abs_forward_cpu", &texel_abs_forward_cpu,
-        "texel_l1_forward_cpu on activated offsets y: sum over primitives of weight x sum of |y|");
-  m.def("texel_abs_backward_cpu", &texel_abs_backward_cpu, "scale * gradient of texel_abs_forward_cpu w.r.t. y");
-  m.def("texel_activation_cpu", &texel_activation_cpu, "2 sigmoid(x) - 1 in one pass");
-  m.def("texel_activation_backward_cpu", &texel_activation_backward_cpu, "gradient of texel_activation_cpu");
-  m.def("texel_activation_backward_l1_cpu", &texel_activation_backward_l1_cpu,
-        "gradient of texel_activation_cpu with texel_abs_backward_cpu's gradient added to grad_y first");
-  m.def("accumulate_pairs_cpu", &accumulate_pairs_cpu,
-        "per-primitive count, contrib and error sums over a forward's blended pairs");
-  m.def("surfel_values_ok_cpu", &surfel_values_ok_cpu,
-        "whether the surfel tensors pass render()'s value checks (false: run the PyTorch checks for the message)");
-  m.def("photometric_loss_cpu", &photometric_loss_cpu,
-        "(1 - l) L1 + l (1 - SSIM) of render and ground truth, its gradient and the error image, fused");
-  m.def("jagged_remap_cpu", &jagged_remap_cpu, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
   m.def("profile_counters", [](bool reset) {
     const std::vector<double> v = ctgs::cpu::prof_read(reset);

@@ -1,7 +1,8 @@
 // Torch binding of the CUDA backend (module ctgs_cuda): checks every tensor (shape, dtype, device,
 // contiguity), allocates outputs and scratch from torch's caching allocator, and dispatches float/double to
-// the raw-pointer cores in kernels/cuda on the current CUDA stream. Same functions, arguments and outputs as
-// the CPU binding (kernels/bindings.cpp), so ctgs/render dispatches to either the same way.
+// the raw-pointer cores in kernels/cuda on the current CUDA stream. Its kernels are registered for the CUDA
+// dispatch key of the ops the CPU binding (kernels/bindings.cpp) implements too: one schema each
+// (ctgs/ops/schemas.py), and torch.ops.ctgs.<op> runs the kernel of its tensors' device.
 #ifndef CTGS_WITH_CUDA
 #error "bindings_cuda.cpp is the CUDA backend's binding: build it with -DCTGS_WITH_CUDA (ctgs/ops/ext_cuda.py)"
 #endif
@@ -48,7 +49,8 @@ struct TorchAllocators {
 
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
 // [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (the last three empty
-// unless error_image [H,W] is given). num_threads is accepted for symmetry with the CPU binding and ignored.
+// unless error_image [H,W] is given), then two empty tensors where the CPU kernel returns its opaque setup (one
+// schema for both: ctgs/ops/schemas.py). num_threads is part of that schema and ignored here.
 // With poison=true outputs start as NaN, so unwritten pixels show up.
 std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
                                  Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
@@ -88,17 +90,21 @@ std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     o.err = stats ? err.data_ptr<scalar_t>() : nullptr;
     ctgs::gpu::forward<scalar_t>(scene_args<scalar_t>(s), o, alloc.make(mu_c.device()), stream);
   });
-  return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, alloc.tile_list, count, contrib, err};
+  const Tensor no_setup = torch::empty({0}, fopt.dtype(at::kByte));
+  return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, alloc.tile_list, count, contrib, err,
+          no_setup, no_setup.to(at::kInt)};
 }
 
 // Returns v_mu_c [N,3], v_Rc [N,3,3], v_scales [N,2], v_opacities [N], v_colors [N,3], v_texel_size [N,2],
-// v_textures [T,3], v_background [3].
+// v_textures [T,3], v_background [3]. The setup tensors (the CPU kernel's) are ignored: the kernels here
+// recompute what they need per tile.
 std::vector<Tensor> backward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
                                   Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
                                   Tensor background, double fx, double fy, double cx, double cy, int64_t width,
                                   int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
                                   Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
-                                  int64_t num_threads) {
+                                  int64_t num_threads, c10::optional<Tensor> /*setup_prims*/,
+                                  c10::optional<Tensor> /*setup_spans*/) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, fx, fy, cx, cy, width, height, near_plane, 0, at::kCUDA, "cuda");
   const c10::cuda::CUDAGuard guard(mu_c.device());
@@ -233,7 +239,8 @@ std::vector<Tensor> sh_color_backward_cuda(Tensor means, Tensor center, Tensor s
 // caller has it; finding it here would cost a synchronisation). Unlike the CPU binding, the values of the
 // layouts are not checked (that needs the host): reads past a buffer's end give 0.
 std::vector<Tensor> jagged_remap_cuda(std::vector<Tensor> buffers, Tensor old_res, Tensor old_off, Tensor src,
-                                      Tensor shift, Tensor new_res, Tensor new_off, int64_t new_rows) {
+                                      Tensor shift, Tensor new_res, Tensor new_off, int64_t new_rows,
+                                      int64_t /*num_threads*/) {
   TORCH_CHECK(!buffers.empty() && buffers.size() <= 4, "jagged_remap: 1 to 4 buffers, got ", buffers.size());
   const at::Device dev = buffers[0].device();
   const auto dt = buffers[0].scalar_type();
@@ -271,20 +278,19 @@ std::vector<Tensor> jagged_remap_cuda(std::vector<Tensor> buffers, Tensor old_re
 
 }  // namespace
 
-// The CUDA kernels of the ops both backends have (torch.ops.ctgs.<op>; their schemas: ctgs/ops/dispatch.py).
+// The CUDA kernels of ctgs's ops that both backends have (torch.ops.ctgs.<op>; their schemas: ctgs/ops/schemas.py).
 TORCH_LIBRARY_IMPL(ctgs, CUDA, m) {
+  m.impl("rasterize_forward", &forward_cuda);
+  m.impl("rasterize_backward", &backward_cuda);
   m.impl("camera_space", &camera_space_cuda);
   m.impl("camera_space_backward", &camera_space_backward_cuda);
   m.impl("sh_color", &sh_color_cuda);
   m.impl("sh_color_backward", &sh_color_backward_cuda);
+  m.impl("jagged_remap", &jagged_remap_cuda);
 }
 
+// The module torch's loader imports; the ops above are reached through torch.ops.ctgs, not through it.
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "ctgs textured 2D Gaussian surfel rasterizer, CUDA backend (see docs/reference/renderer.md)";
-  m.def("forward_cuda", &forward_cuda, "forward (returns rgb, alpha, depth, final_T, n_contrib, tile_offsets, "
-        "tile_list, count, contrib, err)");
-  m.def("backward_cuda", &backward_cuda, "backward (returns v_mu_c, v_Rc, v_scales, v_opacities, v_colors, "
-        "v_texel_size, v_textures, v_background)");
-  m.def("jagged_remap_cuda", &jagged_remap_cuda, "jagged texture re-layout (ctgs/model/jagged.py remap)");
   m.def("tile_size", [] { return ctgs::TILE_SIZE; });
 }

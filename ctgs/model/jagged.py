@@ -11,8 +11,8 @@ import os
 import torch
 
 from ctgs.model.surfels import jagged_offsets
-from ctgs.ops.ext_cuda import cuda_fusable, load_cuda
-from ctgs.ops.fused import cpu_ext, fusable
+from ctgs.ops.ext_cuda import cuda_fusable
+from ctgs.ops.fused import fusable
 
 
 def texel_coords(tex_res: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -74,23 +74,27 @@ def _cuda_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list
         return None
     if not cuda_fusable(*buffers):
         return None
-    n = new_res.shape[0]
-    new_rows = int(new_off[-1] + new_res[-1, 0].long() * new_res[-1, 1].long()) if n else 0  # packed layout
-    return load_cuda().jagged_remap_cuda([b.contiguous() for b in buffers], old_res.to(torch.int32).contiguous(),
-                                         old_off.long().contiguous(), src.long().contiguous(),
-                                         shift.long().contiguous(), new_res.to(torch.int32).contiguous(),
-                                         new_off.long().contiguous(), new_rows)
+    return torch.ops.ctgs.jagged_remap([b.contiguous() for b in buffers], old_res.to(torch.int32).contiguous(),
+                                       old_off.long().contiguous(), src.long().contiguous(), shift.long().contiguous(),
+                                       new_res.to(torch.int32).contiguous(), new_off.long().contiguous(),
+                                       _rows(new_res, new_off), 0)
 
 
 def _cpu_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
     """remap in one compiled pass of row copies (kernels/cpu/dense.cpp) for CPU tensors: the index
-    arithmetic below makes ~15 [T]-sized int64 temporaries, which dominated the routines (issue 11)."""
+    arithmetic below makes ~15 [T]-sized int64 temporaries, which dominated the routines."""
     if not buffers or not fusable(*buffers) or old_res.device.type != "cpu":
         return None
-    return cpu_ext().jagged_remap_cpu(list(buffers), old_res.to(torch.int32).contiguous(),
-                                      old_off.long().contiguous(), src.long().contiguous(),
-                                      shift.long().contiguous(), new_res.contiguous(), new_off.contiguous(),
-                                      torch.get_num_threads())
+    return torch.ops.ctgs.jagged_remap(list(buffers), old_res.to(torch.int32).contiguous(), old_off.long().contiguous(),
+                                       src.long().contiguous(), shift.long().contiguous(), new_res.contiguous(),
+                                       new_off.contiguous(), _rows(new_res, new_off), torch.get_num_threads())
+
+
+def _rows(new_res: torch.Tensor, new_off: torch.Tensor) -> int:
+    """The texel count of a packed layout (jagged_offsets of new_res): its last offset plus its last size."""
+    if new_res.shape[0] == 0:
+        return 0
+    return int(new_off[-1] + new_res[-1, 0].long() * new_res[-1, 1].long())
 
 
 def blocks(buf: torch.Tensor, offsets: torch.Tensor, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:

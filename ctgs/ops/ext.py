@@ -33,6 +33,7 @@ from types import ModuleType
 import torch
 
 from ctgs.errors import UserError
+from ctgs.ops import schemas
 from ctgs.resources import cache_dir, kernels_dir
 
 CPU_SOURCES = ["bindings.cpp", "cpu/binning.cpp", "cpu/forward.cpp", "cpu/backward.cpp", "cpu/dense.cpp",
@@ -150,6 +151,7 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
             f"touched since; {first_use}) in {folder} ...", file=sys.stderr, flush=True))
         late.daemon = True
         late.start()
+    schemas.declare()  # the ops the extension's kernels register for, declared before it loads
     try:
         module = cpp_extension.load(
             name=name,
@@ -175,7 +177,7 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
 
 
 def load_cpu(verbose: bool = False) -> ModuleType:
-    """The compiled CPU backend (functions forward_cpu, backward_cpu); builds it on first call."""
+    """The compiled CPU backend (its kernels: torch.ops.ctgs.<op>, ctgs.ops.schemas); builds it on first call."""
     global _cpu_module
     with _lock:
         if _cpu_module is not None:

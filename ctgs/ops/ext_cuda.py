@@ -44,7 +44,7 @@ def nvcc_where(cuda_home: str | None) -> str:
 
 
 def load_cuda(verbose: bool = False) -> ModuleType:
-    """The compiled CUDA backend (functions forward_cuda, backward_cuda); builds it on first call."""
+    """The compiled CUDA backend (its kernels: torch.ops.ctgs.<op>, ctgs.ops.schemas); builds it on first call."""
     global _cuda_module
     with _lock:
         if _cuda_module is not None:

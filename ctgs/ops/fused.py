@@ -2,7 +2,7 @@
 
 At 1-2M texels every [T, 3] PyTorch op of the texel activation, the optimiser and the texture
 regulariser (each a full pass plus a fresh 10-20 MB temporary, page faults included) showed in the
-profile of an iteration (issue 11); these do the same math in one pass each. Everything falls back to
+profile of an iteration; these do the same math in one pass each. Everything falls back to
 plain PyTorch off the CPU or where the extension cannot be built.
 """
 
@@ -70,7 +70,7 @@ class _DeferredTexelL1:
     per texel_activation output). Autograd runs texel_l1's backward first (it consumes y), which records
     (weight, tex_offset, tex_res, its upstream gradient) here and returns no tensor; the activation's
     backward then adds that term's gradient to the render's gradient of y in its own pass
-    (texel_activation_backward_l1_cpu): bit-identical to the plain chain (a [T, 3] gradient from the
+    (torch.ops.ctgs.texel_activation_backward_l1): bit-identical to the plain chain (a [T, 3] gradient from the
     regulariser, autograd's sum of the two gradients of y, the activation backward), one pass instead of
     three over the texel buffer (~1 ms per step at 2.4M texel values on the dev VM). The term's gradient
     w.r.t. y itself is therefore never formed: torch.autograd.grad(loss, y) misses it; ask for raw's."""
@@ -84,7 +84,7 @@ class _DeferredTexelL1:
 class _TexelActivation(torch.autograd.Function):
     @staticmethod
     def forward(ctx, raw, deferred):
-        y = cpu_ext().texel_activation_cpu(raw, torch.get_num_threads())
+        y = torch.ops.ctgs.texel_activation(raw, torch.get_num_threads())
         ctx.save_for_backward(y)
         ctx.deferred = deferred
         return y
@@ -97,12 +97,12 @@ class _TexelActivation(torch.autograd.Function):
         # More than one regulariser term on the same y (not done by the trainer): all but the last are added
         # the plain way, in the order autograd ran them.
         for weight, off, res, scale in terms[:-1]:
-            grad = grad + cpu_ext().texel_abs_backward_cpu(y, weight, off, res, scale, torch.get_num_threads())
+            grad = grad + torch.ops.ctgs.texel_abs_backward(y, weight, off, res, scale, torch.get_num_threads())
         if terms:
             weight, off, res, scale = terms[-1]
-            return cpu_ext().texel_activation_backward_l1_cpu(y, grad, weight, off, res, scale,
+            return torch.ops.ctgs.texel_activation_backward_l1(y, grad, weight, off, res, scale,
                                                               torch.get_num_threads()), None
-        return cpu_ext().texel_activation_backward_cpu(y, grad, torch.get_num_threads()), None
+        return torch.ops.ctgs.texel_activation_backward(y, grad, torch.get_num_threads()), None
 
 
 def texel_activation(raw: torch.Tensor) -> torch.Tensor:
@@ -124,7 +124,7 @@ class _TexelL1Deferred(torch.autograd.Function):
     def forward(ctx, y, weight, tex_offset, tex_res, deferred):
         ctx.save_for_backward(weight, tex_offset, tex_res)
         ctx.deferred = deferred
-        return cpu_ext().texel_abs_forward_cpu(y, weight, tex_offset, tex_res, torch.get_num_threads())
+        return torch.ops.ctgs.texel_abs_forward(y, weight, tex_offset, tex_res, torch.get_num_threads())
 
     @staticmethod
     def backward(ctx, grad):
@@ -140,13 +140,13 @@ class _TexelL1(torch.autograd.Function):
     def forward(ctx, x, weight, tex_offset, tex_res, activated=False):
         ctx.save_for_backward(x, weight, tex_offset, tex_res)
         ctx.activated = activated
-        fwd = cpu_ext().texel_abs_forward_cpu if activated else cpu_ext().texel_l1_forward_cpu
+        fwd = torch.ops.ctgs.texel_abs_forward if activated else torch.ops.ctgs.texel_l1_forward
         return fwd(x, weight, tex_offset, tex_res, torch.get_num_threads())
 
     @staticmethod
     def backward(ctx, grad):
         x, weight, tex_offset, tex_res = ctx.saved_tensors
-        bwd = cpu_ext().texel_abs_backward_cpu if ctx.activated else cpu_ext().texel_l1_backward_cpu
+        bwd = torch.ops.ctgs.texel_abs_backward if ctx.activated else torch.ops.ctgs.texel_l1_backward
         g = bwd(x, weight, tex_offset, tex_res, float(grad), torch.get_num_threads())
         # The weights are constants of the loss (no gradient); one entry per input given to apply.
         return (g, None, None, None, None)[: len(ctx.needs_input_grad)]
@@ -185,7 +185,7 @@ def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) 
 class _PhotometricLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, render, gt, lambda_ssim):
-        total, l1, s, grad, _ = cpu_ext().photometric_loss_cpu(render, gt, float(lambda_ssim),
+        total, l1, s, grad, _ = torch.ops.ctgs.photometric_loss(render, gt, float(lambda_ssim),
                                                                bool(ctx.needs_input_grad[0]), False,
                                                                torch.get_num_threads())
         ctx.save_for_backward(grad)
@@ -227,5 +227,5 @@ def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float) -> t
     render_c, gt_c = render.detach().contiguous(), gt.detach().contiguous()
     if not fusable(render_c, gt_c):
         return None
-    return cpu_ext().photometric_loss_cpu(render_c, gt_c, float(lambda_ssim), False, True,
+    return torch.ops.ctgs.photometric_loss(render_c, gt_c, float(lambda_ssim), False, True,
                                           torch.get_num_threads())[4]

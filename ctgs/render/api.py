@@ -60,14 +60,13 @@ def _values_ok_fused(s: SurfelInputs) -> bool:
     step's inputs are ~1-2M values: the PyTorch checks cost ~0.6 ms."""
     # Only once the extension is loaded (by a CPU render): validating must never trigger its build, e.g. for
     # the reference backend.
-    ext = ext_mod._cpu_module
-    if ext is None:
+    if ext_mod._cpu_module is None:
         return False
     with torch.no_grad():
         # (the SH of a step below degree 3 is a slice: a small copy)
-        return bool(ext.surfel_values_ok_cpu(*[getattr(s, name).detach().contiguous() for name in _SURFEL_FLOATS],
-                                             s.tex_res.contiguous(), s.tex_offset.contiguous(),
-                                             torch.get_num_threads()))
+        return bool(torch.ops.ctgs.surfel_values_ok(*[getattr(s, name).detach().contiguous() for name in _SURFEL_FLOATS],
+                                                    s.tex_res.contiguous(), s.tex_offset.contiguous(),
+                                                    torch.get_num_threads()))
 
 
 def _values_ok_device(s: SurfelInputs, finite: list[torch.Tensor]) -> bool:

@@ -1,13 +1,15 @@
 """The one autograd bridge between PyTorch and the compiled rasterizers (CPU and CUDA alike).
 
-Both extensions expose the same entry points (kernels/bindings.cpp, kernels/bindings_cuda.cpp):
-  forward_<dev>(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
-                fx, fy, cx, cy, W, H, near, error_image, knob, poison)
-      -> rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err
-  backward_<dev>(..., background, fx, fy, cx, cy, W, H, near, tile_offsets, tile_list, final_T, n_contrib,
-                 v_rgb, v_alpha, v_depth, knob) -> v_mu_c, v_Rc, v_scales, v_opacities, v_colors,
-                 v_texel_size, v_textures, v_background
-`knob` is the OpenMP thread count on the CPU and the stream (0 = current) on CUDA.
+Both extensions implement the same two ops (schemas: ctgs/ops/schemas.py), and the dispatcher runs the kernel of
+the tensors' device:
+  torch.ops.ctgs.rasterize_forward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
+                                   background, fx, fy, cx, cy, W, H, near, error_image, knob, poison)
+      -> rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err, setup_prims, setup_spans
+  torch.ops.ctgs.rasterize_backward(..., background, fx, fy, cx, cy, W, H, near, tile_offsets, tile_list, final_T,
+                                    n_contrib, v_rgb, v_alpha, v_depth, knob, setup_prims, setup_spans)
+      -> v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background
+`knob` is the OpenMP thread count on the CPU (the CUDA kernels run on the current stream); the setup is the CPU
+forward's per-primitive work handed to its backward (empty on CUDA, whose backward redoes it per tile).
 """
 
 from __future__ import annotations
@@ -24,11 +26,12 @@ from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
 
 
 def _load(device: str):
+    """The forward and backward ops, once the extension whose kernels serve `device` is loaded."""
     if device == "cuda":
-        ext = load_cuda()
-        return ext.forward_cuda, ext.backward_cuda
-    ext = load_cpu()
-    return ext.forward_cpu, ext.backward_cpu
+        load_cuda()
+    else:
+        load_cpu()
+    return torch.ops.ctgs.rasterize_forward, torch.ops.ctgs.rasterize_backward
 
 
 class _Rasterize(torch.autograd.Function):
@@ -39,12 +42,12 @@ class _Rasterize(torch.autograd.Function):
                 tex_res, tex_offset, camera, error_image, device, knob, poison):
         cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
                int(camera.height), float(camera.near))
-        forward_fn, _ = _load(device)
-        outs = forward_fn(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
-                          background, *cam, error_image, knob, poison)
+        forward_op, _ = _load(device)
+        outs = forward_op(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background,
+                          *cam, error_image, knob, poison)
         (rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err) = outs[:10]
-        # CPU: the forward's per-primitive setup (opaque), handed back so the backward need not redo it.
-        setup = tuple(outs[10:])
+        # the forward's per-primitive setup (opaque; empty on CUDA), handed back so the backward need not redo it
+        setup = tuple(outs[10:12])
         ctx.save_for_backward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, tile_offsets, tile_list, final_T, n_contrib, *setup)
         ctx.cam, ctx.device, ctx.knob = cam, device, knob
@@ -59,10 +62,10 @@ class _Rasterize(torch.autograd.Function):
         v_rgb = final_T.new_zeros(H, W, 3) if v_rgb is None else v_rgb.contiguous()
         v_alpha = final_T.new_zeros(H, W) if v_alpha is None else v_alpha.contiguous()
         v_depth = final_T.new_zeros(H, W) if v_depth is None else v_depth.contiguous()
-        _, backward_fn = _load(ctx.device)
-        grads = backward_fn(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
-                            background, *ctx.cam, tile_offsets, tile_list, final_T, n_contrib,
-                            v_rgb, v_alpha, v_depth, ctx.knob, *setup)
+        _, backward_op = _load(ctx.device)
+        grads = backward_op(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
+                            background, *ctx.cam, tile_offsets, tile_list, final_T, n_contrib, v_rgb, v_alpha,
+                            v_depth, ctx.knob, *setup)
         v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background = grads
         return (v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background,
                 None, None, None, None, None, None, None)
@@ -103,7 +106,8 @@ def rasterize_error_fn(s: SurfelInputs, camera: Camera, sh_degree: int, backgrou
         k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)
         cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
                int(camera.height), float(camera.near))
-        rgb, alpha, depth, pix, prim, w = load_cpu().forward_pairs_cpu(
+        load_cpu()
+        rgb, alpha, depth, pix, prim, w = torch.ops.ctgs.rasterize_pairs(
             prims.mu_c.contiguous(), prims.Rc.contiguous(), s.scales.detach().contiguous(),
             s.opacities.detach().contiguous(), prims.colors.contiguous(), k.detach().contiguous(),
             s.textures.detach().contiguous(), s.tex_res.contiguous(), s.tex_offset.contiguous(),
@@ -112,6 +116,6 @@ def rasterize_error_fn(s: SurfelInputs, camera: Camera, sh_degree: int, backgrou
         check_error(e)
         # One compiled pass over the pairs (one thread: the same sums, in the same order, as bincount /
         # index_add_; more: contiguous chunks in that order, added in order).
-        count, contrib, err = load_cpu().accumulate_pairs_cpu(pix, prim, w, e.detach().to(w.dtype).contiguous(),
+        count, contrib, err = torch.ops.ctgs.accumulate_pairs(pix, prim, w, e.detach().to(w.dtype).contiguous(),
                                                               s.num_primitives, knob)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, stats=ErrorStats(count=count, contrib=contrib, err=err))

@@ -50,8 +50,8 @@ class SurfelAdam:
             t = self.steps[name]
             if fused.fusable(p, g, m, v) and p.dtype == g.dtype == m.dtype == v.dtype:
                 lr_t = None if not torch.is_tensor(lr) else self._expanded_lr(name, lr, p)
-                bad = fused.cpu_ext().adam_step_cpu(p.detach(), g, m, v, lr_t, float(lr) if lr_t is None else 0.0,
-                                                    BETA1, BETA2, t, self.eps, torch.get_num_threads())
+                bad = torch.ops.ctgs.adam_step(p.detach(), g, m, v, lr_t, float(lr) if lr_t is None else 0.0,
+                                               BETA1, BETA2, t, self.eps, torch.get_num_threads())
                 if bad:
                     self.nonfinite.append(name)
                 continue

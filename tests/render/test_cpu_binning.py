@@ -23,8 +23,9 @@ def _tile_lists(dtype, n: int, depth_step: float | None, seed: int = 0):
         mu_c[:, 2] = (mu_c[:, 2] / depth_step).round().clamp_min(1.0) * depth_step
     scene = (mu_c.contiguous(), p.Rc.detach().contiguous(), s.scales, s.opacities, p.colors.detach().contiguous(),
              s.texel_size.contiguous(), s.textures, s.tex_res, s.tex_offset, torch.zeros(3, dtype=dtype))
-    outs = ext.load_cpu().forward_cpu(*scene, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near,
-                                      None, 1, False)
+    ext.load_cpu()
+    outs = torch.ops.ctgs.rasterize_forward(*scene, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near,
+                                            None, 1, False)
     return mu_c[:, 2], outs[5], outs[6]
 
 

@@ -124,15 +124,15 @@ def test_non_contiguous_inputs_match_contiguous():
 
 def test_binding_checks_shapes_too():
     """The extension validates on its own (a caller bypassing render() gets an error, not a crash)."""
-    mod = ext.load_cpu()
+    ext.load_cpu()
+    forward = torch.ops.ctgs.rasterize_forward
     z = torch.zeros
     with pytest.raises(RuntimeError, match=r"Rc must have shape \[N, 3, 3\]"):
-        mod.forward_cpu(z(1, 3), z(1, 3), z(1, 2), z(1), z(1, 3), z(1, 2), z(0, 3), z(1, 2, dtype=torch.int32),
-                        z(1, dtype=torch.int64), z(3), 1.0, 1.0, 0.0, 0.0, 4, 4, 0.01, None, 1, False)
+        forward(z(1, 3), z(1, 3), z(1, 2), z(1), z(1, 3), z(1, 2), z(0, 3), z(1, 2, dtype=torch.int32),
+                z(1, dtype=torch.int64), z(3), 1.0, 1.0, 0.0, 0.0, 4, 4, 0.01, None, 1, False)
     with pytest.raises(RuntimeError, match="exceeds the texel count"):
-        mod.forward_cpu(z(1, 3), z(1, 3, 3), z(1, 2), z(1), z(1, 3), z(1, 2), z(3, 3),
-                        torch.tensor([[2, 2]], dtype=torch.int32), z(1, dtype=torch.int64), z(3), 1.0, 1.0, 0.0,
-                        0.0, 4, 4, 0.01, None, 1, False)
+        forward(z(1, 3), z(1, 3, 3), z(1, 2), z(1), z(1, 3), z(1, 2), z(3, 3), torch.tensor([[2, 2]], dtype=torch.int32),
+                z(1, dtype=torch.int64), z(3), 1.0, 1.0, 0.0, 0.0, 4, 4, 0.01, None, 1, False)
 
 
 def test_poisoned_outputs_are_all_overwritten(monkeypatch):
@@ -144,7 +144,8 @@ def test_poisoned_outputs_are_all_overwritten(monkeypatch):
     args = (p.mu_c, p.Rc, s.scales, s.opacities, p.colors, s.texel_size[:, None].expand(-1, 2).contiguous(),
             s.textures, s.tex_res, s.tex_offset, torch.zeros(3), cam.fx, cam.fy, cam.cx, cam.cy, 37, 21, cam.near,
             None, 2, True)
-    rgb, alpha, depth, final_T, n_contrib = ext.load_cpu().forward_cpu(*args)[:5]
+    ext.load_cpu()
+    rgb, alpha, depth, final_T, n_contrib = torch.ops.ctgs.rasterize_forward(*args)[:5]
     for t in (rgb, alpha, depth, final_T):
         assert torch.isfinite(t).all()
     assert (n_contrib >= 0).all()
@@ -169,7 +170,7 @@ def test_build_errors_say_what_to_do(monkeypatch):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_backward_reusing_the_forward_setup_matches_recomputing_it(dtype):
-    """forward_cpu hands its per-primitive setup to backward_cpu (no second binning pass); the gradients
+    """The CPU forward hands its per-primitive setup to its backward (no second binning pass); the gradients
     are bit-identical to a backward that recomputes it, and a setup of another render is refused."""
     from ctgs.render.preprocess import to_camera_space
     from scenes import random_scene
@@ -180,8 +181,9 @@ def test_backward_reusing_the_forward_setup_matches_recomputing_it(dtype):
     scene = (p.mu_c.contiguous(), p.Rc.contiguous(), s.scales, s.opacities, p.colors.contiguous(),
              s.texel_size.contiguous(), s.textures, s.tex_res, s.tex_offset, torch.zeros(3, dtype=dtype))
     cam_args = (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near)
-    mod = ext.load_cpu()
-    outs = mod.forward_cpu(*scene, *cam_args, None, 2, False)
+    ext.load_cpu()
+    forward, backward = torch.ops.ctgs.rasterize_forward, torch.ops.ctgs.rasterize_backward
+    outs = forward(*scene, *cam_args, None, 2, False)
     assert len(outs) == 12
     final_T, n_contrib, tile_offsets, tile_list, setup_prims, setup_spans = (
         outs[3], outs[4], outs[5], outs[6], outs[10], outs[11])
@@ -192,15 +194,15 @@ def test_backward_reusing_the_forward_setup_matches_recomputing_it(dtype):
     v_depth = torch.randn(cam.height, cam.width, generator=g, dtype=torch.float64).to(dtype)
     # One thread: with more, which thread sums which tile (dynamic schedule) varies from call to call.
     common = (*scene, *cam_args, tile_offsets, tile_list, final_T, n_contrib, v_rgb, v_alpha, v_depth, 1)
-    reused = mod.backward_cpu(*common, setup_prims, setup_spans)
-    again = mod.backward_cpu(*common, setup_prims, setup_spans)  # a second backward of the same render
-    fresh = mod.backward_cpu(*common, None, None)
+    reused = backward(*common, setup_prims, setup_spans)
+    again = backward(*common, setup_prims, setup_spans)  # a second backward of the same render
+    fresh = backward(*common, None, None)
     assert any(bool(t.abs().sum() > 0) for t in fresh)
     for a, b, c in zip(reused, again, fresh):
         torch.testing.assert_close(a, c, atol=0, rtol=0)
         torch.testing.assert_close(b, c, atol=0, rtol=0)
     with pytest.raises(RuntimeError, match="setup_prims must be forward_cpu's output of the same render"):
-        mod.backward_cpu(*common, setup_prims[:-8].contiguous(), setup_spans)
+        backward(*common, setup_prims[:-8].contiguous(), setup_spans)
 
 
 def test_zero_quaternion_is_refused():

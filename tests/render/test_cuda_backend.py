@@ -191,9 +191,9 @@ def test_tile_lists_identical_to_cpu(dtype, n, width, height):
     args = [prims.mu_c, prims.Rc, s.scales, s.opacities, prims.colors, s.texel_size.contiguous(), s.textures,
             s.tex_res, s.tex_offset, torch.zeros(3, dtype=dtype)]
     cam_args = (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near)
-    a = load_cpu().forward_cpu(*[t.contiguous() for t in args], *cam_args, None, 1, True)
-    gpu_forward = load_cpu().forward_cpu if DRY_RUN else load_cuda().forward_cuda
-    b = gpu_forward(*[t.contiguous().to(GPU) for t in args], *cam_args, None, 2, True)
+    load_cpu() if DRY_RUN else load_cuda()
+    a = torch.ops.ctgs.rasterize_forward(*[t.contiguous() for t in args], *cam_args, None, 1, True)
+    b = torch.ops.ctgs.rasterize_forward(*[t.contiguous().to(GPU) for t in args], *cam_args, None, 2, True)
     offsets, lists = (a[5], b[5].cpu()), (a[6], b[6].cpu())
     same = torch.equal(offsets[0], offsets[1]) and torch.equal(lists[0], lists[1])
     _record("bins", f"tile lists ({n} prims, {width}x{height})", dtype, 0.0 if same else 1.0, None, 0.0)

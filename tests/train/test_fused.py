@@ -13,6 +13,12 @@ import torch
 from ctgs.ops import fused
 from ctgs.train.adam import BETA1, BETA2, SurfelAdam
 
+@pytest.fixture(autouse=True, scope="module")
+def _cpu_extension():
+    """The ops (torch.ops.ctgs) exist once the CPU extension is loaded."""
+    assert fused.cpu_ext() is not None
+
+
 # One fused pass vs PyTorch's chain of ops: the same formula, rounded in a different order.
 ADAM_ATOL = {torch.float32: 1e-6, torch.float64: 1e-14}
 
@@ -37,7 +43,7 @@ def test_adam_step_matches_pytorch(dtype, per_element_lr):
     for t in (1, 7):
         _torch_adam(*ref[:1], g, *ref[1:], lr, t, 1e-15)
         lr_t = lr.expand_as(p).contiguous() if per_element_lr else None
-        bad = fused.cpu_ext().adam_step_cpu(p, g, m, v, lr_t, 0.0 if per_element_lr else lr, BETA1, BETA2, t,
+        bad = torch.ops.ctgs.adam_step(p, g, m, v, lr_t, 0.0 if per_element_lr else lr, BETA1, BETA2, t,
                                             1e-15, 2)
         assert bad == 0
         for x, y in zip((p, m, v), ref):
@@ -71,9 +77,9 @@ def test_adam_counts_non_finite_results():
     g = torch.ones(100)
     g[3], g[50] = float("nan"), float("inf")
     m, v = torch.zeros(100), torch.zeros(100)
-    assert fused.cpu_ext().adam_step_cpu(p, g, m, v, None, 1e-3, BETA1, BETA2, 1, 1e-15, 1) == 2
+    assert torch.ops.ctgs.adam_step(p, g, m, v, None, 1e-3, BETA1, BETA2, 1, 1e-15, 1) == 2
     p, g = torch.ones(10), torch.ones(10)
-    assert fused.cpu_ext().adam_step_cpu(p, g, torch.zeros(10), torch.zeros(10), None, 1e39, BETA1, BETA2, 1,
+    assert torch.ops.ctgs.adam_step(p, g, torch.zeros(10), torch.zeros(10), None, 1e39, BETA1, BETA2, 1,
                                          1e-15, 1) == 10  # an lr that overflows float32
 
 
@@ -229,7 +235,7 @@ def test_photometric_loss_gradcheck_and_threads():
     assert torch.autograd.gradcheck(lambda r: fused.photometric_loss(r, gt, 0.3)[0], (render,))
     # The row split over threads changes nothing (each row's sums are formed in the same order).
     x, y = torch.rand(61, 47, 3, generator=gen), torch.rand(61, 47, 3, generator=gen)
-    outs = [fused.cpu_ext().photometric_loss_cpu(x, y, 0.2, True, True, t) for t in (1, 2, 3)]
+    outs = [torch.ops.ctgs.photometric_loss(x, y, 0.2, True, True, t) for t in (1, 2, 3)]
     for o in outs[1:]:
         for a, b in zip(o, outs[0]):
             assert torch.equal(a, b)
@@ -256,13 +262,13 @@ def test_accumulate_pairs_matches_pytorch_index_add(dtype):
     pix = torch.randint(0, hw, (P,), generator=gen, dtype=torch.int32)
     prim = torch.randint(0, n - 1, (P,), generator=gen, dtype=torch.int32)  # primitive n-1 never blended
     w, e = torch.rand(P, generator=gen, dtype=dtype), torch.rand(30, 40, generator=gen, dtype=dtype)
-    count, contrib, err = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n, 1)
+    count, contrib, err = torch.ops.ctgs.accumulate_pairs(pix, prim, w, e, n, 1)
     assert torch.equal(count, torch.bincount(prim, minlength=n).to(torch.int32))
     assert torch.equal(contrib, w.new_zeros(n).index_add_(0, prim, w))
     assert torch.equal(err, w.new_zeros(n).index_add_(0, prim, e.reshape(-1)[pix] * w))
     assert count[-1] == 0 and contrib[-1] == 0 and err[-1] == 0
     with pytest.raises(RuntimeError, match="out of range"):
-        fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e[:2], n, 1)
+        torch.ops.ctgs.accumulate_pairs(pix, prim, w, e[:2], n, 1)
 
 
 @pytest.mark.parametrize("threads", [2, 3])
@@ -273,8 +279,8 @@ def test_accumulate_pairs_in_chunks_per_thread(threads):
     pix = torch.randint(0, hw, (P,), generator=gen, dtype=torch.int32)
     prim = torch.randint(0, n - 1, (P,), generator=gen, dtype=torch.int32)
     w, e = torch.rand(P, generator=gen, dtype=torch.float64), torch.rand(hw, generator=gen, dtype=torch.float64)
-    count, contrib, err = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n, threads)
-    again = fused.cpu_ext().accumulate_pairs_cpu(pix, prim, w, e, n, threads)
+    count, contrib, err = torch.ops.ctgs.accumulate_pairs(pix, prim, w, e, n, threads)
+    again = torch.ops.ctgs.accumulate_pairs(pix, prim, w, e, n, threads)
     assert all(torch.equal(a, b) for a, b in zip((count, contrib, err), again))  # deterministic
     assert torch.equal(count, torch.bincount(prim, minlength=n).to(torch.int32))
     torch.testing.assert_close(contrib, w.new_zeros(n).index_add_(0, prim, w), rtol=1e-13, atol=0)
@@ -282,7 +288,7 @@ def test_accumulate_pairs_in_chunks_per_thread(threads):
     bad = pix.clone()
     bad[P - 5] = hw
     with pytest.raises(RuntimeError, match=f"pair {P - 5} out of range"):
-        fused.cpu_ext().accumulate_pairs_cpu(bad, prim, w, e, n, threads)
+        torch.ops.ctgs.accumulate_pairs(bad, prim, w, e, n, threads)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

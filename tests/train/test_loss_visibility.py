@@ -45,10 +45,11 @@ def _binned(model: SurfelModel, cam: Camera) -> set[int]:
     """Indices the CPU kernel puts in its per-tile lists (what it rasterizes)."""
     s = model.render_inputs()
     p = to_camera_space(s.means, s.quats, s.sh, cam, 0)
-    out = load_cpu().forward_cpu(p.mu_c.contiguous(), p.Rc.contiguous(), s.scales.contiguous(), s.opacities.contiguous(),
-                                 p.colors.contiguous(), s.texel_size.contiguous(), s.textures.contiguous(),
-                                 s.tex_res.contiguous(), s.tex_offset.contiguous(), torch.zeros(3), cam.fx, cam.fy,
-                                 cam.cx, cam.cy, cam.width, cam.height, cam.near, None, 1, False)
+    load_cpu()
+    out = torch.ops.ctgs.rasterize_forward(
+        p.mu_c.contiguous(), p.Rc.contiguous(), s.scales.contiguous(), s.opacities.contiguous(), p.colors.contiguous(),
+        s.texel_size.contiguous(), s.textures.contiguous(), s.tex_res.contiguous(), s.tex_offset.contiguous(),
+        torch.zeros(3), cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near, None, 1, False)
     return set(out[6].tolist())
 
 
