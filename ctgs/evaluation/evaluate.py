@@ -91,42 +91,89 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     atomic.ensure_replaceable(opts.out_dir, lambda names: "metrics.json" in names, "an earlier eval folder")
     run = with_scene(load_run(run_dir), opts.scene_dir)
     device = torch.device(opts.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    model, bytes_on_disk, model_source = run.model, run.model_bytes, os.path.join(run.run_dir, "model.pt")
+    scored = _scored_model(run, opts, device)
+    backend = _backend(run, opts, device)
+    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
+    if scored.manifest is None:
+        check_same_frame(run.world_origin, scene, run.run_dir)
+    else:
+        check_same_frame(scored.manifest.get("source", {}).get("world_origin"), scene, opts.model_dir)
+    views = _views(run, scene, opts.split)
+    renders, alphas, times, veils, peak = _render_views(scored.model, views, backend, device)
+
+    net, status = None, None
+    if opts.lpips:
+        net, st = load_lpips(opts.lpips_weights, device)
+        status = f"{LPIPS_CONVENTION}; VGG16 weights: {st.detail}" if st.available else st.detail
+    else:
+        status = "unavailable: skipped (--no-lpips)"
+
+    # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
+    # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
+    with atomic.atomic_dir(opts.out_dir) as out:
+        rows, strips = _write_views(out, views, renders, alphas, times, veils, net, device)
+        metrics = _metrics(run, opts, scored, rows, strips, times, renders, net is not None, status, backend,
+                           device, peak)
+        write_metrics_json(os.path.join(out, "metrics.json"), metrics)
+    return metrics
+
+
+@dataclass
+class _Scored:
+    """The model an eval scores and where it came from: the run's model.pt, a model folder (manifest) or an
+    exported Gaussian file (exported: its ending)."""
+    model: object
+    bytes_on_disk: int
+    source: str
+    manifest: dict | None
+    exported: str | None
+
+
+def _scored_model(run, opts: EvalOptions, device: torch.device) -> _Scored:
+    model, bytes_on_disk, source = run.model, run.model_bytes, os.path.join(run.run_dir, "model.pt")
     manifest, exported = None, None
     if opts.model_dir and not os.path.isdir(opts.model_dir):  # an exported Gaussian file: what a viewer gets from it
         model, exported = read_gaussian_file(opts.model_dir), gaussian_file_ending(opts.model_dir)
-        bytes_on_disk, model_source = os.path.getsize(opts.model_dir), os.path.abspath(opts.model_dir)
+        bytes_on_disk, source = os.path.getsize(opts.model_dir), os.path.abspath(opts.model_dir)
     elif opts.model_dir:
         model, files = read_model(opts.model_dir)
-        bytes_on_disk, model_source, manifest = files.bytes_on_disk, os.path.abspath(opts.model_dir), files.manifest
+        bytes_on_disk, source, manifest = files.bytes_on_disk, os.path.abspath(opts.model_dir), files.manifest
     model = type(model).from_state_dict(model.state_dict(), device=device)
+    return _Scored(model, bytes_on_disk, source, manifest, exported)
+
+
+def _backend(run, opts: EvalOptions, device: torch.device) -> str:
     backend = opts.backend or str(run.config.get("backend", "auto"))
     if opts.backend is None and backend == "cuda" and device.type != "cuda":
         backend = "auto"  # trained on a GPU, evaluated where there is none: the run's backend is not a request
     if backend == "auto":  # the renderer's rule: cuda when the inputs live on a GPU, else cpu
         backend = "cuda" if device.type == "cuda" else "cpu"
-    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
-    if manifest is None:
-        check_same_frame(run.world_origin, scene, run.run_dir)
-    else:
-        check_same_frame(manifest.get("source", {}).get("world_origin"), scene, opts.model_dir)
-    if opts.split == "train":
+    return backend
+
+
+def _views(run, scene, split: str) -> list:
+    """The views `split` scores (a validation run's training views exclude its validation views)."""
+    if split == "train":
         # a validation run (validation_holdout > 0) was trained without its validation views
         views, _ = validation_split(scene.train, int(run.config.get("validation_holdout", 0)))
         if not views:
             raise UserError(f"{run.scene_dir}: no training views (holdout={run.holdout}); nothing to score with "
                             "--split train")
-    elif opts.split == "test":
-        views = scene.test
-        if not views:
+        return views
+    if split == "test":
+        if not scene.test:
             raise UserError(f"{run.scene_dir}: no test views (holdout={run.holdout}); train with holdout > 0 to "
                             "evaluate, or evaluate the training views with --split train")
-    else:
-        raise UserError(f"eval split {opts.split!r}: use test or train")
+        return scene.test
+    raise UserError(f"eval split {split!r}: use test or train")
+
+
+def _render_views(model, views: list, backend: str, device: torch.device):
+    """Each view rendered and timed (after one warm-up render), with its alpha and veil share; and the peak
+    memory of the process (or of the GPU)."""
     render = _render_fn(backend)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-
     renders, alphas, times, veils = [], [], [], []
     with torch.no_grad():
         inputs = model.render_inputs()
@@ -142,53 +189,46 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
             alphas.append(out.alpha.reshape(out.rgb.shape[:2]).float().cpu())
             veils.append(veil_share(inputs, cam, model.sh_degree, backend))  # after the timing: not in the FPS
     if device.type == "cuda":
-        peak, peak_kind = torch.cuda.max_memory_allocated(device), "cuda_max_memory_allocated"
+        peak = (torch.cuda.max_memory_allocated(device), "cuda_max_memory_allocated")
     else:
-        peak, peak_kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, "process_max_rss"
+        peak = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, "process_max_rss")
+    return renders, alphas, times, veils, peak
 
-    net, status = None, None
-    if opts.lpips:
-        net, st = load_lpips(opts.lpips_weights, device)
-        status = f"{LPIPS_CONVENTION}; VGG16 weights: {st.detail}" if st.available else st.detail
-    else:
-        status = "unavailable: skipped (--no-lpips)"
 
-    # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
-    # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
-    with atomic.atomic_dir(opts.out_dir) as out:
-        rows, strips = _write_views(out, views, renders, alphas, times, veils, net, device)
-        summary = run.summary or {}
-        mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
-        metrics = {
-            "schema": METRICS_SCHEMA, "schema_version": METRICS_VERSION,
-            "scene": opts.scene_name or os.path.basename(os.path.normpath(run.scene_dir)),
-            "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
-            "run_dir": run.run_dir, "model_source": model_source, "scene_dir": run.scene_dir,
-            "images": run.images, "holdout": run.holdout, "split": opts.split, "num_views": len(rows),
-            "num_test_views": len(rows) if opts.split == "test" else None,
-            "psnr": mean("psnr"), "ssim": mean("ssim"), "open_pixels": mean("open"),
-            # exposure diagnostic (not the protocol's PSNR): PSNR after each view's least-squares gain
-            "psnr_gain_matched": mean("psnr_gain"), "gain_range": [min(r.gain for r in rows), max(r.gain for r in rows)],
-            "veil_max": max(r.veil for r in rows),
-            "lpips": None if net is None else mean("lpips"), "lpips_status": status,
-            "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
-            "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
-            "model_memory_bytes": 4 * model.num_params(), "bytes_on_disk": bytes_on_disk,
-            "texture_encoding": manifest["texture_encoding"] if manifest else ("folded" if exported else "raw"),
-            "exported_file": exported,  # the ending of an exported Gaussian file (--model FILE), else None
-            "codebook_size": manifest.get("codebook_size") if manifest else None,
-            "compressed": bool(manifest and "compression" in manifest),
-            "compression_target": ((manifest or {}).get("compression") or {}).get("target"),
-            "fps": len(times) / sum(times), "render_ms_mean": 1e3 * sum(times) / len(times),
-            "backend": backend, "device": str(device), "resolution": [renders[0].shape[1], renders[0].shape[0]],
-            "peak_memory_bytes": peak, "peak_memory_kind": peak_kind,
-            "train_seconds": summary.get("train_seconds"), "iterations": summary.get("iterations", run.iteration),
-            "machine": _machine(device),
-            "files": {"per_image_csv": "per_image.csv", "renders": "renders/", "strips": [f"strips/{s}" for s in strips]},
-            "per_image": [asdict(r) for r in rows],
-        }
-        write_metrics_json(os.path.join(out, "metrics.json"), metrics)
-    return metrics
+def _metrics(run, opts: EvalOptions, scored: _Scored, rows: list, strips: list, times: list, renders: list,
+             scored_lpips: bool, status: str, backend: str, device: torch.device, peak: tuple) -> dict:
+    """metrics.json's content (docs/reference/metrics.md)."""
+    model, manifest, exported = scored.model, scored.manifest, scored.exported
+    summary = run.summary or {}
+    mean = lambda key: float(np.mean([getattr(r, key) for r in rows]))  # noqa: E731
+    return {
+        "schema": METRICS_SCHEMA, "schema_version": METRICS_VERSION,
+        "scene": opts.scene_name or os.path.basename(os.path.normpath(run.scene_dir)),
+        "dataset": opts.dataset or os.path.basename(os.path.dirname(os.path.normpath(run.scene_dir))),
+        "run_dir": run.run_dir, "model_source": scored.source, "scene_dir": run.scene_dir,
+        "images": run.images, "holdout": run.holdout, "split": opts.split, "num_views": len(rows),
+        "num_test_views": len(rows) if opts.split == "test" else None,
+        "psnr": mean("psnr"), "ssim": mean("ssim"), "open_pixels": mean("open"),
+        # exposure diagnostic (not the protocol's PSNR): PSNR after each view's least-squares gain
+        "psnr_gain_matched": mean("psnr_gain"), "gain_range": [min(r.gain for r in rows), max(r.gain for r in rows)],
+        "veil_max": max(r.veil for r in rows),
+        "lpips": mean("lpips") if scored_lpips else None, "lpips_status": status,
+        "points": model.num_primitives, "texels": model.num_texels, "params": model.num_params(),
+        "texels_per_primitive": model.num_texels / max(model.num_primitives, 1),
+        "model_memory_bytes": 4 * model.num_params(), "bytes_on_disk": scored.bytes_on_disk,
+        "texture_encoding": manifest["texture_encoding"] if manifest else ("folded" if exported else "raw"),
+        "exported_file": exported,  # the ending of an exported Gaussian file (--model FILE), else None
+        "codebook_size": manifest.get("codebook_size") if manifest else None,
+        "compressed": bool(manifest and "compression" in manifest),
+        "compression_target": ((manifest or {}).get("compression") or {}).get("target"),
+        "fps": len(times) / sum(times), "render_ms_mean": 1e3 * sum(times) / len(times),
+        "backend": backend, "device": str(device), "resolution": [renders[0].shape[1], renders[0].shape[0]],
+        "peak_memory_bytes": peak[0], "peak_memory_kind": peak[1],
+        "train_seconds": summary.get("train_seconds"), "iterations": summary.get("iterations", run.iteration),
+        "machine": _machine(device),
+        "files": {"per_image_csv": "per_image.csv", "renders": "renders/", "strips": [f"strips/{s}" for s in strips]},
+        "per_image": [asdict(r) for r in rows],
+    }
 
 
 def _write_views(out: str, views: list, renders: list, alphas: list, times: list, veils: list, net,

@@ -221,51 +221,65 @@ def plan_levels(model: SurfelModel, budget: int, sigma: float = BAKE_SIGMA,
     levels, errors, counts = [FOLD], [torch.zeros(n, dtype=torch.float64)], [torch.ones(n, dtype=torch.float64)]
     lattice_ok = _latticeable(model, lattice_max_texel, 0)
     if bool(lattice_ok.any()):
-        prim, iu, iv, row = _texel_rows(model, lattice_ok)
-        tex = model.textures.detach().double()[row]  # [T', 3]
-        res = model.tex_res.long()
-        k = model.texel_size.detach().double()[prim]  # [T', 2]
-        lx = (iu.double() - (res[prim, 0].double() - 1) / 2) * k[:, 0]
-        ly = (iv.double() - (res[prim, 1].double() - 1) / 2) * k[:, 1]
-        scales = model.scales.detach().double()[prim]
-        rho = (lx / scales[:, 0]) ** 2 + (ly / scales[:, 1]) ** 2
-        texel_area = k[:, 0] * k[:, 1]  # world units^2
-        if area == "pixels":  # in pixels of the closest training camera (k_min: its pixel's world size there)
-            texel_area = texel_area / model.k_min.detach().double()[prim] ** 2
-        weight = model.opacities.detach().double()[prim] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO) * texel_area
+        _lattice_options(model, budget, lattice_ok, levels, errors, counts, sigma=sigma,
+                         lattice_max_texel=lattice_max_texel, chunk_splats=chunk_splats, area=area)
+    return _cheapest_plan(torch.stack(errors, 1), torch.stack(counts, 1), levels, lattice_ok, budget)
 
-        def error_against(shown: torch.Tensor) -> torch.Tensor:  # [T', 3] -> [N]
-            return torch.zeros(n, dtype=torch.float64).index_add_(0, prim, weight * ((tex - shown) ** 2).sum(1))
 
-        errors[0] = torch.where(lattice_ok, error_against(texture_means(model)[prim]), 0.0)
-        level = 0
-        while True:
-            ok = _latticeable(model, lattice_max_texel, level)
-            if not bool(ok.any()):
-                break
-            coarse, shared = _level_model(model, level, ok)
-            idx = torch.nonzero(ok).squeeze(1)
-            rings, lat = _lattice_sizes(coarse, idx, shared.half)
-            count = torch.full((n,), math.inf, dtype=torch.float64)
-            for chunk in _chunks(lat[:, 0] * lat[:, 1], chunk_splats):
-                owner = _lattice_points(coarse, idx[chunk], rings[chunk], lat[chunk], shared, sigma)[0]
-                count[idx[chunk]] = torch.bincount(owner, minlength=len(idx[chunk])).double()
-            if level == 0:
-                err = torch.zeros(n, dtype=torch.float64)
-            else:
-                block = 1 << level
-                cres = coarse.tex_res.long()
-                on = ok[prim]
-                crow = coarse.tex_offset.long()[prim] + (iv // block) * cres[prim, 0] + iu // block
-                shown = torch.where(on[:, None], shared.textures.double()[torch.where(on, crow, 0)], tex)
-                err = error_against(shown)
-            levels.append(level)
-            errors.append(torch.where(ok, err, math.inf))
-            counts.append(count)
-            if level == 0 and float(torch.where(lattice_ok, count, 1.0).sum()) <= budget:
-                break  # the full bake fits: no coarser level needed
-            level += 1
-    E, S = torch.stack(errors, 1), torch.stack(counts, 1)  # [N, options]; option 0 = FOLD
+def _lattice_options(model: SurfelModel, budget: int, lattice_ok: torch.Tensor, levels: list, errors: list,
+                     counts: list, *, sigma: float, lattice_max_texel: float, chunk_splats: int, area: str) -> None:
+    """Append to levels, errors [N], counts [N] each lattice level 0, 1, ... a surfel can bake at (inf where it
+    cannot), until no surfel can or the full bake fits `budget`; errors[0] (FOLD) becomes the folded colour's."""
+    n = model.num_primitives
+    prim, iu, iv, row = _texel_rows(model, lattice_ok)
+    tex = model.textures.detach().double()[row]  # [T', 3]
+    res = model.tex_res.long()
+    k = model.texel_size.detach().double()[prim]  # [T', 2]
+    lx = (iu.double() - (res[prim, 0].double() - 1) / 2) * k[:, 0]
+    ly = (iv.double() - (res[prim, 1].double() - 1) / 2) * k[:, 1]
+    scales = model.scales.detach().double()[prim]
+    rho = (lx / scales[:, 0]) ** 2 + (ly / scales[:, 1]) ** 2
+    texel_area = k[:, 0] * k[:, 1]  # world units^2
+    if area == "pixels":  # in pixels of the closest training camera (k_min: its pixel's world size there)
+        texel_area = texel_area / model.k_min.detach().double()[prim] ** 2
+    weight = model.opacities.detach().double()[prim] * torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO) * texel_area
+
+    def error_against(shown: torch.Tensor) -> torch.Tensor:  # [T', 3] -> [N]
+        return torch.zeros(n, dtype=torch.float64).index_add_(0, prim, weight * ((tex - shown) ** 2).sum(1))
+
+    errors[0] = torch.where(lattice_ok, error_against(texture_means(model)[prim]), 0.0)
+    level = 0
+    while True:
+        ok = _latticeable(model, lattice_max_texel, level)
+        if not bool(ok.any()):
+            break
+        coarse, shared = _level_model(model, level, ok)
+        idx = torch.nonzero(ok).squeeze(1)
+        rings, lat = _lattice_sizes(coarse, idx, shared.half)
+        count = torch.full((n,), math.inf, dtype=torch.float64)
+        for chunk in _chunks(lat[:, 0] * lat[:, 1], chunk_splats):
+            owner = _lattice_points(coarse, idx[chunk], rings[chunk], lat[chunk], shared, sigma)[0]
+            count[idx[chunk]] = torch.bincount(owner, minlength=len(idx[chunk])).double()
+        if level == 0:
+            err = torch.zeros(n, dtype=torch.float64)
+        else:
+            block = 1 << level
+            cres = coarse.tex_res.long()
+            on = ok[prim]
+            crow = coarse.tex_offset.long()[prim] + (iv // block) * cres[prim, 0] + iu // block
+            shown = torch.where(on[:, None], shared.textures.double()[torch.where(on, crow, 0)], tex)
+            err = error_against(shown)
+        levels.append(level)
+        errors.append(torch.where(ok, err, math.inf))
+        counts.append(count)
+        if level == 0 and float(torch.where(lattice_ok, count, 1.0).sum()) <= budget:
+            break  # the full bake fits: no coarser level needed
+        level += 1
+
+
+def _cheapest_plan(E: torch.Tensor, S: torch.Tensor, levels: list, lattice_ok: torch.Tensor, budget: int) -> dict:
+    """The choice per surfel (E, S: [N, options], option 0 = FOLD) minimising sum E + lambda sum S, lambda the least
+    (by geometric bisection) for which sum S fits `budget`; plan_levels' result."""
     S_safe = torch.where(torch.isfinite(E), S, math.inf)
     choice_of = lambda lam: torch.argmin(torch.where(torch.isfinite(E), E + lam * S_safe, math.inf), 1)  # noqa: E731
 

@@ -241,9 +241,8 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
     """Encode `model` per `spec` into sections (primitives Morton-sorted when spec.sort)."""
     spec.validate()
     start = time.perf_counter()
-    npf = lambda t: t.detach().cpu().numpy().astype(np.float64)  # noqa: E731
     n, t_count = model.num_primitives, model.num_texels
-    means = npf(model.means)
+    means = _f64(model.means)
     order = morton_order(means) if spec.sort else np.arange(n)
     sections: list[Section] = []
     stats: dict = {}
@@ -251,8 +250,40 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
     def add(name: str, array: np.ndarray, encoding: dict) -> None:
         sections.append(Section(name, array, encoding))
 
+    spec = _encode_geometry(model, spec, order, add, stats)
+    degree = _encode_sh(model, spec, order, add, stats, seed)
+    add("k_min", *quantize.encode(_f64(model.k_min)[order][:, None], spec.k_min))
+    sections[-1].array = sections[-1].array[:, 0]
+    add("t2p_exp", _smallest_int(model.t2p_exp.cpu().numpy()[order]), {"kind": "int"})
+    tex_res = model.tex_res.cpu().numpy()
+    add("tex_res", _smallest_int(tex_res[order]), {"kind": "int"})
+    rows = texel_rows(tex_res, model.tex_offset.cpu().numpy(), order)
+    texel_info = _encode_textures(model.textures_raw.detach().cpu().numpy()[rows], spec, add, seed)
+    stats["texels"] = texel_info
+    stats["seconds"] = time.perf_counter() - start
+    header = {
+        "num_primitives": n, "num_texels": int(len(rows)), "sh_degree": int(min(model.sh_degree, degree)),
+        "max_sh_degree": int(degree), "texture_mode": model.texture_mode,
+        "float_dtype": str(model.means.dtype).replace("torch.", ""),
+        "texture_encoding": texel_info["mode"], "codebook_size": texel_info["codebook_size"],
+        "spec": asdict(spec),
+    }
+    if len(rows) != t_count:
+        stats["unreferenced_texels_dropped"] = t_count - len(rows)
+    return Packed(sections, header, stats)
+
+
+def _f64(t) -> np.ndarray:
+    return t.detach().cpu().numpy().astype(np.float64)
+
+
+def _encode_geometry(model: SurfelModel, spec: Spec, order: np.ndarray, add, stats: dict) -> Spec:
+    """Sections means (with outlier rows where a fixed-point grid cannot hold every mean), log_scales, quats and
+    opacity, in `order`. Returns the spec, its means codec f32 where no mean fitted the grid."""
+    n = model.num_primitives
+    means = _f64(model.means)
     if spec.means in quantize.FIXED_CODECS and n:
-        stored, enc, outliers, mstats = _encode_means(means[order], npf(model.k_min)[order], spec.means)
+        stored, enc, outliers, mstats = _encode_means(means[order], _f64(model.k_min)[order], spec.means)
         if len(outliers) == n:
             stats["means_fallback"] = {**mstats, "stored": "f32"}
             spec = replace(spec, means="f32")
@@ -265,15 +296,15 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
                 add("means_outliers", means[order][outliers].astype("<f4"), {"kind": "float"})
     else:
         add("means", *quantize.encode(means[order], spec.means))
-    add("log_scales", *quantize.encode(npf(model.log_scales)[order], spec.scales))
-    quats = npf(model.quats)[order]
+    add("log_scales", *quantize.encode(_f64(model.log_scales)[order], spec.scales))
+    quats = _f64(model.quats)[order]
     if spec.quats in quantize.FIXED_CODECS:  # unit quaternions: every component in [-1, 1]
         quats = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
         stored, enc = quantize.encode(quats, spec.quats, lo=-1.0, hi=1.0)
     else:
         stored, enc = quantize.encode(quats, spec.quats)
     add("quats", stored, enc)
-    logits = npf(model.opacity_logits)[order]
+    logits = _f64(model.opacity_logits)[order]
     if spec.opacity in quantize.FIXED_CODECS:
         stored, enc = quantize.encode((1.0 / (1.0 + np.exp(-logits)))[:, None], spec.opacity, lo=0.0, hi=1.0)
         enc["space"] = "sigmoid"
@@ -281,8 +312,13 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
         stored, enc = quantize.encode(logits[:, None], spec.opacity)
         enc["space"] = "logit"
     add("opacity", stored[:, 0], enc)
+    return spec
 
-    sh = npf(model.sh)[order]  # [N, K, 3]
+
+def _encode_sh(model: SurfelModel, spec: Spec, order: np.ndarray, add, stats: dict, seed: int) -> int:
+    """Sections sh_dc and sh_rest (a k-means codebook or quantised rows) up to the kept degree; returns it."""
+    n = model.num_primitives
+    sh = _f64(model.sh)[order]  # [N, K, 3]
     degree = model.max_sh_degree if spec.sh_degree is None else min(spec.sh_degree, model.max_sh_degree)
     k_sh = (degree + 1) ** 2
     add("sh_dc", *quantize.encode(sh[:, 0, :], spec.sh_dc))
@@ -297,18 +333,16 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
             stats["sh_rest_kmeans"] = {"k": k, "method": cb.method, "seconds": cb.seconds}
         else:
             add("sh_rest", *quantize.encode(rest, spec.sh_rest))
-    add("k_min", *quantize.encode(npf(model.k_min)[order][:, None], spec.k_min))
-    sections[-1].array = sections[-1].array[:, 0]
-    add("t2p_exp", _smallest_int(model.t2p_exp.cpu().numpy()[order]), {"kind": "int"})
-    tex_res = model.tex_res.cpu().numpy()
-    add("tex_res", _smallest_int(tex_res[order]), {"kind": "int"})
+    return degree
 
-    rows = texel_rows(tex_res, model.tex_offset.cpu().numpy(), order)
-    raw = model.textures_raw.detach().cpu().numpy()[rows]  # [T', 3] in the new primitive order
+
+def _encode_textures(raw: np.ndarray, spec: Spec, add, seed: int) -> dict:
+    """Sections of the texels raw [T', 3] (in the new primitive order): floats, or indices into a scalar or a
+    vector codebook of activated values. Returns the texel statistics (mode, codebook size, error)."""
     texel_info: dict = {"mode": spec.texels if len(raw) else "none", "codebook_size": None}
     if not len(raw):  # untextured model (2DGS baseline, a run stopped before texturing): no texel sections
-        decoded = raw
-    elif spec.texels in ("f32", "f16"):
+        return texel_info
+    if spec.texels in ("f32", "f16"):
         add("textures", raw.astype(quantize.FLOAT_CODECS[spec.texels]), {"kind": "float"})
         decoded = raw.astype(quantize.FLOAT_CODECS[spec.texels])
     else:
@@ -318,33 +352,19 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
             cb = scalar_kmeans(act, k)
             k = len(cb.centres)
             centres = activated_to_raw(cb.centres).astype("<f4")  # [K]
-            add("textures", _index_array(cb.labels, k), {"kind": "codebook", "codebook": "texel_codebook"})
-            add("texel_codebook", centres, {"kind": "float"})
         else:
             if k > len(act):
                 raise UserError(f"--codebook-size {k} is larger than the model's {len(act)} texels; "
                                 f"pick a size <= {len(act)}")
             cb = vector_kmeans(act, k, seed=seed)
             centres = activated_to_raw(cb.centres).astype("<f2")  # [K, 3]
-            add("textures", _index_array(cb.labels, k), {"kind": "codebook", "codebook": "texel_codebook"})
-            add("texel_codebook", centres, {"kind": "float"})
+        add("textures", _index_array(cb.labels, k), {"kind": "codebook", "codebook": "texel_codebook"})
+        add("texel_codebook", centres, {"kind": "float"})
         decoded = centres[cb.labels]
         texel_info.update(codebook_size=k, method=cb.method, kmeans_seconds=cb.seconds)
-    if len(raw):
-        err = raw_to_activated(decoded.astype(np.float64)) - raw_to_activated(raw)
-        texel_info["rmse_activated"] = float(np.sqrt(np.mean(err ** 2)))
-    stats["texels"] = texel_info
-    stats["seconds"] = time.perf_counter() - start
-    header = {
-        "num_primitives": n, "num_texels": int(len(rows)), "sh_degree": int(min(model.sh_degree, degree)),
-        "max_sh_degree": int(degree), "texture_mode": model.texture_mode,
-        "float_dtype": str(model.means.dtype).replace("torch.", ""),
-        "texture_encoding": texel_info["mode"], "codebook_size": texel_info["codebook_size"],
-        "spec": asdict(spec),
-    }
-    if len(rows) != t_count:
-        stats["unreferenced_texels_dropped"] = t_count - len(rows)
-    return Packed(sections, header, stats)
+    err = raw_to_activated(decoded.astype(np.float64)) - raw_to_activated(raw)
+    texel_info["rmse_activated"] = float(np.sqrt(np.mean(err ** 2)))
+    return texel_info
 
 
 def _values(name: str, arrays: dict[str, np.ndarray], encodings: dict[str, dict]) -> np.ndarray:

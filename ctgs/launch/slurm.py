@@ -317,17 +317,7 @@ def submit(args) -> int:
     scenes = args.scenes.split()
     if not scenes:
         raise UserError('SCENES is empty; name the scenes: make all SCENES="bicycle garden ..." LAUNCHER=slurm')
-    opts = load_options(args.config)
-    sc, tb = opts["scene"], opts["table"]
-    for key, value in (("partition", args.partition), ("account", args.account), ("time", args.time),
-                       ("mem", args.mem)):
-        if value:
-            sc[key] = value
-    for key, value, var in (("gpus", args.gpus, "GPUS"), ("cpus", args.cpus, "CPUS")):
-        if value:
-            if not value.isdigit():
-                raise UserError(f"{var}={value}: should be a whole number (e.g. {var}=1)")
-            sc[key] = int(value)
+    sc, tb = _job_options(args)
     extra = sc["extra"] + shlex.split(args.sbatch_opts or "")
     # A scene no manifest lists fails here, not on the node an hour later.
     for s in scenes:
@@ -335,43 +325,12 @@ def submit(args) -> int:
     _need("sbatch")
     os.makedirs(os.path.join(runs, "slurm"), exist_ok=True)
     jobs = read_jobs(runs)
-    states = queue_states([jobs["scenes"][s] for s in scenes if s in jobs["scenes"]])
-    todo, waiting = [], []
-    for s in scenes:
-        jid = jobs["scenes"].get(s)
-        st = states.get(jid, ("", ""))[0] if jid else ""
-        if is_finished(runs, s):
-            print(f"{s}: finished ({os.path.join(runs, s)}), not submitted")
-        elif st in QUEUED:
-            print(f"{s}: already queued as job {jid} ({st.lower()}), not submitted again")
-            waiting.append(jid)
-        else:
-            todo.append(s)
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    folder = os.path.join(runs, "slurm", stamp)
-    n = 0
-    while os.path.exists(folder):
-        n += 1
-        folder = os.path.join(runs, "slurm", f"{stamp}-{n}")
-    os.makedirs(folder)
-    py = args.python
+    todo, waiting = _scenes_to_submit(runs, scenes, jobs)
+    folder = _new_log_folder(runs)
     name = f"ctgs-{os.path.basename(os.path.abspath(runs))}"
     after = list(waiting)
     if todo:
-        script = os.path.join(folder, "scene.sh")
-        with open(script, "w") as fh:
-            fh.write(_scene_script(root, runs, todo, args.make_args, py))
-        array = f"0-{len(todo) - 1}" + (f"%{sc['max_parallel']}" if sc["max_parallel"] else "")
-        cmd = ["sbatch", "--parsable", f"--job-name={name}", f"--array={array}", "--requeue",
-               f"--signal=B:TERM@{sc['signal_before']}", "--open-mode=append", f"--chdir={root}",
-               f"--output={folder}/%A_%a.out"] + _sbatch_opts(sc, sc["account"])
-        if sc["gpus"]:
-            cmd.append(f"--gres=gpu:{sc['gpus']}")
-        array_id = _slurm(cmd + extra + [script]).strip().split(";")[0]
-        for i, s in enumerate(todo):
-            jobs["scenes"][s] = f"{array_id}_{i}"
-            print(f"{s}: submitted as job {array_id}_{i} (log: {os.path.join(runs, s, LOG_NAME)})")
-        after.append(array_id)
+        after.append(_submit_scenes(args, root, folder, name, todo, sc, extra, jobs))
     # the previous table job, if it still waits, is replaced by one that waits for every scene
     old = jobs.get("table")
     if old and queue_states([old]).get(old, ("", ""))[0] == "PENDING":
@@ -395,6 +354,70 @@ def submit(args) -> int:
     if args.wait:
         return wait(runs, scenes, jobs)
     return 0
+
+
+def _job_options(args) -> tuple[dict, dict]:
+    """The scene jobs' and the table job's options: the config's, with the command line's on top."""
+    opts = load_options(args.config)
+    sc, tb = opts["scene"], opts["table"]
+    for key, value in (("partition", args.partition), ("account", args.account), ("time", args.time),
+                       ("mem", args.mem)):
+        if value:
+            sc[key] = value
+    for key, value, var in (("gpus", args.gpus, "GPUS"), ("cpus", args.cpus, "CPUS")):
+        if value:
+            if not value.isdigit():
+                raise UserError(f"{var}={value}: should be a whole number (e.g. {var}=1)")
+            sc[key] = int(value)
+    return sc, tb
+
+
+def _scenes_to_submit(runs: str, scenes: list[str], jobs: dict) -> tuple[list[str], list[str]]:
+    """The scenes to submit (neither finished nor queued), and the queued scenes' job ids."""
+    states = queue_states([jobs["scenes"][s] for s in scenes if s in jobs["scenes"]])
+    todo, waiting = [], []
+    for s in scenes:
+        jid = jobs["scenes"].get(s)
+        st = states.get(jid, ("", ""))[0] if jid else ""
+        if is_finished(runs, s):
+            print(f"{s}: finished ({os.path.join(runs, s)}), not submitted")
+        elif st in QUEUED:
+            print(f"{s}: already queued as job {jid} ({st.lower()}), not submitted again")
+            waiting.append(jid)
+        else:
+            todo.append(s)
+    return todo, waiting
+
+
+def _new_log_folder(runs: str) -> str:
+    """RUNS/slurm/<date-time>[-n]: this submission's scripts and logs."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    folder = os.path.join(runs, "slurm", stamp)
+    n = 0
+    while os.path.exists(folder):
+        n += 1
+        folder = os.path.join(runs, "slurm", f"{stamp}-{n}")
+    os.makedirs(folder)
+    return folder
+
+
+def _submit_scenes(args, root: str, folder: str, name: str, todo: list[str], sc: dict, extra: list[str],
+                   jobs: dict) -> str:
+    """One job array of the scenes in `todo` (recorded in jobs); returns its id."""
+    script = os.path.join(folder, "scene.sh")
+    with open(script, "w") as fh:
+        fh.write(_scene_script(root, args.runs, todo, args.make_args, args.python))
+    array = f"0-{len(todo) - 1}" + (f"%{sc['max_parallel']}" if sc["max_parallel"] else "")
+    cmd = ["sbatch", "--parsable", f"--job-name={name}", f"--array={array}", "--requeue",
+           f"--signal=B:TERM@{sc['signal_before']}", "--open-mode=append", f"--chdir={root}",
+           f"--output={folder}/%A_%a.out"] + _sbatch_opts(sc, sc["account"])
+    if sc["gpus"]:
+        cmd.append(f"--gres=gpu:{sc['gpus']}")
+    array_id = _slurm(cmd + extra + [script]).strip().split(";")[0]
+    for i, s in enumerate(todo):
+        jobs["scenes"][s] = f"{array_id}_{i}"
+        print(f"{s}: submitted as job {array_id}_{i} (log: {os.path.join(args.runs, s, LOG_NAME)})")
+    return array_id
 
 
 def wait(runs: str, scenes: list[str], jobs: dict, poll: float = 2.0) -> int:
