@@ -147,6 +147,7 @@ class Trainer:
         self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)
         self.opt = SurfelAdam(self.model, self.cfg.adam_eps)
         self.it, self.train_seconds, self.perm, self.perm_pos, self.log_lines = 0, 0.0, None, 0, 0
+        self.saved_it = 0  # the last iteration checkpointed
         for part in self.parts:
             part.initialize(self)
         open(self.log_path, "w").close()
@@ -156,7 +157,7 @@ class Trainer:
         _to_device(self.model, self.device)
         self.opt = SurfelAdam(self.model, self.cfg.adam_eps)
         self.opt.load_state_dict(state["opt"], self.device)
-        self.it = int(state["iteration"])
+        self.it = self.saved_it = int(state["iteration"])  # the checkpoint it resumes from is saved
         self.cfg.iterations = int(state.get("planned_iterations", self.cfg.iterations))
         self.wall_before = float(state.get("wall_seconds", 0.0))
         self.train_seconds = float(state["train_seconds"])
@@ -192,7 +193,7 @@ class Trainer:
     def checkpoint_on_stop(self) -> None:
         """Ctrl-C or SIGTERM that landed between two steps (a log line, an evaluation, the progress display): the
         last step is whole, and is checkpointed unless it already is (a stop during a step is, by _whole_step)."""
-        if self.it > getattr(self, "saved_it", 0):
+        if self.it > self.saved_it:
             self._save_checkpoint()
 
     def log(self, record: dict) -> None:
