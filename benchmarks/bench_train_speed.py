@@ -1,4 +1,4 @@
-"""Training speed side by side: two commits, same scene, seed and config, run at the same time (issue 11).
+"""Training speed side by side: two commits, same scene, seed and config, run at the same time.
 
 Usage:
   .venv/bin/python benchmarks/bench_train_speed.py --scene DIR [--images images_8] [--tag NAME]

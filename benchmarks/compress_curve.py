@@ -1,4 +1,4 @@
-"""The size-quality curve of `ctgs compress` on one trained run (issue 16).
+"""The size-quality curve of `ctgs compress` on one trained run.
 
 Usage:
   .venv/bin/python benchmarks/compress_curve.py RUN_DIR --name demo [--work DIR] [--only POINT ...]

@@ -1,4 +1,4 @@
-"""Per-phase timing of training runs from their log.jsonl (the GPU records of issue 13; trains nothing).
+"""Per-phase timing of training runs from their log.jsonl (trains nothing).
 
 Phases of the paper's schedule (at 30k iterations: texture start 500, tau_tr settles at 7000, last full
 routine 25000, then the tail; for the 2dgs/3dgs baselines: before densification (500), densification (until

@@ -1,5 +1,5 @@
 """Where a training run's GPU memory and time go: per-iteration peak memory, what is alive at the peak, and a
-profile of the textured steps (issue 13's open question: the 14.8 GB peak of `paper` on herzjesu25).
+profile of the textured steps (the open question of the 14.8 GB peak of `paper` on herzjesu25).
 
 Drives the trainer the way `ctgs train` does (same config resolution, same loop: Trainer.run's events) and,
 on a CUDA device:

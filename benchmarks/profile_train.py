@@ -1,4 +1,4 @@
-"""Where the time of one training iteration goes (issue 11): a phase breakdown of a window of iterations.
+"""Where the time of one training iteration goes: a phase breakdown of a window of iterations.
 
 Usage:
   .venv/bin/python benchmarks/profile_train.py SCENE --tag demo192 [--images images_8]

@@ -1,7 +1,7 @@
 // World -> camera space of every primitive (ctgs/render/preprocess.py): mu_c = R_view mean + t_view and
 // Rc = R_view quat_to_rotmat(quat) (ctgs/render/geometry.py: the quaternion normalised with its norm
 // clamped at 1e-12; columns tangent u, tangent v, normal), and the backward w.r.t. the means and the raw
-// quaternions; one pass over the primitives each (issue 11: in PyTorch ~40 small [N, ...] ops forward and
+// quaternions; one pass over the primitives each (in PyTorch ~40 small [N, ...] ops forward and
 // as many in autograd's backward per training step). The per-primitive math is shared with the CUDA
 // backend (kernels/include/ctgs/preprocess.h).
 #include <omp.h>

@@ -1,6 +1,6 @@
-// Dense per-element training work on the CPU, one pass each instead of a chain of PyTorch ops (issue 11:
-// at 1-2M texels every [T, 3] pass and temporary of the optimiser and the texture regulariser showed in
-// the profile):
+// Dense per-element training work on the CPU, one pass each instead of a chain of PyTorch ops (at 1-2M
+// texels every [T, 3] pass and temporary of the optimiser and the texture regulariser showed in the
+// profile):
 //  - adam_step: Adam on one parameter tensor in place (p, m, v), counting non-finite results so the
 //    trainer's NaN guard needs no scan of its own;
 //  - texel_l1: sum over primitives of weight[i] x the sum over i's texels of |2 sigmoid(raw) - 1| (the

@@ -1,6 +1,6 @@
 // View-dependent colour of every primitive, SH(normalize(mean - camera centre)) + 0.5 (ctgs/render/sh.py:
 // 3DGS's real SH basis and constants, degrees 0..3), and its backward w.r.t. the means and the SH
-// coefficients, one pass over the primitives each (issue 11: in PyTorch this was ~50 [N, 3] ops forward and
+// coefficients, one pass over the primitives each (in PyTorch this was ~50 [N, 3] ops forward and
 // ~100 in autograd's backward per step, a few ms of small-op overhead at 2k-20k primitives). The
 // per-primitive math is shared with the CUDA backend (kernels/include/ctgs/preprocess.h).
 #include <omp.h>

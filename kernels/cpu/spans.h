@@ -2,7 +2,7 @@
 // (pixel, primitive) pair can pass surfel_alpha. The 3-sigma bounding rect (ctgs/bounds.h) holds about
 // four times as many pixels as pass on trained scenes (thin tilted surfels, the alpha threshold of
 // low-opacity ones, the rect's margins); skipping the rest before any per-pixel math is the largest
-// saving of the rasterizer (issue 11).
+// saving of the rasterizer.
 //
 // A pair passes only if min(rho3d, rho2d) <= R with R = min(CUTOFF_RHO, 2 ln(opacity / MIN_ALPHA))
 // (alpha = opacity exp(-rho/2) >= MIN_ALPHA). With d = (dx, dy, 1) the pixel ray and the surfel frame u, v, n:

@@ -1,5 +1,5 @@
 // The photometric training loss (1 - l) L1 + l (1 - SSIM) of two [H, W, C] images, its gradient w.r.t. the
-// render and the per-pixel error image of paper 3.3, in one fused pass on the CPU (issue 11: as a chain of
+// render and the per-pixel error image of paper 3.3, in one fused pass on the CPU (as a chain of
 // PyTorch ops - five moment images, two grouped convolutions forward, their autograd backward - the loss
 // cost ~6 ms forward plus ~8 ms backward per 192x144 iteration and did not scale with threads).
 //
