@@ -77,3 +77,20 @@ def test_full_routines_run_lean_unless_switched_off(scene, tmp_path, monkeypatch
         monkeypatch.setenv("CTGS_LEAN_ROUTINE", env)
     _run(scene, str(tmp_path / "run"), ())
     assert calls == [lean, lean]
+
+
+def test_periodic_tests_score_the_model_before_the_routines_and_the_reset(scene, tmp_path):
+    """Test evaluations fall on the same multiples as the routines and opacity resets: each scores the model after the
+    step before the multiple, never one just reset (a run of bonsai logged ~14 dB there, 28 dB a period later)."""
+    run = str(tmp_path / "tests")
+    sets = tuple(s for s in SETS if not s.startswith("test_every")) + ("test_every=1000", "content_opacity_reset=true")
+    cfg = resolve_config(scene, run, None, None, sets, None, False, None, None, preset="fast")
+    trainer = Trainer(cfg, _load_scene(cfg), run)
+    write_config(run, cfg.to_dict())
+    for _ in trainer.run():
+        pass
+    log = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
+    tests = [r["it"] for r in log if r["type"] == "test"]
+    routines = {r["it"] for r in log if r["type"] == "routine"}
+    assert tests == [39, 79, 100], tests
+    assert {40, 80} <= routines and not routines & set(tests[:-1])
