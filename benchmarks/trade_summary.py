@@ -52,13 +52,15 @@ BONSAI_15 = "scene_trade/bonsai252_images_4_15min_fast_2dgs_3seeds_531a0a8.json"
 BONSAI_60 = "scene_trade/bonsai252_images_4_60min_balanced_1seed_531a0a8.json"
 BONSAI_10 = "scene_trade/bonsai252_images_4_10min_fast_2dgs_1seed_db41397.json"
 BONSAI_15P = "scene_trade/bonsai252_images_4_15min_preview_1seed_531a0a8.json"
+BONSAI_15P12 = "scene_trade/bonsai252_images_4_15min_preview_seeds1-2_d42cfeb.json"
 BONSAI_60S1 = "scene_trade/bonsai252_images_4_60min_balanced_seed1_d42cfeb.json"
 BONSAI2_60 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_1seed_d42cfeb.json"
 BONSAI2_60B = "scene_trade/bonsai252_images_2_60min_balanced_1seed_d42cfeb.json"
 REGISTRY = {
     "bonsai252": {
         "200x133": [
-            ("content-aware", "preview, --time-budget 15", [(BONSAI_15P, ("scene_trade", "preview"))]),
+            ("content-aware", "preview, --time-budget 15",
+             [(BONSAI_15P, ("scene_trade", "preview")), (BONSAI_15P12, ("scene_trade", "preview"))]),
             ("content-aware", "fast, --time-budget 15", [(BONSAI_15, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60",
              [(BONSAI_60, ("scene_trade", "balanced")), (BONSAI_60S1, ("scene_trade", "balanced"))]),
