@@ -250,7 +250,7 @@ def compress_model(model: SurfelModel, spec: Spec, *, seed: int = 0) -> Packed:
     def add(name: str, array: np.ndarray, encoding: dict) -> None:
         sections.append(Section(name, array, encoding))
 
-    spec = _encode_geometry(model, spec, order, add, stats)
+    spec = _encode_geometry(model, means, spec, order, add, stats)
     degree = _encode_sh(model, spec, order, add, stats, seed)
     add("k_min", *quantize.encode(_f64(model.k_min)[order][:, None], spec.k_min))
     sections[-1].array = sections[-1].array[:, 0]
@@ -277,11 +277,10 @@ def _f64(t) -> np.ndarray:
     return t.detach().cpu().numpy().astype(np.float64)
 
 
-def _encode_geometry(model: SurfelModel, spec: Spec, order: np.ndarray, add, stats: dict) -> Spec:
-    """Sections means (with outlier rows where a fixed-point grid cannot hold every mean), log_scales, quats and
-    opacity, in `order`. Returns the spec, its means codec f32 where no mean fitted the grid."""
+def _encode_geometry(model: SurfelModel, means: np.ndarray, spec: Spec, order: np.ndarray, add, stats: dict) -> Spec:
+    """Sections means (the model's, float64; with outlier rows where a fixed-point grid cannot hold every mean),
+    log_scales, quats and opacity, in `order`. Returns the spec, its means codec f32 where no mean fitted the grid."""
     n = model.num_primitives
-    means = _f64(model.means)
     if spec.means in quantize.FIXED_CODECS and n:
         stored, enc, outliers, mstats = _encode_means(means[order], _f64(model.k_min)[order], spec.means)
         if len(outliers) == n:
