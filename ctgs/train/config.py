@@ -130,6 +130,9 @@ class TrainConfig:
     error_views: int = _f(0, "> 0: E from at most this many training views per full routine, drawn at random "
                           "without replacement, a new draw at every routine (an unbiased estimate of the paper's sums "
                           "at a fraction of the renders); 0 = every training view (the paper)")
+    error_pixels: float = _f(0.0, "> 0: E from at most this many pixels per full routine (views x training image "
+                             "size): error_views becomes at most error_pixels / HW views, at least 1 (rules.py), so a "
+                             "routine costs the same renders at any image size; 0 = error_views as written")
     top_fraction: float = _f(0.1, "fraction of primitives with the largest E eligible for split/upscale")
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
     tau_tr_start: float = _f(64.0, "split threshold on active texture resolution at iteration 0")
@@ -223,6 +226,7 @@ _RANGES = [
     ("lr_scale_final", _ge(0), ">= 0 (0 = constant lr_scale)"), ("adam_eps", _gt(0), "> 0"),
     ("lambda_ssim", lambda v: 0 <= v <= 1, "in [0, 1]"), ("lambda_opacity", _ge(0), ">= 0"),
     ("error_views", _ge(0), ">= 0 (0 = every view)"),
+    ("error_pixels", _ge(0), ">= 0 (0 = off)"),
     ("lambda_texture", _ge(0), ">= 0"), ("lambda_normal", _ge(0), ">= 0"),
     ("normal_from", _ge(0), ">= 0"), ("lr_exposure", _ge(0), ">= 0"),
     ("exposure_channels", lambda v: v in (1, 3), "1 or 3"), ("exposure_check", lambda v: 0 <= v < 1, "in [0, 1)"),

@@ -32,6 +32,11 @@ recipe is reproduced exactly; elsewhere:
   SfM points are found at the photos' full resolution: on downsampled images they are far denser than a pixel
   (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's Mip-NeRF 360 models hold 0.1-0.3
   primitives per pixel);
+- the views E is computed from (error_views, a random subset of the training views per full routine): at most
+  error_pixels / pixels views (at least 1), when error_pixels > 0. E renders every view it uses, so the routines'
+  cost grows with the image size while the step's budget does not: with 64 views at 399x266 (bonsai252, `fast`,
+  30 min) the routines took 40-46% of the run's time. `fast`'s 1.75 Mpx is 64 views at 200x133 (where 64 was
+  chosen) and below, 16 at 399x266;
 - settings already relative to the scene need no rule: opacities, fractions (top_fraction), thresholds on
   texel values (tau_ds, texture_trim), learning rates (x scene extent for positions), the 2DGS baseline's densification
   threshold (3DGS NDC units: for content of a given angular size the NDC gradient does not depend on the
@@ -95,6 +100,9 @@ def resolve(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> TrainConf
     budget_cap = primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)
     caps = [c for c in (cfg.max_primitives, cap, budget_cap) if c > 0]
     cfg = replace(cfg, max_primitives=min(caps) if caps else 0)
+    if cfg.error_pixels > 0:
+        by_pixels = max(1, int(cfg.error_pixels // max(pixels, 1.0)))
+        cfg = replace(cfg, error_views=min(cfg.error_views, by_pixels) if cfg.error_views > 0 else by_pixels)
     if not cfg.scale_rules:
         return cfg
     return replace(
@@ -134,9 +142,11 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
                       ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
                       ("lambda_texture", "x 1e6 / HW"),
                       ("max_primitives", "min(max_primitives, primitives_per_pixel x HW x coverage, max_params / "
-                                         "(params per primitive + 3 x smallest texture)); 0 = no cap")):
+                                         "(params per primitive + 3 x smallest texture)); 0 = no cap"),
+                      ("error_views", "min(error_views, error_pixels / HW), at least 1, when error_pixels > 0; "
+                                      "0 = every view")):
         vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
-        unit = {"lambda_texture": "per texel", "max_primitives": "primitives"}.get(key, "texels")
+        unit = {"lambda_texture": "per texel", "max_primitives": "primitives", "error_views": "views"}.get(key, "texels")
         rows.append({"setting": key, "unit": unit,
                      "rule": rule, "paper": getattr(cfg, key), "values": vals})
     # the relative size budget: per training view (the budget is this times the number of training views)

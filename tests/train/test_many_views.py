@@ -79,3 +79,18 @@ def test_error_views_draws_a_seeded_subset():
     assert a == error_views(views, cfg, 250)  # a resumed run draws the same
     assert a != b  # a new draw at every routine
     assert error_views(views[:40], cfg, 250) == views[:40]  # fewer views than the cap: all of them
+
+
+def test_error_pixels_hold_a_routine_to_the_same_renders_at_any_image_size():
+    from ctgs.train.config import load_config
+    from ctgs.train.rules import resolve
+
+    fast = load_config(None, preset="fast")
+    # fast's pixel budget keeps the 64 views chosen at 200x133 there and below, and renders the same pixels above
+    assert [resolve(fast, w * h).error_views for w, h in ((192, 128), (200, 133), (399, 266), (798, 531))] == \
+        [64, 64, 16, 4]
+    assert resolve(fast, 4000 * 3000).error_views == 1  # never none
+    # on its own, the budget sets the views; off (0), error_views stays as written
+    assert resolve(TrainConfig(error_pixels=1e6), 500 * 500).error_views == 4
+    assert resolve(TrainConfig(error_views=64), 399 * 266).error_views == 64
+    assert resolve(load_config(None, preset="paper"), 399 * 266).error_views == 0  # every view, the paper
