@@ -10,10 +10,11 @@ import numpy as np
 import torch
 
 from ctgs.train.adam import SurfelAdam
-from ctgs.train.config import TrainConfig
+from ctgs.train.config import TrainConfig, load_config
 from ctgs.train.init import farthest_point_subsample
 from ctgs.train.loss import training_loss
 from ctgs.train.routines import error_views
+from ctgs.train.rules import resolve
 
 from train_helpers import H, W, camera, model
 
@@ -82,9 +83,6 @@ def test_error_views_draws_a_seeded_subset():
 
 
 def test_error_pixels_hold_a_routine_to_the_same_renders_at_any_image_size():
-    from ctgs.train.config import load_config
-    from ctgs.train.rules import resolve
-
     fast = load_config(None, preset="fast")
     # fast's pixel budget keeps the 64 views chosen at 200x133 there and below, and renders the same pixels above
     assert [resolve(fast, w * h).error_views for w, h in ((192, 128), (200, 133), (399, 266), (798, 531))] == \
