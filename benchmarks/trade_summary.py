@@ -57,6 +57,9 @@ BONSAI_60S1 = "scene_trade/bonsai252_images_4_60min_balanced_seed1_d42cfeb.json"
 BONSAI2_60 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_1seed_d42cfeb.json"
 BONSAI2_60B = "scene_trade/bonsai252_images_2_60min_balanced_1seed_d42cfeb.json"
 BONSAI2_60E = "scene_trade/bonsai252_images_2_60min_fast_2dgs_1seed_16f95c3.json"
+BONSAI2_60E1 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_seed1_d4cb9cb.json"
+BONSAI2_60EB = "scene_trade/bonsai252_images_2_60min_balanced_seed0_d4cb9cb.json"
+BONSAI_60S2 = "scene_trade/bonsai252_images_4_60min_balanced_seed2_d4cb9cb.json"
 REGISTRY = {
     "bonsai252": {
         "200x133": [
@@ -64,18 +67,22 @@ REGISTRY = {
              [(BONSAI_15P, ("scene_trade", "preview")), (BONSAI_15P12, ("scene_trade", "preview"))]),
             ("content-aware", "fast, --time-budget 15", [(BONSAI_15, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60",
-             [(BONSAI_60, ("scene_trade", "balanced")), (BONSAI_60S1, ("scene_trade", "balanced"))]),
+             [(BONSAI_60, ("scene_trade", "balanced")), (BONSAI_60S1, ("scene_trade", "balanced")),
+              (BONSAI_60S2, ("scene_trade", "balanced"))]),
             ("content-aware", "fast at 0.4 primitives per pixel, --time-budget 10", [(BONSAI_10, ("scene_trade", "fast"))]),
             ("2dgs", "the same 15 min", [(BONSAI_15, ("scene_trade", "2dgs"))]),
             ("2dgs", "the same 10 min", [(BONSAI_10, ("scene_trade", "2dgs"))]),
         ],
         "399x266": [
-            ("content-aware", "fast, --time-budget 60 (E from 16 views, as shipped)", [(BONSAI2_60E, ("scene_trade", "fast"))]),
+            ("content-aware", "fast, --time-budget 60 (E from 16 views, as shipped)",
+             [(BONSAI2_60E, ("scene_trade", "fast")), (BONSAI2_60E1, ("scene_trade", "fast"))]),
+            ("content-aware", "balanced, --time-budget 60 (E from 16 views, as shipped)", [(BONSAI2_60EB, ("scene_trade", "balanced"))]),
             ("content-aware", "fast, --time-budget 60, E from 64 views (before error_pixels)",
              [(BONSAI2_60, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60, E from 64 views (before error_pixels)",
              [(BONSAI2_60B, ("scene_trade", "balanced"))]),
-            ("2dgs", "the same 60 min (seed 0, two runs)", [(BONSAI2_60, ("scene_trade", "2dgs")), (BONSAI2_60E, ("scene_trade", "2dgs"))]),
+            ("2dgs", "the same 60 min (seeds 0, 0, 1)",
+             [(BONSAI2_60, ("scene_trade", "2dgs")), (BONSAI2_60E, ("scene_trade", "2dgs")), (BONSAI2_60E1, ("scene_trade", "2dgs"))]),
         ],
     },
     "herzjesu25": {
