@@ -8,8 +8,9 @@
 #
 # Exit 0: the run finished, and was exported, compressed and evaluated (records in $OUT/pipe_NAME, with
 # $OUT/bg_NAME.log); 3: still running (call `wait` again within 30 s of this call's end, or the machine goes back and
-# the run with it); 1: it died (its log's tail is printed). Env: G (.gpu), OUT, RUNS (/tmp/runs), DEVICE_ENV=0 for a
-# dry run without the device's environment, FINISH_BACKEND (cuda).
+# the run with it); 1: it died (its log's tail is printed). A run finished and recorded by an earlier call exits 0 at
+# once. Env: G (.gpu), OUT, RUNS (/tmp/runs), DEVICE_ENV=0 for a dry run without the device's environment, SCENE
+# (the folder under $G/scenes whose COLMAP model is used), FINISH_BACKEND (cuda), FINISH_COMPRESS (1).
 set -u
 cd "$(dirname "$0")/../.."
 G=${G:-.gpu}
@@ -33,6 +34,7 @@ elif [[ $mode != wait ]]; then
 fi
 [[ -f $run.pid ]] || { echo "bg.sh: no run $name under $RUNS (start it first, on this machine)" >&2; exit 2; }
 pid=$(cat "$run.pid")
+if [[ -f $run.done ]]; then echo "$name: finished and recorded by an earlier call"; exit 0; fi
 t0=$(date +%s)
 while true; do
   if [[ -f $run/train_summary.json ]] && ! kill -0 "$pid" 2>/dev/null; then
@@ -40,6 +42,7 @@ while true; do
     tail -3 "$run.log"
     finish_run "$run" "$name" "$OUT"
     cp "$run.log" "$OUT/bg_$name.log"
+    touch "$run.done"
     exit 0
   fi
   if ! kill -0 "$pid" 2>/dev/null; then
