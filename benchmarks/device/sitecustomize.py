@@ -39,6 +39,7 @@ if os.environ.get("CTGS_PREBUILT") == "1":
 
     def _prebuilt_jit_build(name, sources, *, what, fallback, verbose, first_use, **flags):
         want = prebuilt_manifest(name, flags)
+        _ext.schemas.declare()  # the ops the kernels register for, declared before the library loads (as jit_build)
         root = _ext.cache_dir() / "torch_extensions"
         for manifest in sorted(root.glob(f"{name}-*/prebuilt.json")):
             have = json.loads(manifest.read_text())
