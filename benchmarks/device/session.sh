@@ -99,7 +99,7 @@ train() {  # name seconds extra-args...
   local name=$1 secs=$2; shift 2
   stamp "train $name (${secs} s)"
   rm -rf "/tmp/runs/$name"
-  timeout -s TERM "$secs" python3 -m ctgs train "$G/scenes/herzjesu25" -o "/tmp/runs/$name" --backend cuda -q "$@" \
+  timeout -s TERM "$secs" python3 -m ctgs train "$G/scenes/${SCENE:-herzjesu25}" -o "/tmp/runs/$name" --backend cuda -q "$@" \
     2>&1 | tail -15
   echo "rc=${PIPESTATUS[0]}"
   mkdir -p "$R/train_$name"
@@ -117,7 +117,7 @@ fi
 probe() {  # label seconds extra-env...
   local label=$1 secs=$2; shift 2
   stamp "probe $label (${secs} s)"
-  env "$@" timeout -s TERM "$secs" python3 benchmarks/gpu_train_probe.py "$G/scenes/herzjesu25" --out "$R" \
+  env "$@" timeout -s TERM "$secs" python3 benchmarks/gpu_train_probe.py "$G/scenes/${SCENE:-herzjesu25}" --out "$R" \
     --label "$label" --preset paper --backend cuda --stop-at "${PROBE_IT:-2500}" --seconds "$((secs - 25))" \
     --profile-at 1210 --profile-steps 20 --set test_every=0 ${PROBE_ARGS:-} 2>&1 | tail -16
   echo "rc=${PIPESTATUS[0]}"
@@ -136,7 +136,7 @@ pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: th
   local run=/tmp/runs/pipe_$name
   stamp "pipeline $name"
   rm -rf "$run"
-  timeout -s TERM "${PIPE_S:-150}" python3 -m ctgs train "$G/scenes/herzjesu25" -o "$run" --backend cuda -q \
+  timeout -s TERM "${PIPE_S:-150}" python3 -m ctgs train "$G/scenes/${SCENE:-herzjesu25}" -o "$run" --backend cuda -q \
     --preset paper --iterations "${PIPE_ITERS:-6000}" --images "${PIPE_IMAGES:-images_2}" ${PIPE_ARGS:-} "$@" 2>&1 \
     | tail -5
   echo "train rc=${PIPESTATUS[0]}"
