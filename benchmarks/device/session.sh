@@ -9,13 +9,19 @@
 # $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl). A training longer than a
 # call: bg.sh. Both source lib.sh (the environment; a run's export, compress and eval).
 #
-#   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train,probe,pipeline
+#   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train,probe,pipeline,pair
 #                                           (default: tests,bench,ncu,train)
 #   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS,
 #        PROBE_S, PROBE_IT, PROBE_ARGS (more gpu_train_probe.py options), PROBE_BEFORE (1: also the probe
 #        with CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0),
 #        PIPE_ITERS, PIPE_IMAGES, PIPE_S (seconds of each pipeline training), PIPE_METHODS (paper,2dgs: which
 #        pipelines), PIPE_ARGS (more `ctgs train` options for each)
+#        pair: the method and the 2dgs baseline trained side by side in the background (bg.sh), started before every
+#        other phase and waited for after them until PAIR_END seconds into the call (480), then each finished run
+#        exported, evaluated and (the method's) compressed; a run still going is waited for by a later call
+#        (`bg.sh wait paper|2dgs SECS`, within 30 s of this call's end). PAIR_PRESET (paper), PAIR_ARGS (more
+#        `ctgs train` options for both). Their test renders come back as $OUT/renders_NAME.tar
+#        (benchmarks/device/lpips_renders.py scores them).
 set -u
 PHASES=${1:-tests,bench,ncu,train}
 G=${G:-.gpu}
@@ -49,6 +55,16 @@ from ctgs.ops.ext import load_cpu
 from ctgs.ops.ext_cuda import load_cuda
 load_cpu(); load_cuda(); print('extensions ok')
 " || echo "extension load FAILED"
+
+BG=benchmarks/device/bg.sh
+if [[ $PHASES == *pair* ]]; then
+  stamp "pair: start"
+  for m in paper 2dgs; do
+    OUT=$R bash $BG start "$m" 0 "$G/scenes/${SCENE:-herzjesu25}" --backend cuda --preset "${PAIR_PRESET:-paper}" \
+      ${PAIR_ARGS:-} $([[ $m == 2dgs ]] && echo --config configs/2dgs.toml) > "$R/start_$m.log" 2>&1
+    head -n 1 "$R/start_$m.log"
+  done
+fi
 
 if [[ $PHASES == *tests* ]]; then
   stamp "tests"
@@ -146,6 +162,18 @@ pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: th
 if [[ $PHASES == *pipeline* ]]; then
   if [[ ${PIPE_METHODS:-paper,2dgs} == *paper* ]]; then pipeline paper; pack; fi
   if [[ ${PIPE_METHODS:-paper,2dgs} == *2dgs* ]]; then pipeline 2dgs --config configs/2dgs.toml; pack; fi
+fi
+
+if [[ $PHASES == *pair* ]]; then
+  left=$(( ${PAIR_END:-480} - ($(date +%s) - t_start) ))
+  stamp "pair: waiting up to $left s"
+  FINISH_COMPRESS=1 OUT=$R bash $BG wait paper "$left" > "$R/wait_paper.log" 2>&1 &
+  w1=$!
+  FINISH_COMPRESS=0 OUT=$R bash $BG wait 2dgs "$left" > "$R/wait_2dgs.log" 2>&1 &
+  w2=$!
+  wait "$w1" "$w2"
+  tail -n 4 "$R/wait_paper.log" "$R/wait_2dgs.log"
+  mv "$R"/renders_*.tar "$OUT/" 2>/dev/null
 fi
 
 stamp "pack"
