@@ -371,6 +371,9 @@ def main() -> int:
                          "is 3; rows ours_mbK, ours_tex_mbK; CTGS_CUDA_BWD_MIN_BLOCKS)")
     ap.add_argument("--tex-agg-off-too", action="store_true",
                     help="also time `ours_tex_noagg`: texel gradients with one atomic per lane (CTGS_CUDA_TEX_AGG=0)")
+    ap.add_argument("--sh-lanes-too", action="store_true",
+                    help="also time `ours_shlanes`, `ours_tex_shlanes`: the SH backward with lanes per coefficient "
+                         "(CTGS_CUDA_SH_LANES=1)")
     ap.add_argument("--checks-one-by-one-too", action="store_true",
                     help="also time `ours_syncval`: the render's value checks one synchronisation each, as before "
                          "ctgs.render.api._values_ok_device")
@@ -399,6 +402,9 @@ def main() -> int:
             runners["ours_tex_syncval"] = Ours(st, cam, True, device, checks_one_by_one=True)
         if args.tex_agg_off_too:
             runners["ours_tex_noagg"] = Ours(st, cam, True, device, env={"CTGS_CUDA_TEX_AGG": "0"})
+        if args.sh_lanes_too:
+            runners["ours_shlanes"] = Ours(s0, cam, False, device, env={"CTGS_CUDA_SH_LANES": "1"})
+            runners["ours_tex_shlanes"] = Ours(st, cam, True, device, env={"CTGS_CUDA_SH_LANES": "1"})
         for k in [x for x in args.bwd_min_blocks.split(",") if x.strip()]:
             env = {"CTGS_CUDA_BWD_MIN_BLOCKS": k.strip()}
             runners[f"ours_mb{k.strip()}"] = Ours(s0, cam, False, device, env=env)

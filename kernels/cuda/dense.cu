@@ -3,6 +3,8 @@
 // the CPU backend's kernels/cpu/camera.cpp and sh.cpp). In PyTorch these were ~150 small kernels per
 // training step and ~11 of 17 ms of a 1M-primitive 1080p forward+backward on an H200
 // (benchmarks/results/bench_cuda/).
+#include <cstdlib>
+
 #include "common.cuh"
 #include "ctgs/preprocess.h"
 
@@ -49,6 +51,73 @@ __global__ void __launch_bounds__(LINEAR_BLOCK)
   if (i >= n) return;
   pre::sh_color_backward(means + 3 * i, center, sh + i * K * 3, K, deg, grad_colors + 3 * i, grad_means + 3 * i,
                          grad_sh + i * K * 3);
+}
+
+// The same gradients with LANES lanes per primitive (LANES a power of two >= K, at most 32): lane k reads and
+// writes row k of the primitive's [K, 3] SH block, so a warp's loads and stores of sh and grad_sh are contiguous
+// (one thread per primitive reads rows K * 12 bytes apart), and the direction gradient is summed across the lanes
+// with shuffles. grad_sh is the per-primitive kernel's to the bit; grad_means differs in the order of that sum.
+// Every thread of the block reaches the shuffles (no early return), so the full mask holds.
+template <typename S, int LANES>
+__global__ void __launch_bounds__(LINEAR_BLOCK)
+    sh_color_backward_lanes_kernel(const S* means, const S* center, const S* sh, int64_t n, int K, int deg,
+                                   const S* grad_colors, S* grad_means, S* grad_sh) {
+  static_assert(LANES >= 1 && LANES <= 32 && (LANES & (LANES - 1)) == 0, "LANES: a power of two up to 32");
+  const int64_t t = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  const int64_t i = t / LANES;
+  const int k = int(t % LANES);
+  const int nb = (deg + 1) * (deg + 1);
+  S gd[3] = {S(0), S(0), S(0)};
+  S dir[3] = {S(0), S(0), S(0)}, r = S(0);
+  if (i < n) {
+    S b[16], g[16][3];
+    r = pre::unit_dir(means + 3 * i, center, dir);
+    pre::sh_basis<S>(dir[0], dir[1], dir[2], deg, b, g);
+    if (k < K) {
+      const S* gc = grad_colors + 3 * i;
+      S* gs = grad_sh + (i * K + k) * 3;
+      if (k < nb) {
+        S bk = S(0), gk[3] = {S(0), S(0), S(0)};
+#pragma unroll
+        for (int j = 0; j < 16; ++j) {  // constant indices keep b and g in registers
+          if (j == k) bk = b[j], gk[0] = g[j][0], gk[1] = g[j][1], gk[2] = g[j][2];
+        }
+        const S* s = sh + (i * K + k) * 3;
+        gs[0] = bk * gc[0];
+        gs[1] = bk * gc[1];
+        gs[2] = bk * gc[2];
+        const S dot = s[0] * gc[0] + s[1] * gc[1] + s[2] * gc[2];
+        gd[0] = dot * gk[0];
+        gd[1] = dot * gk[1];
+        gd[2] = dot * gk[2];
+      } else {
+        gs[0] = gs[1] = gs[2] = S(0);
+      }
+    }
+  }
+#pragma unroll
+  for (int off = LANES / 2; off > 0; off >>= 1) {
+    gd[0] += __shfl_xor_sync(0xffffffffu, gd[0], off);
+    gd[1] += __shfl_xor_sync(0xffffffffu, gd[1], off);
+    gd[2] += __shfl_xor_sync(0xffffffffu, gd[2], off);
+  }
+  if (i < n && k == 0) {
+    S* gm = grad_means + 3 * i;
+    if (r > S(0)) {  // d dir / d mean = (I - dir dir^T) / |d|, as pre::sh_color_backward
+      const S proj = dir[0] * gd[0] + dir[1] * gd[1] + dir[2] * gd[2];
+      const S inv = S(1) / r;
+      for (int a = 0; a < 3; ++a) gm[a] = (gd[a] - dir[a] * proj) * inv;
+    } else {
+      gm[0] = gm[1] = gm[2] = S(0);
+    }
+  }
+}
+
+// Which SH backward runs: lanes per coefficient (CTGS_CUDA_SH_LANES=1) or one thread per primitive (the default
+// until the lanes kernel is measured on a GPU). Read at every launch so that one process can compare them.
+inline bool sh_backward_lanes() {
+  const char* v = std::getenv("CTGS_CUDA_SH_LANES");
+  return v && v[0] == '1';
 }
 
 
@@ -116,6 +185,17 @@ template <typename S>
 void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, const S* grad_colors,
                        S* grad_means, S* grad_sh, cudaStream_t stream) {
   if (n == 0) return;
+  if (sh_backward_lanes() && K > 1 && K <= 16) {
+    if (K > 4) {
+      sh_color_backward_lanes_kernel<S, 16><<<grid_1d(16 * n), LINEAR_BLOCK, 0, stream>>>(
+          means, center, sh, n, K, deg, grad_colors, grad_means, grad_sh);
+    } else {
+      sh_color_backward_lanes_kernel<S, 4><<<grid_1d(4 * n), LINEAR_BLOCK, 0, stream>>>(
+          means, center, sh, n, K, deg, grad_colors, grad_means, grad_sh);
+    }
+    CTGS_CUDA_LAUNCH_CHECK("sh_color_backward_lanes_kernel");
+    return;
+  }
   sh_color_backward_kernel<S><<<grid_1d(n), LINEAR_BLOCK, 0, stream>>>(means, center, sh, n, K, deg, grad_colors,
                                                                       grad_means, grad_sh);
   CTGS_CUDA_LAUNCH_CHECK("sh_color_backward_kernel");

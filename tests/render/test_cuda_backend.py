@@ -259,10 +259,14 @@ def test_many_primitives_per_tile_forward_backward(dtype):
 
 @needs_cuda
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_preprocess_kernels_match_pytorch(dtype):
+@pytest.mark.parametrize("sh_lanes", ["0", "1"])
+def test_preprocess_kernels_match_pytorch(dtype, sh_lanes, monkeypatch):
     """The per-primitive kernels (kernels/cuda/dense.cu: camera space, SH colour of every degree) against
     their PyTorch definitions on the same device, values and gradients; with the edge cases the CPU kernels
-    are tested on: a zero quaternion (norm clamped), a mean at the camera centre (direction 0)."""
+    are tested on: a zero quaternion (norm clamped), a mean at the camera centre (direction 0). The SH backward
+    both ways: one thread per primitive, and lanes per coefficient (CTGS_CUDA_SH_LANES=1; 16 lanes for 16 SH
+    rows, 4 for 4)."""
+    monkeypatch.setenv("CTGS_CUDA_SH_LANES", sh_lanes)
     from ctgs.render.geometry import quat_to_rotmat
     from ctgs.render.preprocess import camera_space, camera_space_torch
     from ctgs.render.sh import sh_to_color, view_color, view_dirs
@@ -285,7 +289,9 @@ def test_preprocess_kernels_match_pytorch(dtype):
     for name, fused, plain, inputs in (
             ("camera_space", lambda a, b: camera_space(a, b, v), lambda a, b: camera_space_torch(a, b, v), (m, q)),
             *[(f"sh_color deg {d}", lambda a, b, d=d: (view_color(a, b, c, d),),
-               lambda a, b, d=d: (sh_to_color(b, view_dirs(a, c), d),), (m, s_)) for d in range(4)]):
+               lambda a, b, d=d: (sh_to_color(b, view_dirs(a, c), d),), (m, s_)) for d in range(4)],
+            ("sh_color deg 1 of 4 rows", lambda a, b: (view_color(a, b, c, 1),),
+             lambda a, b: (sh_to_color(b, view_dirs(a, c), 1),), (m, s_[:, :4].contiguous()))):
         xs = [t.detach().clone().requires_grad_(True) for t in inputs]
         ys = [t.detach().clone().requires_grad_(True) for t in inputs]
         out_f, out_p = fused(*xs), plain(*ys)
