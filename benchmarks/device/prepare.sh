@@ -30,6 +30,9 @@ fi
 export CUDA_HOME=${CUDA_HOME:-/usr/local/cuda} TORCH_CUDA_ARCH_LIST=9.0
 # 2. ctgs's extensions, into the cache folder the device hook reads.
 CTGS_CACHE_DIR="$G/ctgs_cache" MAX_JOBS=2 "$WORK/venv312/bin/python" "$ROOT/benchmarks/device/build_extensions.py"
+# ... and ctgs_cuda again with FMA contraction (CTGS_CUDA_FMAD=1 selects it there; a build key of its own)
+CTGS_CUDA_FMAD=1 CTGS_CACHE_DIR="$G/ctgs_cache" MAX_JOBS=2 "$WORK/venv312/bin/python" \
+  "$ROOT/benchmarks/device/build_extensions.py"
 find "$G/ctgs_cache" -type f ! -name "*.so" ! -name ".ctgs-built" ! -name "prebuilt.json" -delete
 # 3. gsplat: its own JIT build (every kernel, ~30 min on 2 cores), then only the package and the .so travel.
 if [[ ${GSPLAT:-1} == 1 && ! -f "$G/gsplat_cuda.so" ]]; then

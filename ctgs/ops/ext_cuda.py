@@ -21,11 +21,13 @@ from ctgs.ops.ext import jit_build, require_compiler
 CUDA_SOURCES = ["bindings_cuda.cpp", "cuda/preprocess.cu", "cuda/binning.cu", "cuda/forward.cu", "cuda/backward.cu",
                 "cuda/dense.cu"]
 # The C++ standard is torch's own (it adds it): its headers need it, and the kernels are C++17-clean
-# (kernels/check_cuda_build.py). -fmad=false: forward and backward each recompute alpha with the shared
-# header math inside different kernels; without FMA contraction both get bit-identical values (the CPU
-# backend builds with -ffp-contract=off for the same reason), so they always agree on which pairs blend.
+# (kernels/check_cuda_build.py). Forward and backward each recompute alpha with the shared header math inside
+# different kernels; that math is written in arithmetic no build contracts (kernels/include/ctgs/exact.h), so both
+# get bit-identical alphas and agree on which pairs blend. The rest is built without FMA contraction (-fmad=false,
+# as the CPU backend's -ffp-contract=off) unless CTGS_CUDA_FMAD=1 asks for it (a build of its own, to measure).
 CUDA_CFLAGS = ["-O3", "-DCTGS_WITH_CUDA"]
-CUDA_NVCC_FLAGS = ["-O3", "-DCTGS_WITH_CUDA", "-fmad=false", "-lineinfo"]
+FMAD = "-fmad=true" if os.environ.get("CTGS_CUDA_FMAD") == "1" else "-fmad=false"
+CUDA_NVCC_FLAGS = ["-O3", "-DCTGS_WITH_CUDA", FMAD, "-lineinfo"]
 
 _lock = threading.Lock()
 _cuda_module: ModuleType | None = None

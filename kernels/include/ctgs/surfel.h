@@ -6,6 +6,7 @@
 #include <math.h>
 
 #include "ctgs/constants.h"
+#include "ctgs/exact.h"
 #include "ctgs/texture.h"
 #include "ctgs/vec3.h"
 
@@ -74,8 +75,8 @@ HOST_DEVICE inline PixelRay<S> pixel_ray(int x, int y, const Intrinsics<S>& K) {
   PixelRay<S> R;
   R.px = S(x) + S(0.5);
   R.py = S(y) + S(0.5);
-  R.d = make_vec3((R.px - K.cx) / K.fx, (R.py - K.cy) / K.fy, S(1));
-  R.d_norm = sqrt(dot(R.d, R.d));
+  R.d = make_vec3(xsub(R.px, K.cx) / K.fx, xsub(R.py, K.cy) / K.fy, S(1));
+  R.d_norm = sqrt(xdot(R.d, R.d));  // exact arithmetic (ctgs/exact.h): both kernels recompute the ray
   return R;
 }
 
@@ -98,32 +99,34 @@ struct SurfelHit {
 };
 
 // Steps 1-4 (geometry and alpha). Returns false if the primitive does not contribute to this pixel
-// (behind near, outside 3 sigma, alpha < MIN_ALPHA); then h is only partly filled.
+// (behind near, outside 3 sigma, alpha < MIN_ALPHA); then h is only partly filled. Every sum of products here is
+// exact arithmetic (ctgs/exact.h): the forward and the backward kernel get the same alpha, and so agree on which
+// pairs blend, whether or not the build contracts the rest into FMAs.
 template <typename S>
 HOST_DEVICE inline bool surfel_alpha(const SurfelPrim<S>& P, const PixelRay<S>& R, S near_plane, SurfelHit<S>& h) {
-  h.denom = dot(P.n, R.d);
+  h.denom = xdot(P.n, R.d);
   h.valid = fabs(h.denom) > S(PARALLEL_EPS) * R.d_norm;
   if (h.valid) {
     h.t = P.n_mu / h.denom;
     if (h.t < near_plane) return false;
-    h.p = h.t * R.d;
-    const Vec3<S> q = h.p - P.mu;
-    h.lx = dot(P.u, q);
-    h.ly = dot(P.v, q);
+    h.p = make_vec3(xmul(h.t, R.d.x), xmul(h.t, R.d.y), xmul(h.t, R.d.z));
+    const Vec3<S> q = make_vec3(xsub(h.p.x, P.mu.x), xsub(h.p.y, P.mu.y), xsub(h.p.z, P.mu.z));
+    h.lx = xdot(P.u, q);
+    h.ly = xdot(P.v, q);
     const S ax = h.lx / P.sx, ay = h.ly / P.sy;
-    h.rho3d = ax * ax + ay * ay;
+    h.rho3d = xadd(xmul(ax, ax), xmul(ay, ay));
     h.z = h.t;
   } else {
     h.rho3d = S(INFINITY);
     h.z = P.mu.z;
   }
-  const S ex = R.px - P.mx, ey = R.py - P.my;
-  h.rho2d = S(FILTER_INV_SQUARE) * (ex * ex + ey * ey);
+  const S ex = xsub(R.px, P.mx), ey = xsub(R.py, P.my);
+  h.rho2d = xmul(S(FILTER_INV_SQUARE), xadd(xmul(ex, ex), xmul(ey, ey)));
   const bool use3d = h.rho3d <= h.rho2d;
   const S rho = use3d ? h.rho3d : h.rho2d;
   if (!(rho <= S(CUTOFF_RHO))) return false;
-  h.G = exp(S(-0.5) * rho);
-  const S a = P.opacity * h.G;
+  h.G = exp(xmul(S(-0.5), rho));
+  const S a = xmul(P.opacity, h.G);
   h.alpha = a < S(MAX_ALPHA) ? a : S(MAX_ALPHA);
   if (h.alpha < S(MIN_ALPHA)) return false;
   h.use_tex = h.valid && use3d && P.res_u > 0 && P.res_v > 0;
