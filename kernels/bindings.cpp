@@ -439,6 +439,15 @@ bool surfel_values_ok_cpu(Tensor means, Tensor quats, Tensor scales, Tensor opac
   return true;
 }
 
+// surfel_values_ok as the flag tensor both backends return (0: every check passed).
+Tensor surfel_value_flags_cpu(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
+                              Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                              int64_t num_threads) {
+  const bool ok = surfel_values_ok_cpu(means, quats, scales, opacities, sh, texel_size, textures, tex_res, tex_offset,
+                                       num_threads);
+  return at::scalar_tensor(ok ? 0 : 1, at::TensorOptions().dtype(at::kInt));
+}
+
 void check_camera_args(const Tensor& quats, const Tensor& view) {
   TORCH_CHECK(quats.device().is_cpu() && quats.dim() == 2 && quats.size(1) == 4 && quats.is_contiguous() &&
                   (quats.scalar_type() == at::kFloat || quats.scalar_type() == at::kDouble),
@@ -591,6 +600,7 @@ TORCH_LIBRARY_IMPL(ctgs, CPU, m) {
   m.impl("texel_activation_backward", &texel_activation_backward_cpu);
   m.impl("texel_activation_backward_l1", &texel_activation_backward_l1_cpu);
   m.impl("surfel_values_ok", &surfel_values_ok_cpu);
+  m.impl("surfel_value_flags", &surfel_value_flags_cpu);
   m.impl("photometric_loss", &photometric_loss_cpu);
 }
 

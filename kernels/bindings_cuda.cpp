@@ -276,6 +276,41 @@ std::vector<Tensor> jagged_remap_cuda(std::vector<Tensor> buffers, Tensor old_re
   return out;
 }
 
+// int32 0-dim on the device: 0 if every value check of render()'s validate_inputs passes (the CPU's
+// surfel_values_ok), else not; one kernel over the primitives and texel rows, no synchronisation.
+Tensor surfel_value_flags_cuda(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
+                               Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                               int64_t num_threads) {
+  const auto dt = means.scalar_type();
+  TORCH_CHECK(means.is_cuda() && (dt == at::kFloat || dt == at::kDouble),
+              "surfel_value_flags: means must be a float32 or float64 CUDA tensor");
+  const int64_t n = means.size(0);
+  for (const Tensor* t : {&means, &quats, &scales, &opacities, &sh, &texel_size, &textures})
+    TORCH_CHECK(t->device() == means.device() && t->is_contiguous() && t->scalar_type() == dt &&
+                    (t == &textures || t->size(0) == n),
+                "surfel_value_flags: float tensors must be contiguous, on means' device and dtype, with N rows");
+  TORCH_CHECK(means.numel() == 3 * n && quats.numel() == 4 * n && scales.numel() == 2 * n && opacities.numel() == n &&
+                  (texel_size.numel() == n || texel_size.numel() == 2 * n) && textures.dim() == 2 &&
+                  textures.size(1) == 3,
+              "surfel_value_flags: means [N, 3], quats [N, 4], scales [N, 2], opacities [N], texel_size [N] or [N, 2], "
+              "textures [T, 3]");
+  check_tensor(tex_res, "tex_res", "[N, 2] int32", {n, 2}, at::kInt, means.device());
+  check_tensor(tex_offset, "tex_offset", "[N] int64", {n}, at::kLong, means.device());
+  const c10::cuda::CUDAGuard guard(means.device());
+  Tensor flag = torch::zeros({}, means.options().dtype(at::kInt));
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
+  const int ts_row = n > 0 && texel_size.numel() == 2 * n ? 2 : 1;
+  const int64_t sh_row = n > 0 ? sh.numel() / n : 0;
+  AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_surfel_value_flags_cuda", [&] {
+    ctgs::gpu::surfel_value_flags<scalar_t>(
+        means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
+        opacities.data_ptr<scalar_t>(), sh.data_ptr<scalar_t>(), sh_row, texel_size.data_ptr<scalar_t>(), ts_row,
+        textures.data_ptr<scalar_t>(), textures.size(0), tex_res.data_ptr<int32_t>(), tex_offset.data_ptr<int64_t>(),
+        n, flag.data_ptr<int32_t>(), stream);
+  });
+  return flag;
+}
+
 }  // namespace
 
 // The CUDA kernels of ctgs's ops that both backends have (torch.ops.ctgs.<op>; their schemas: ctgs/ops/schemas.py).
@@ -287,6 +322,7 @@ TORCH_LIBRARY_IMPL(ctgs, CUDA, m) {
   m.impl("sh_color", &sh_color_cuda);
   m.impl("sh_color_backward", &sh_color_backward_cuda);
   m.impl("jagged_remap", &jagged_remap_cuda);
+  m.impl("surfel_value_flags", &surfel_value_flags_cuda);
 }
 
 // The module torch's loader imports; the ops above are reached through torch.ops.ctgs, not through it.

@@ -33,6 +33,10 @@ BOTH = (
     # {grad_means [N, 3], grad_sh [N, K, 3]} of sh_color for the upstream gradient grad_colors [N, 3]
     "sh_color_backward(Tensor means, Tensor center, Tensor sh, int degree, Tensor grad_colors, int num_threads)"
     " -> Tensor[]",
+    # int32 0-dim on the inputs' device: 0 if the surfel tensors pass render()'s value checks (surfel_values_ok's
+    # checks), else not; no synchronisation, so the caller reads it together with its other checks
+    "surfel_value_flags(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh, Tensor texel_size, "
+    "Tensor textures, Tensor tex_res, Tensor tex_offset, int num_threads) -> Tensor",
     # jagged texture buffers re-laid out (ctgs.model.jagged.remap); new_rows: the new layout's texel count
     "jagged_remap(Tensor[] buffers, Tensor old_res, Tensor old_off, Tensor src, Tensor shift, Tensor new_res, "
     "Tensor new_off, int new_rows, int num_threads) -> Tensor[]",

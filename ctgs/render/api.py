@@ -13,6 +13,7 @@ import os
 import torch
 
 import ctgs.ops.ext as ext_mod
+import ctgs.ops.ext_cuda as ext_cuda_mod
 from ctgs.render.camera import Camera
 from ctgs.render.cuda_backend import render_cuda
 from ctgs.render.rasterize import rasterize, rasterize_error_fn
@@ -74,9 +75,16 @@ def _values_ok_device(s: SurfelInputs, finite: list[torch.Tensor]) -> bool:
     run as a few reductions on the inputs' device (for CUDA inputs whose shapes, dtypes and devices are already
     checked) and their flags come back together. The checks one by one synchronised ~16 times per render (0.5 ms
     at 1M textured surfels on an H200, and the CPU could not queue the render meanwhile); False sends the caller
-    to them to name the problem. `finite`: more tensors that must hold finite values (camera, background)."""
+    to them to name the problem. `finite`: more tensors that must hold finite values (camera, background).
+    Once the CUDA extension is loaded the surfel checks are its one kernel (surfel_value_flags) instead of ~13
+    PyTorch reductions."""
     with torch.no_grad():
         bad = [~torch.isfinite(t.detach()).all().to(s.means.device) for t in finite if t.numel()]
+        if ext_cuda_mod._cuda_module is not None and s.means.is_cuda:
+            bad.append(torch.ops.ctgs.surfel_value_flags(
+                *[getattr(s, name).detach().contiguous() for name in _SURFEL_FLOATS], s.tex_res.contiguous(),
+                s.tex_offset.contiguous(), 0) != 0)
+            return not bool(torch.stack([b.reshape(()) for b in bad]).any())
         ext = {}
         for name in _SURFEL_FLOATS:
             t = getattr(s, name).detach()

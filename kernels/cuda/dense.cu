@@ -6,6 +6,7 @@
 #include <cstdlib>
 
 #include "common.cuh"
+#include "ctgs/exact.h"
 #include "ctgs/preprocess.h"
 
 namespace ctgs {
@@ -121,6 +122,41 @@ inline bool sh_backward_lanes() {
 }
 
 
+template <typename S>
+__device__ inline bool positive(S v) { return v > S(0) && isfinite(v); }
+
+template <typename S>
+__global__ void __launch_bounds__(LINEAR_BLOCK)
+    surfel_value_flags_kernel(const S* means, const S* quats, const S* scales, const S* opacities, const S* sh,
+                              int64_t sh_row, const S* texel_size, int ts_row, const S* textures, int64_t T,
+                              const int* tex_res, const int64_t* tex_offset, int64_t n, int* flag) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  bool bad = false;
+  if (i < n) {
+    for (int c = 0; c < 3; ++c) bad |= !isfinite(means[3 * i + c]);
+    S qq = S(0);  // summed in the CPU check's order: zero exactly where it is zero there
+    for (int c = 0; c < 4; ++c) {
+      const S q = quats[4 * i + c];
+      bad |= !isfinite(q);
+      qq = xadd(qq, xmul(q, q));
+    }
+    bad |= qq == S(0);
+    bad |= !positive(scales[2 * i]) || !positive(scales[2 * i + 1]);
+    const S o = opacities[i];
+    bad |= !(o >= S(0) && o <= S(1));
+    for (int c = 0; c < ts_row; ++c) bad |= !positive(texel_size[ts_row * i + c]);
+    for (int64_t k = 0; k < sh_row; ++k) bad |= !isfinite(sh[i * sh_row + k]);
+    const int ru = tex_res[2 * i], rv = tex_res[2 * i + 1];
+    bad |= ru < 0 || rv < 0;
+    const int64_t size = int64_t(ru) * rv;
+    if (size > 0) bad |= tex_offset[i] < 0 || tex_offset[i] > T - size;
+  }
+  if (i < T) {
+    for (int c = 0; c < 3; ++c) bad |= !isfinite(textures[3 * i + c]);
+  }
+  if (bad) *flag = 1;  // every writer writes the same value
+}
+
 // Jagged texture re-layout (ctgs/model/jagged.py remap; the CPU version is kernels/cpu/dense.cpp jagged_remap):
 // one thread per texel of the new packed layout finds its primitive j by binary search over new_off (packed:
 // increasing, a primitive of 0 texels shares its successor's offset, and upper_bound skips it), then copies
@@ -202,6 +238,17 @@ void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, 
 }
 
 template <typename S>
+void surfel_value_flags(const S* means, const S* quats, const S* scales, const S* opacities, const S* sh,
+                        int64_t sh_row, const S* texel_size, int ts_row, const S* textures, int64_t T,
+                        const int* tex_res, const int64_t* tex_offset, int64_t n, int* flag, cudaStream_t stream) {
+  const int64_t rows = n > T ? n : T;
+  if (rows == 0) return;
+  surfel_value_flags_kernel<S><<<grid_1d(rows), LINEAR_BLOCK, 0, stream>>>(
+      means, quats, scales, opacities, sh, sh_row, texel_size, ts_row, textures, T, tex_res, tex_offset, n, flag);
+  CTGS_CUDA_LAUNCH_CHECK("surfel_value_flags_kernel");
+}
+
+template <typename S>
 void jagged_remap(const RemapBuffers<S>& bufs, int C, const int* old_res, const int64_t* old_off, const int64_t* src,
                   const int64_t* shift, const int* new_res, const int64_t* new_off, int64_t n_new, int64_t new_rows,
                   cudaStream_t stream) {
@@ -218,7 +265,9 @@ void jagged_remap(const RemapBuffers<S>& bufs, int C, const int* old_res, const 
   template void sh_color_backward<S>(const S*, const S*, const S*, int64_t, int, int, const S*, S*, S*,          \
                                      cudaStream_t);                                                             \
   template void jagged_remap<S>(const RemapBuffers<S>&, int, const int*, const int64_t*, const int64_t*,          \
-                                const int64_t*, const int*, const int64_t*, int64_t, int64_t, cudaStream_t);
+                                const int64_t*, const int*, const int64_t*, int64_t, int64_t, cudaStream_t);   \
+  template void surfel_value_flags<S>(const S*, const S*, const S*, const S*, const S*, int64_t, const S*, int,      \
+                                      const S*, int64_t, const int*, const int64_t*, int64_t, int*, cudaStream_t);
 CTGS_INSTANTIATE_DENSE(float)
 CTGS_INSTANTIATE_DENSE(double)
 #undef CTGS_INSTANTIATE_DENSE

@@ -82,6 +82,14 @@ template <typename S>
 void sh_color_backward(const S* means, const S* center, const S* sh, int64_t n, int K, int deg, const S* grad_colors,
                        S* grad_means, S* grad_sh, cudaStream_t stream);
 
+// The value checks of ctgs.render.api.validate_inputs (surfel_values_ok) in one pass, one thread per primitive and
+// texel row: *flag (an int on the device, zeroed by the caller) becomes non-zero where a check fails. ts_row: 1 or 2
+// texel sizes per primitive; sh_row: K * 3 values per primitive; T: texel rows of textures [T, 3].
+template <typename S>
+void surfel_value_flags(const S* means, const S* quats, const S* scales, const S* opacities, const S* sh,
+                        int64_t sh_row, const S* texel_size, int ts_row, const S* textures, int64_t T,
+                        const int* tex_res, const int64_t* tex_offset, int64_t n, int* flag, cudaStream_t stream);
+
 // Jagged texture re-layout (ctgs/model/jagged.py remap): up to 4 buffers [rows, C] laid out alike (texel
 // values and their Adam moments) copied into the packed layout new_res/new_off [n_new] (T' = new_rows rows,
 // every one written), new primitive j taking src[j]'s texels re-centred and moved by shift[j]; 0 outside.

@@ -156,3 +156,28 @@ def random_scene(n: int = 40, *, seed: int = 0, dtype=torch.float64, width: int 
 
 def describe(s: SurfelInputs) -> str:
     return ", ".join(f"{f.name}{list(getattr(s, f.name).shape)}" for f in fields(s))
+
+
+def bad_value_cases(s: SurfelInputs) -> list[tuple[str, SurfelInputs]]:
+    """(the argument validate_inputs names, s with one value made invalid) for every value check of render():
+    non-finite, out of range, an all-zero quaternion, a texel block past the end, a negative resolution. s needs
+    more than 40001 texel rows, 100 primitives' scales and one textured primitive."""
+    bad = []
+    for name, index, value in [("means", 7, float("nan")), ("quats", 3, float("inf")), ("scales", 0, 0.0),
+                               ("scales", 99, -1e-30), ("opacities", 5, 1.0 + 1e-6), ("opacities", 6, -0.0 - 1e-30),
+                               ("sh", -1, float("-inf")), ("texel_size", 1, 0.0),
+                               ("textures", 40000, float("nan")), ("textures", -1, float("inf"))]:
+        t = getattr(s, name).clone()
+        t.view(-1)[index] = value
+        bad.append((name, replace(s, **{name: t})))
+    q = s.quats.clone()
+    q[2] = 0.0
+    bad.append(("quats", replace(s, quats=q)))
+    off = s.tex_offset.clone()
+    used = int(torch.nonzero((s.tex_res[:, 0] * s.tex_res[:, 1]) > 0)[0])
+    off[used] = s.textures.shape[0]  # block past the end
+    bad.append(("tex_offset", replace(s, tex_offset=off)))
+    res = s.tex_res.clone()
+    res[4, 1] = -2
+    bad.append(("tex_res", replace(s, tex_res=res)))
+    return bad

@@ -220,7 +220,7 @@ def test_compiled_value_check_agrees_with_pytorch(dtype):
     checks raise on (anywhere in a tensor larger than one parallel chunk), so the messages stay theirs. The same
     for the one-transfer check of GPU inputs (api._values_ok_device: device-agnostic, run here on the CPU), which
     also covers the camera and background."""
-    from scenes import random_scene
+    from scenes import bad_value_cases, random_scene
 
     ext.load_cpu()  # the compiled check runs once the extension is loaded (never builds it by itself)
     case = random_scene(50, seed=4, dtype=dtype, max_res=8)
@@ -235,27 +235,13 @@ def test_compiled_value_check_agrees_with_pytorch(dtype):
     vm = cam.viewmat.clone()
     vm[1, 2] = float("nan")
     assert not api._values_ok_device(s, [vm]) and not api._values_ok_device(s, [torch.tensor([0.0, float("inf"), 0.0])])
-    bad = []
-    for name, index, value in [("means", 7, float("nan")), ("quats", 3, float("inf")), ("scales", 0, 0.0),
-                               ("scales", 99, -1e-30), ("opacities", 5, 1.0 + 1e-6), ("opacities", 6, -0.0 - 1e-30),
-                               ("sh", -1, float("-inf")), ("texel_size", 1, 0.0),
-                               ("textures", 40000, float("nan")), ("textures", -1, float("inf"))]:
-        t = getattr(s, name).clone()
-        t.view(-1)[index] = value
-        bad.append((name, replace(s, **{name: t})))
-    q = s.quats.clone()
-    q[2] = 0.0
-    bad.append(("quats", replace(s, quats=q)))
-    off = s.tex_offset.clone()
-    used = int(torch.nonzero((s.tex_res[:, 0] * s.tex_res[:, 1]) > 0)[0])
-    off[used] = s.textures.shape[0]  # block past the end
-    bad.append(("tex_offset", replace(s, tex_offset=off)))
-    res = s.tex_res.clone()
-    res[4, 1] = -2
-    bad.append(("tex_res", replace(s, tex_res=res)))
+    bad = bad_value_cases(s)
+    flags = torch.ops.ctgs.surfel_value_flags  # the tensor form both backends have (the GPU path's)
+    assert int(flags(*[getattr(s, k) for k in api._SURFEL_FLOATS], s.tex_res, s.tex_offset, 0)) == 0
     for name, b in bad:
         assert not api._values_ok_fused(b), name
         assert not api._values_ok_device(b, []), name
+        assert int(flags(*[getattr(b, k).contiguous() for k in api._SURFEL_FLOATS], b.tex_res, b.tex_offset, 0)), name
         with pytest.raises(ValueError, match=name):
             api.validate_inputs(b, cam, None, None)
 

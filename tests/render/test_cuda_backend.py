@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from scenes import FLOAT_INPUTS, cast, make_surfels, pinhole, quat_axis_angle, random_scene, with_grad
+from scenes import FLOAT_INPUTS, bad_value_cases, cast, make_surfels, pinhole, quat_axis_angle, random_scene, with_grad
 
 import ctgs.render.api as api
 from ctgs.errors import UserError
@@ -385,6 +385,33 @@ def test_jagged_remap_kernel_matches_cpu(dtype, monkeypatch):
                                     [(prims.to(dev), [v.to(dev) for v in vals])])
     for a, b in zip(got2, want2):
         assert torch.equal(a.cpu(), b)
+
+
+@needs_cuda
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_value_checks_in_one_kernel_match_the_cpu(dtype):
+    """surfel_value_flags on the GPU (one kernel; validate_inputs' check of CUDA inputs) passes valid surfels and
+    flags every value problem the CPU check flags, anywhere in a texture buffer of many blocks; render() then names
+    the argument as on the CPU."""
+    from ctgs.ops.ext import load_cpu
+    from ctgs.ops.ext_cuda import load_cuda
+
+    load_cpu() if DRY_RUN else load_cuda()
+    case = random_scene(50, seed=4, dtype=dtype, max_res=8)
+    s, cam = case.surfels, case.camera
+    s = replace(s, textures=torch.cat([s.textures, torch.rand(70000, 3, dtype=dtype) - 0.5]))
+    dev = torch.device(GPU)
+
+    def flags(x):
+        t = [getattr(x, k).contiguous().to(dev) for k in api._SURFEL_FLOATS]
+        return int(torch.ops.ctgs.surfel_value_flags(*t, x.tex_res.to(dev), x.tex_offset.to(dev), 0))
+
+    assert flags(s) == 0 and flags(replace(s, sh=s.sh[:, :4])) == 0
+    for name, b in bad_value_cases(s):
+        assert flags(b) != 0, name
+        on_gpu = replace(b, **{k: getattr(b, k).to(dev) for k in (*api._SURFEL_FLOATS, "tex_res", "tex_offset")})
+        with pytest.raises(ValueError, match=name):
+            api.validate_inputs(on_gpu, cam.to(GPU, dtype), None, None)
 
 
 @needs_cuda
