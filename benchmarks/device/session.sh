@@ -9,13 +9,15 @@
 # $G/whl (wheels the image lacks), $G/scenes/herzjesu25 (ctgs sfm output + colmap.pkl). A training longer than a
 # call: bg.sh. Both source lib.sh (the environment; a run's export, compress and eval).
 #
-#   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,ncu,train,probe,pipeline,pair
+#   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,fmad,ncu,train,probe,pipeline,pair
 #                                           (default: tests,bench,ncu,train)
 #   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS,
 #        PROBE_S, PROBE_IT, PROBE_ARGS (more gpu_train_probe.py options), PROBE_BEFORE (1: also the probe
 #        with CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0),
 #        PIPE_ITERS, PIPE_IMAGES, PIPE_S (seconds of each pipeline training), PIPE_METHODS (paper,2dgs: which
 #        pipelines), PIPE_ARGS (more `ctgs train` options for each)
+#        fmad: the CUDA tests and bench_cuda again with the kernels built with FMA contraction (CTGS_CUDA_FMAD=1;
+#        prepare.sh prebuilds it), beside the bench phase's rows (BENCH_ARGS there: e.g. --sh-lanes-too)
 #        pair: the method and the 2dgs baseline trained side by side in the background (bg.sh), started before every
 #        other phase and waited for after them until PAIR_END seconds into the call (480), then each finished run
 #        exported, evaluated and (the method's) compressed; a run still going is waited for by a later call
@@ -94,6 +96,16 @@ fi
 if [[ $PHASES == *bench* ]]; then
   stamp "bench"
   timeout "${BENCH_S:-180}" python3 benchmarks/bench_cuda.py --out "$R" --profile ${BENCH_ARGS:-} 2>&1 | tee "$R/bench.log" | tail -40
+pack
+fi
+
+if [[ $PHASES == *fmad* ]]; then
+  stamp "fmad: tests"
+  CTGS_CUDA_FMAD=1 timeout "${TESTS_S:-240}" python3 -m pytest -q -p no:cacheprovider tests/render/test_cuda_backend.py \
+    -k "not compile_with_nvcc" 2>&1 | tee "$R/pytest_cuda_fmad.log" | tail -3
+  stamp "fmad: bench"
+  CTGS_CUDA_FMAD=1 timeout "${BENCH_S:-180}" python3 benchmarks/bench_cuda.py --out "$R/fmad" --tag fmad \
+    ${BENCH_ARGS:-} 2>&1 | tee "$R/bench_fmad.log" | tail -20
 pack
 fi
 
