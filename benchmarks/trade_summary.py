@@ -58,6 +58,7 @@ BONSAI2_60 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_1seed_d42cfeb.json"
 BONSAI2_60B = "scene_trade/bonsai252_images_2_60min_balanced_1seed_d42cfeb.json"
 BONSAI2_60E = "scene_trade/bonsai252_images_2_60min_fast_2dgs_1seed_16f95c3.json"
 BONSAI2_60E1 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_seed1_d4cb9cb.json"
+BONSAI2_60E2 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_seed2_86bc3e1.json"
 BONSAI2_60EB = "scene_trade/bonsai252_images_2_60min_balanced_seed0_d4cb9cb.json"
 BONSAI_60S2 = "scene_trade/bonsai252_images_4_60min_balanced_seed2_d4cb9cb.json"
 REGISTRY = {
@@ -75,14 +76,16 @@ REGISTRY = {
         ],
         "399x266": [
             ("content-aware", "fast, --time-budget 60 (E from 16 views, as shipped)",
-             [(BONSAI2_60E, ("scene_trade", "fast")), (BONSAI2_60E1, ("scene_trade", "fast"))]),
+             [(BONSAI2_60E, ("scene_trade", "fast")), (BONSAI2_60E1, ("scene_trade", "fast")),
+              (BONSAI2_60E2, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60 (E from 16 views, as shipped)", [(BONSAI2_60EB, ("scene_trade", "balanced"))]),
             ("content-aware", "fast, --time-budget 60, E from 64 views (before error_pixels)",
              [(BONSAI2_60, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60, E from 64 views (before error_pixels)",
              [(BONSAI2_60B, ("scene_trade", "balanced"))]),
-            ("2dgs", "the same 60 min (seeds 0, 0, 1)",
-             [(BONSAI2_60, ("scene_trade", "2dgs")), (BONSAI2_60E, ("scene_trade", "2dgs")), (BONSAI2_60E1, ("scene_trade", "2dgs"))]),
+            ("2dgs", "the same 60 min (seeds 0, 0, 1, 2)",
+             [(BONSAI2_60, ("scene_trade", "2dgs")), (BONSAI2_60E, ("scene_trade", "2dgs")), (BONSAI2_60E1, ("scene_trade", "2dgs")),
+              (BONSAI2_60E2, ("scene_trade", "2dgs"))]),
         ],
     },
     "herzjesu25": {
