@@ -4,15 +4,18 @@ Compiles every kernels/cuda/*.cu with `nvcc -c -std=c++17 -O2 -I kernels/include
 a temporary directory (nothing is linked or run: no GPU needed), and, when torch's headers are installed,
 syntax-checks kernels/bindings_cuda.cpp with the host compiler (as torch's JIT build would compile it, with
 -DCTGS_WITH_CUDA). Jobs run in parallel, one per core. Prints what it compiled; on failure prints the
-compiler's output and exits 1. It checks the kernel folder it sits in: the checkout's kernels/, or an
+compiler's output and exits 1. With --resources it also prints what ptxas gave every kernel for each
+architecture (registers, spill stores and loads, stack frame, static shared memory): the occupancy a change
+buys can be read here before any GPU runs it. It checks the kernel folder it sits in: the checkout's kernels/, or an
 installed package's (`python -m ctgs._kernels.check_cuda_build`; ctgs.resources.kernels_dir() names it).
-Usage: python kernels/check_cuda_build.py [--no-binding] [--jobs N]
+Usage: python kernels/check_cuda_build.py [--no-binding] [--jobs N] [--resources]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -28,9 +31,58 @@ ARCHS = ("80", "90")  # A100 and H100/H200
 NVCC_FLAGS = ["-c", "-std=c++17", "-O2", "-fmad=false", "-I", str(KERNELS / "include"), "-Werror", "all-warnings"]
 
 
-def nvcc_command(nvcc: str, src: Path, out_dir: Path) -> list[str]:
+def nvcc_command(nvcc: str, src: Path, out_dir: Path, resources: bool = False) -> list[str]:
     gencode = [f"-gencode=arch=compute_{a},code=sm_{a}" for a in ARCHS]
-    return [nvcc, *NVCC_FLAGS, *gencode, str(src), "-o", str(out_dir / (src.stem + ".o"))]
+    verbose = ["-Xptxas", "-v"] if resources else []
+    return [nvcc, *NVCC_FLAGS, *verbose, *gencode, str(src), "-o", str(out_dir / (src.stem + ".o"))]
+
+
+_ENTRY = re.compile(r"Compiling entry function '(\w+)' for '(sm_\d+)'")
+_FRAME = re.compile(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads")
+_USED = re.compile(r"Used (\d+) registers(?:.*?(\d+) bytes smem)?")
+
+
+def short_name(mangled: str) -> str:
+    """`backward_kernel<float, 3>` from a mangled kernel name (c++filt when present, else the name as is)."""
+    filt = shutil.which("c++filt")
+    if filt is None:
+        return mangled
+    name = subprocess.run([filt, mangled], capture_output=True, text=True).stdout.strip() or mangled
+    name = name.replace("(anonymous namespace)", "").split("(", 1)[0]  # drop the parameter list
+    depth, cut = 0, 0
+    for i, ch in enumerate(name):  # the last '::' outside template brackets
+        depth += ch == "<"
+        depth -= ch == ">"
+        if depth == 0 and name.startswith("::", i):
+            cut = i + 2
+    return name[cut:].removeprefix("void ")
+
+
+def parse_ptxas(text: str) -> list[dict]:
+    """Per kernel and architecture, what `ptxas -v` printed: registers, spills, stack frame, static smem."""
+    rows: list[dict] = []
+    current: dict | None = None
+    for line in text.splitlines():
+        if m := _ENTRY.search(line):
+            current = {"kernel": m.group(1), "arch": m.group(2)}
+        elif current is not None and (m := _FRAME.search(line)):
+            current.update(stack=int(m.group(1)), spill_stores=int(m.group(2)), spill_loads=int(m.group(3)))
+        elif current is not None and (m := _USED.search(line)):
+            current.update(registers=int(m.group(1)), smem=int(m.group(2) or 0))
+            rows.append(current)
+            current = None
+    return rows
+
+
+def resource_table(rows: list[dict]) -> str:
+    """A markdown table of parse_ptxas rows of ctgs's own kernels (not cub's), by name."""
+    rows = [r for r in rows if r["kernel"].startswith("_ZN4ctgs")]
+    lines = ["| kernel | arch | registers | spill stores / loads (B) | stack (B) | static smem (B) |",
+             "| --- | --- | ---: | ---: | ---: | ---: |"]
+    for r in sorted(rows, key=lambda r: (short_name(r["kernel"]), r["arch"])):
+        lines.append(f"| `{short_name(r['kernel'])}` | {r['arch']} | {r['registers']} | "
+                     f"{r.get('spill_stores', 0)} / {r.get('spill_loads', 0)} | {r.get('stack', 0)} | {r['smem']} |")
+    return "\n".join(lines)
 
 
 def cuda_include_dir() -> Path | None:
@@ -79,6 +131,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--no-binding", action="store_true", help="skip the host syntax check of bindings_cuda.cpp")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel compiler processes")
+    ap.add_argument("--resources", action="store_true",
+                    help="also print each kernel's registers, spills, stack and shared memory (ptxas -v)")
     args = ap.parse_args()
     nvcc = shutil.which("nvcc")
     if nvcc is None:
@@ -91,7 +145,7 @@ def main() -> int:
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="ctgs_cuda_check_") as tmp:
         out_dir = Path(tmp)
-        jobs = [(f"{s.relative_to(KERNELS.parent)} (sm_{', sm_'.join(ARCHS)})", nvcc_command(nvcc, s, out_dir))
+        jobs = [(f"{s.relative_to(KERNELS.parent)} (sm_{', sm_'.join(ARCHS)})", nvcc_command(nvcc, s, out_dir, args.resources))
                 for s in sources]
         if not args.no_binding:
             cmd = binding_command(out_dir)
@@ -109,6 +163,9 @@ def main() -> int:
         if rc != 0:
             failed += 1
             print(output, file=sys.stderr)
+    if args.resources and not failed:
+        rows = [r for _, _, output, _ in results for r in parse_ptxas(output)]
+        print(resource_table(rows))
     print(f"check_cuda_build: {len(results) - failed}/{len(results)} compiled in {time.monotonic() - t0:.1f} s "
           f"with {nvcc}")
     return 1 if failed else 0

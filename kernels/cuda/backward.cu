@@ -194,11 +194,13 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
             taps = h.taps;
           } else if (h.taps.active) {
             for (int t = 0; t < 4; ++t) {
-              if (h.taps.row[t] < 0) continue;
-              S* dst = out.v_textures + 3 * h.taps.row[t];
-              atomicAdd(dst, h.taps.w[t] * g.tex[0]);
-              atomicAdd(dst + 1, h.taps.w[t] * g.tex[1]);
-              atomicAdd(dst + 2, h.taps.w[t] * g.tex[2]);
+              const long long r = h.taps.row(t);
+              if (r < 0) continue;
+              S* dst = out.v_textures + 3 * r;
+              const S wt = h.taps.w(t);
+              atomicAdd(dst, wt * g.tex[0]);
+              atomicAdd(dst + 1, wt * g.tex[1]);
+              atomicAdd(dst + 2, wt * g.tex[2]);
             }
           }
           acc += w * f;
@@ -207,8 +209,8 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
       }
       if (aggregate_texels && __any_sync(FULL_MASK, textured)) {
         for (int t = 0; t < 4; ++t) {
-          const long long row = textured ? taps.row[t] : -1;
-          const S wt = textured ? taps.w[t] : S(0);
+          const long long row = textured ? taps.row(t) : -1;
+          const S wt = textured ? taps.w(t) : S(0);
           const S val[3] = {textured ? wt * g.tex[0] : S(0), textured ? wt * g.tex[1] : S(0),
                             textured ? wt * g.tex[2] : S(0)};
           scatter_texel_grad(out.v_textures, row, val, lane);

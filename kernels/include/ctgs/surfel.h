@@ -158,7 +158,7 @@ struct SurfelGrad {
   S sx, sy, opacity;
   S color[3];
   S ku, kv;
-  S tex[3];  // dL/d(fetched texture value); texel k receives taps.w[k] * tex (backend scatters)
+  S tex[3];  // dL/d(fetched texture value); texel k receives taps.w(k) * tex (backend scatters)
 };
 
 // Backward of one pair. v_alpha, v_c[3], v_z: dL/d of this pair's alpha, colour c and depth z (the
