@@ -61,7 +61,9 @@ BONSAI2_60E1 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_seed1_d4cb9cb.jso
 BONSAI2_60E2 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_seed2_86bc3e1.json"
 BONSAI2_60EB = "scene_trade/bonsai252_images_2_60min_balanced_seed0_d4cb9cb.json"
 BONSAI2_60EB1 = "scene_trade/bonsai252_images_2_60min_balanced_seed1_f579504.json"
+BONSAI2_60EB2 = "scene_trade/bonsai252_images_2_60min_balanced_seed2_a216826.json"
 BONSAI2_60P = "scene_trade/bonsai252_images_2_60min_preview_seed0_f579504.json"
+BONSAI2_60P1 = "scene_trade/bonsai252_images_2_60min_preview_seed1_a216826.json"
 BONSAI_60S2 = "scene_trade/bonsai252_images_4_60min_balanced_seed2_d4cb9cb.json"
 REGISTRY = {
     "bonsai252": {
@@ -81,8 +83,10 @@ REGISTRY = {
              [(BONSAI2_60E, ("scene_trade", "fast")), (BONSAI2_60E1, ("scene_trade", "fast")),
               (BONSAI2_60E2, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60 (E from 16 views, as shipped)",
-             [(BONSAI2_60EB, ("scene_trade", "balanced")), (BONSAI2_60EB1, ("scene_trade", "balanced"))]),
-            ("content-aware", "preview, --time-budget 60", [(BONSAI2_60P, ("scene_trade", "preview"))]),
+             [(BONSAI2_60EB, ("scene_trade", "balanced")), (BONSAI2_60EB1, ("scene_trade", "balanced")),
+              (BONSAI2_60EB2, ("scene_trade", "balanced"))]),
+            ("content-aware", "preview, --time-budget 60", [(BONSAI2_60P, ("scene_trade", "preview")),
+                                                        (BONSAI2_60P1, ("scene_trade", "preview"))]),
             ("content-aware", "fast, --time-budget 60, E from 64 views (before error_pixels)",
              [(BONSAI2_60, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60, E from 64 views (before error_pixels)",
