@@ -64,6 +64,7 @@ BONSAI2_60EB1 = "scene_trade/bonsai252_images_2_60min_balanced_seed1_f579504.jso
 BONSAI2_60EB2 = "scene_trade/bonsai252_images_2_60min_balanced_seed2_a216826.json"
 BONSAI2_60P = "scene_trade/bonsai252_images_2_60min_preview_seed0_f579504.json"
 BONSAI2_60P1 = "scene_trade/bonsai252_images_2_60min_preview_seed1_a216826.json"
+BONSAI2_60P2 = "scene_trade/bonsai252_images_2_60min_preview_seed2_a216826.json"
 BONSAI_60S2 = "scene_trade/bonsai252_images_4_60min_balanced_seed2_d4cb9cb.json"
 REGISTRY = {
     "bonsai252": {
@@ -86,7 +87,8 @@ REGISTRY = {
              [(BONSAI2_60EB, ("scene_trade", "balanced")), (BONSAI2_60EB1, ("scene_trade", "balanced")),
               (BONSAI2_60EB2, ("scene_trade", "balanced"))]),
             ("content-aware", "preview, --time-budget 60", [(BONSAI2_60P, ("scene_trade", "preview")),
-                                                        (BONSAI2_60P1, ("scene_trade", "preview"))]),
+                                                        (BONSAI2_60P1, ("scene_trade", "preview")),
+                                                        (BONSAI2_60P2, ("scene_trade", "preview"))]),
             ("content-aware", "fast, --time-budget 60, E from 64 views (before error_pixels)",
              [(BONSAI2_60, ("scene_trade", "fast"))]),
             ("content-aware", "balanced, --time-budget 60, E from 64 views (before error_pixels)",
