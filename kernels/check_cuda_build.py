@@ -42,20 +42,17 @@ _FRAME = re.compile(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) b
 _USED = re.compile(r"Used (\d+) registers(?:.*?(\d+) bytes smem)?")
 
 
-def short_name(mangled: str) -> str:
-    """`backward_kernel<float, 3>` from a mangled kernel name (c++filt when present, else the name as is)."""
+def short_names(mangled: list[str]) -> dict[str, str]:
+    """`backward_kernel<float, 3>` for each mangled kernel name (one c++filt call; the names as they are without it)."""
     filt = shutil.which("c++filt")
-    if filt is None:
-        return mangled
-    name = subprocess.run([filt, mangled], capture_output=True, text=True).stdout.strip() or mangled
-    name = name.replace("(anonymous namespace)", "").split("(", 1)[0]  # drop the parameter list
-    depth, cut = 0, 0
-    for i, ch in enumerate(name):  # the last '::' outside template brackets
-        depth += ch == "<"
-        depth -= ch == ">"
-        if depth == 0 and name.startswith("::", i):
-            cut = i + 2
-    return name[cut:].removeprefix("void ")
+    if filt is None or not mangled:
+        return {m: m for m in mangled}
+    out = subprocess.run([filt, *mangled], capture_output=True, text=True).stdout.splitlines()
+    names = {}
+    for m, full in zip(mangled, out):
+        head, _, args = full.replace("(anonymous namespace)::", "").split("(", 1)[0].partition("<")
+        names[m] = head.rsplit("::", 1)[-1].split()[-1] + (f"<{args}" if args else "")
+    return names
 
 
 def parse_ptxas(text: str) -> list[dict]:
@@ -77,10 +74,11 @@ def parse_ptxas(text: str) -> list[dict]:
 def resource_table(rows: list[dict]) -> str:
     """A markdown table of parse_ptxas rows of ctgs's own kernels (not cub's), by name."""
     rows = [r for r in rows if r["kernel"].startswith("_ZN4ctgs")]
+    name = short_names(sorted({r["kernel"] for r in rows}))
     lines = ["| kernel | arch | registers | spill stores / loads (B) | stack (B) | static smem (B) |",
              "| --- | --- | ---: | ---: | ---: | ---: |"]
-    for r in sorted(rows, key=lambda r: (short_name(r["kernel"]), r["arch"])):
-        lines.append(f"| `{short_name(r['kernel'])}` | {r['arch']} | {r['registers']} | "
+    for r in sorted(rows, key=lambda r: (name[r["kernel"]], r["arch"])):
+        lines.append(f"| `{name[r['kernel']]}` | {r['arch']} | {r['registers']} | "
                      f"{r.get('spill_stores', 0)} / {r.get('spill_loads', 0)} | {r.get('stack', 0)} | {r['smem']} |")
     return "\n".join(lines)
 
