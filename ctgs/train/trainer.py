@@ -19,6 +19,7 @@ import torch
 
 from ctgs.errors import Terminated, UserError
 from ctgs.io import atomic
+from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.ops import fused
@@ -213,17 +214,21 @@ class Trainer:
         return v
 
     @torch.no_grad()
-    def evaluate(self) -> tuple[float, float]:
-        """Mean PSNR / SSIM over the test views (train views if there are none)."""
+    def evaluate(self) -> tuple[float, float, float | None]:
+        """Mean PSNR / SSIM over the test views (train views if there are none), and LPIPS when cfg.test_lpips
+        asks for it and its weights are present (else None)."""
         views = self.test_views or self.train_views
         inputs = self.model.render_inputs()
-        psnrs, ssims = [], []
+        net = load_lpips(device=self.device)[0] if self.cfg.test_lpips else None
+        psnrs, ssims, lp = [], [], []
         for v in views:
             rgb = self.render_fn(inputs, v.camera).rgb.clamp(0, 1)
             mse = ((rgb - v.image_t) ** 2).mean().clamp_min(1e-12)
             psnrs.append(float(-10 * torch.log10(mse)))
             ssims.append(float(ssim(rgb, v.image_t)))
-        return float(np.mean(psnrs)), float(np.mean(ssims))
+            if net is not None:
+                lp.append(lpips_hwc(net, rgb, v.image_t))
+        return float(np.mean(psnrs)), float(np.mean(ssims)), (float(np.mean(lp)) if lp else None)
 
     # ---- guard -----------------------------------------------------------------------------------
     def _check_finite(self, loss: torch.Tensor | None, full: bool = False) -> None:
@@ -315,10 +320,10 @@ class Trainer:
 
     def _evaluation(self, it: int, timed: bool = False) -> Eval:
         t0 = time.perf_counter()
-        p, s = self.evaluate()
+        p, s, lp = self.evaluate()
         if timed:
             self._timed("eval", time.perf_counter() - t0, it)
-        self.log({"type": "test", "it": it, "psnr": p, "ssim": s})
+        self.log({"type": "test", "it": it, "psnr": p, "ssim": s, **({"lpips": lp} if lp is not None else {})})
         return Eval(it, p, s)
 
     def _logged(self, events):
