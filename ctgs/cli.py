@@ -26,6 +26,7 @@ STAGES: dict[str, tuple[str, str]] = {
     "compress": ("ctgs.stages.compress", "Compress an exported model (texel codebook, quantised attributes, xz)."),
     "eval": ("ctgs.stages.eval", "Quality, size and speed figures of a run or model; aggregate tables."),
     "demo-scene": ("ctgs.stages.demo_scene", "Generate the built-in synthetic demo scene (COLMAP layout)."),
+    "convert": ("ctgs.stages.convert", "Write a scene in another layout: nerfstudio transforms.json or COLMAP."),
     "fetch": ("ctgs.stages.fetch", "Download and extract a benchmark dataset listed in data_manifests/."),
     "render": ("ctgs.stages.render", "Render a scene's cameras with a model (or demo primitives)."),
     "view": ("ctgs.stages.view", "Web viewer (WebGL2) of a model on 127.0.0.1, textures included."),

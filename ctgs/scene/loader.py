@@ -1,4 +1,4 @@
-"""`load_scene`: a COLMAP scene folder -> train/test views with cameras, images and SfM points.
+"""`load_scene`: a scene folder -> train/test views with cameras, images and SfM points.
 
 Conventions (3DGS/2DGS, so numbers are comparable):
 - views are sorted by image name; view idx is a test view iff idx % holdout == 0 (holdout 0/None: none);
@@ -10,22 +10,31 @@ Conventions (3DGS/2DGS, so numbers are comparable):
   positions there would be coarser than a pixel's footprint. Trained models live in this working frame;
 - every camera's near plane is NEAR_FRACTION x extent (`near_plane`), so a scene behaves the same in any unit:
   an absolute near plane (gsplat 0.01, 2DGS 0.2 world units) culls a whole scene whose coordinates are small;
-- RGBA images are composited over black (3DGS's default background), see ctgs.io.images.
+- RGBA images are composited over the run's background (black by default, 3DGS's), their alpha kept
+  (ctgs.scene.photos); masks beside the images (masks/) or named by transforms.json leave pixels out;
+- transforms.json and Blender synthetic folders (ctgs.scene.transforms) are read into the same views; without
+  points they start from random points in the cameras' bounds (ctgs.scene.random_init, said in `meta`).
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
 
 from ctgs.errors import UserError
-from ctgs.io.images import IMAGE_EXTENSIONS, image_info, read_rgb, stderr_silenced
+from ctgs.io.images import IMAGE_EXTENSIONS, image_info, stderr_silenced
 from ctgs.render.camera import Camera
 from ctgs.scene.colmap import ColmapModel, ModelImage, find_model_dir, model_file, read_colmap_model
-from ctgs.scene.levels import level_dir
+from ctgs.scene.levels import LEVEL, level_dir
+from ctgs.scene.photos import Distortion, find_mask, level_size, read_mask, read_photo
+from ctgs.scene.random_init import focus_box, random_points
+from ctgs.scene.transforms import Frame, check_image_sizes, read_transforms, scene_layout
 from ctgs.scene.types import Scene, View
 
 # Image size vs calibration size: x and y ratios may differ slightly (T&T: 0.5003 vs 0.5; one pixel of
@@ -98,8 +107,9 @@ def _find_image(images_dir: str, name: str) -> str | None:
     return None
 
 
-def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: int, height: int,
-                     near: float = Camera.near, origin: np.ndarray | None = None) -> Camera:
+def _colmap_pinhole(model: ColmapModel, image: ModelImage, path: str, width: int,
+                    height: int) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of a COLMAP image's camera rescaled to the image read, of size width x height."""
     intr = model.cameras[image.camera_id]
     sx, sy = width / intr.width, height / intr.height
     expected_height = intr.height * sx  # if the image kept the camera's aspect ratio
@@ -108,14 +118,61 @@ def _rescaled_camera(model: ColmapModel, image: ModelImage, path: str, width: in
             f"{path}: image is {width}x{height} but its camera {image.camera_id} is {intr.width}x{intr.height} "
             f"(different aspect ratio); use the image folder that belongs to this COLMAP model"
         )
-    viewmat = np.asarray(image.viewmat, dtype=np.float64)
+    return intr.fx * sx, intr.fy * sy, intr.cx * sx, intr.cy * sy
+
+
+def _camera(pinhole: tuple[float, float, float, float], width: int, height: int, viewmat: np.ndarray,
+            near: float = Camera.near, origin: np.ndarray | None = None) -> Camera:
+    """The Camera of a view in the working frame (`origin`: see world_origin)."""
+    viewmat = np.asarray(viewmat, dtype=np.float64)
     if origin is not None and np.any(origin):
         viewmat = viewmat.copy()
         viewmat[:3, 3] += viewmat[:3, :3] @ origin  # x_model = x_work + origin
-    return Camera(
-        fx=intr.fx * sx, fy=intr.fy * sy, cx=intr.cx * sx, cy=intr.cy * sy, width=width, height=height,
-        viewmat=torch.from_numpy(viewmat.astype(np.float32)), near=near,
-    )
+    fx, fy, cx, cy = pinhole
+    return Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height,
+                  viewmat=torch.from_numpy(viewmat.astype(np.float32)), near=near)
+
+
+@dataclass
+class _Source:
+    """One view to read: its image file, pose and how its camera follows from the size of the image read."""
+
+    name: str
+    path: str
+    viewmat: np.ndarray  # [4, 4] float64 world -> camera, the model's frame
+    pinhole: Callable[[int, int], tuple[float, float, float, float]]  # (width, height) -> fx, fy, cx, cy
+    lens: Callable[[int, int], Distortion | None] = lambda width, height: None  # distortion at that size
+    mask_path: str | None = None
+    factor: int = 1  # shrunk this many times on reading (a level the scene has no folder for)
+
+
+def _read_sources(sources: list[_Source], load_images: bool, background) -> list[tuple]:
+    """(photo or None, mask or None, width, height) per source, read on a few threads."""
+    def read(src: _Source):
+        if load_images:
+            photo = read_photo(src.path, background, src.factor, src.lens)  # undistorted at the size read
+            height, width = photo.rgb.shape[:2]
+        else:
+            info = image_info(src.path)  # header only: the camera still needs the real size
+            photo, (width, height) = None, level_size(info.width, info.height, src.factor)
+        mask = read_mask(src.mask_path, width, height, src.lens(width, height)) \
+            if src.mask_path and load_images else None
+        return photo, mask, width, height
+
+    with stderr_silenced(), ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        return list(pool.map(read, sources))
+
+
+def _views(sources: list[_Source], loaded: list[tuple], near: float, origin: np.ndarray) -> list[View]:
+    views = []
+    for src, (photo, mask, width, height) in zip(sources, loaded):
+        lens = src.lens(width, height)
+        pinhole = lens.pinhole(width, height) if lens is not None else src.pinhole(width, height)
+        views.append(View(name=src.name, camera=_camera(pinhole, width, height, src.viewmat, near, origin),
+                          image_path=src.path, image=None if photo is None else photo.rgb,
+                          alpha=None if photo is None else photo.alpha, mask=mask, mask_path=src.mask_path,
+                          distortion=lens))
+    return views
 
 
 def validation_split(views: list, k: int) -> tuple[list, list]:
@@ -126,12 +183,17 @@ def validation_split(views: list, k: int) -> tuple[list, list]:
     return ([v for i, v in enumerate(views) if i % k != k // 2], [v for i, v in enumerate(views) if i % k == k // 2])
 
 
-def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, load_images: bool = True) -> Scene:
-    """Read SCENE_DIR/sparse/0 (or sparse/) and SCENE_DIR/<images>; see the module docstring."""
+def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, load_images: bool = True,
+               background=(0.0, 0.0, 0.0)) -> Scene:
+    """Read a scene folder: SCENE_DIR/sparse/0 (or sparse/) with SCENE_DIR/<images>, or a transforms.json or
+    Blender synthetic folder (ctgs.scene.transforms); see the module docstring. `background`: the colour transparent
+    photos are composited over (the run's)."""
     scene_dir = os.path.abspath(scene_dir)
     if not os.path.isdir(scene_dir):
         raise UserError(f"{scene_dir}: scene folder not found; run `ctgs sfm IMAGES_DIR -o {scene_dir}` or "
                         f"`ctgs demo-scene {scene_dir}`")
+    if scene_layout(scene_dir) != "colmap":
+        return _load_transforms(scene_dir, images, holdout, load_images, background)
     images_dir = level_dir(scene_dir, images) or os.path.join(scene_dir, images)  # images_N made if missing
     if not os.path.isdir(images_dir):
         found = sorted(d for d in os.listdir(scene_dir) if d.startswith("images") and
@@ -143,52 +205,102 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
     if not model.images:
         raise UserError(f"{model_file(model.path, 'images')}: the COLMAP model has no registered images; run "
                         "`ctgs sfm` again")
-    if len(model.points) == 0:
-        raise UserError(f"{model_file(model.path, 'points3D')}: the COLMAP model has zero 3D points (training "
-                        f"initialises from them); run `ctgs sfm` again or use a model with triangulated points")
 
-    paths = []
+    sources = []
     for image in model.images:
         path = _find_image(images_dir, image.name)
         if path is None:
             raise UserError(f"{os.path.join(images_dir, image.name)}: image named in the COLMAP model is missing "
                             f"on disk; restore it or use the matching image folder (--images)")
-        paths.append(path)
-
-    def read(i: int) -> tuple[np.ndarray | None, int, int]:
-        if load_images:
-            pixels = read_rgb(paths[i])
-            return pixels, pixels.shape[1], pixels.shape[0]
-        info = image_info(paths[i])  # header only: the camera still needs the real size
-        return None, info.width, info.height
-
-    with stderr_silenced(), ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
-        loaded = list(pool.map(read, range(len(paths))))
+        sources.append(_Source(image.name, path, image.viewmat, partial(_colmap_pinhole, model, image, path),
+                               mask_path=find_mask(scene_dir, images, image.name)))
+    loaded = _read_sources(sources, load_images, background)
 
     centers = np.stack([-im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images])  # [C, 3]
     extent = scene_extent(centers)
-    near = near_plane(extent)
     origin = world_origin(centers, extent)
-    views = []
-    for image, path, (pixels, width, height) in zip(model.images, paths, loaded):
-        camera = _rescaled_camera(model, image, path, width, height, near, origin)
-        views.append(View(name=image.name, camera=camera, image_path=path, image=pixels))
-    train, test = split_views(views, holdout)
+    train, test = split_views(_views(sources, loaded, near_plane(extent), origin), holdout)
+    meta = {
+        "layout": "colmap",
+        "model_dir": model.path,
+        "camera_models": sorted({c.model for c in model.cameras.values()}),
+        "num_registered": len(model.images),
+        "num_unregistered": model.num_unregistered,
+        "holdout": holdout or 0,
+        "masks": sum(s.mask_path is not None for s in sources),
+    }
+    points, colors = _initial_points(model.points if len(model.points) else None, model.colors,
+                                     [im.viewmat for im in model.images], None,
+                                     f"{model_file(model.path, 'points3D')} holds none", meta)
+    return Scene(root=scene_dir, train=train, test=test, points=(points - origin).astype(np.float32),
+                 point_colors=colors.astype(np.float32) / 255.0, extent=extent, origin=origin, images_dir=images,
+                 meta=meta)
 
-    return Scene(
-        root=scene_dir,
-        train=train,
-        test=test,
-        points=(np.asarray(model.points, dtype=np.float64) - origin).astype(np.float32),
-        point_colors=(model.colors.astype(np.float32) / 255.0),
-        extent=extent,
-        origin=origin,
-        images_dir=images,
-        meta={
-            "model_dir": model.path,
-            "camera_models": sorted({c.model for c in model.cameras.values()}),
-            "num_registered": len(model.images),
-            "num_unregistered": model.num_unregistered,
-            "holdout": holdout or 0,
-        },
-    )
+
+def _initial_points(points, colors, viewmats: list, aabb, why: str, meta: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(points [P, 3] float64, colours [P, 3] uint8) to start from: the scene's SfM points, or without any random
+    points in the cameras' bounds (instant-ngp's aabb where the file gives one), said in meta["points_note"]."""
+    if points is not None:
+        return np.asarray(points, dtype=np.float64), np.asarray(colors, dtype=np.uint8)
+    lo, hi = aabb if aabb is not None else focus_box(viewmats)
+    points, colors = random_points(lo, hi)
+    where = f"instant-ngp's aabb (aabb_scale {meta['aabb_scale']:g})" if aabb is not None else \
+        "the cube the cameras look at"
+    meta["points"] = "random"
+    meta["points_note"] = (f"no SfM points ({why}): starting from {len(points)} random points in {where}, from "
+                           f"{np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()}")
+    return points, colors
+
+
+def _transforms_level(scene_dir: str, frame: Frame, images: str) -> tuple[str, int, str]:
+    """(image file, factor still to shrink it by, image folder name for masks) of a transforms frame for `--images`:
+    nerfstudio's images_N/ beside images/ when the frame's image is under images/ (made from it if missing, as for
+    COLMAP scenes), else the frame's own image shrunk N times on reading."""
+    folder, base = os.path.split(frame.rel)
+    if images == "images":
+        return frame.path, 1, folder
+    m = LEVEL.match(images)
+    if m is None:
+        raise UserError(f"--images {images}: a transforms scene reads the images its frames name; pass images or "
+                        "images_N (N times smaller)")
+    if folder == "images":
+        level = level_dir(scene_dir, images)
+        if level is not None and os.path.isfile(os.path.join(level, base)):
+            return os.path.join(level, base), 1, images
+    return frame.path, int(m.group(1)), folder
+
+
+def _load_transforms(scene_dir: str, images: str, holdout: int | None, load_images: bool, background) -> Scene:
+    fs = read_transforms(scene_dir)
+    with stderr_silenced():
+        sizes = {f.path: (lambda i: (i.width, i.height))(image_info(f.path)) for f in fs.frames}
+    check_image_sizes(fs.frames, sizes)
+    sources = []
+    for f in fs.frames:
+        path, factor, folder = _transforms_level(scene_dir, f, images)
+        full = sizes[f.path]
+        sources.append(_Source(f.name, path, f.viewmat, partial(f.intrinsics.pinhole, full=full),
+                               partial(f.intrinsics.lens, full=full),
+                               f.mask_path or find_mask(scene_dir, folder, os.path.basename(f.path)), factor))
+    loaded = _read_sources(sources, load_images, background)
+
+    centers = np.stack([-f.viewmat[:3, :3].T @ f.viewmat[:3, 3] for f in fs.frames])
+    extent = scene_extent(centers)
+    origin = world_origin(centers, extent)
+    views = _views(sources, loaded, near_plane(extent), origin)
+    meta = {"layout": fs.layout, "files": fs.files, "holdout": holdout or 0, **fs.meta,
+            "masks": sum(s.mask_path is not None for s in sources),
+            "distorted": sum(f.intrinsics.distortion is not None for f in fs.frames)}
+    if any(f.split for f in fs.frames):
+        train = [v for v, f in zip(views, fs.frames) if f.split == "train"]
+        test = [v for v, f in zip(views, fs.frames) if f.split == "test"]
+        meta["split"] = f"the file's own: {len(train)} training, {len(test)} test views"
+    else:
+        train, test = split_views(views, holdout)
+    if fs.ply_path:
+        meta["points"] = fs.ply_path
+    points, colors = _initial_points(fs.points, fs.colors, [f.viewmat for f in fs.frames], fs.aabb,
+                                     f"{fs.files[0]} gives no ply_file_path", meta)
+    return Scene(root=scene_dir, train=train, test=test, points=(points - origin).astype(np.float32),
+                 point_colors=colors.astype(np.float32) / 255.0, extent=extent, origin=origin, images_dir=images,
+                 meta=meta)

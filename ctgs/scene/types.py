@@ -11,10 +11,16 @@ from ctgs.render.camera import Camera
 
 @dataclass
 class View:
-    name: str  # image file name as stored in the COLMAP model (e.g. "000.png")
+    name: str  # image file name as stored in the COLMAP model (e.g. "000.png"), or a transforms frame's (transforms.py)
     camera: Camera  # intrinsics rescaled to the image actually read; viewmat float32 CPU
     image_path: str  # absolute path of the image file read
     image: np.ndarray | None = None  # [H, W, 3] float32 in [0, 1], loaded lazily or eagerly
+    # [H, W, 1] float32 alpha of a transparent photo (composited over the run's background in `image`), else None
+    alpha: np.ndarray | None = None
+    mask: np.ndarray | None = None  # [H, W] bool, True where a pixel counts in the loss and the metrics; None: all
+    mask_path: str | None = None  # the mask file, where the view has one
+    # the OpenCV lens (ctgs.scene.photos.Distortion, at this view's size) the image was undistorted from, else None
+    distortion: object = None
 
 
 @dataclass

@@ -140,13 +140,19 @@ def test_loader_wrong_image_size(tiny_demo):
     _one_line_error(lambda: load_scene(tiny_demo), "005.png", "64x64", "aspect")
 
 
-def test_loader_zero_points(tiny_demo):
+def test_loader_zero_points_starts_from_random_points(tiny_demo):
+    """A model without points: random points in the cube the cameras look at, said in the scene's meta."""
     sparse = os.path.join(tiny_demo, "sparse", "0")
     rec = pycolmap.Reconstruction(sparse)
     for point_id in list(rec.point3D_ids()):
         rec.delete_point3D(point_id)
     rec.write_binary(sparse)
-    _one_line_error(lambda: load_scene(tiny_demo), "zero 3D points", "ctgs sfm")
+    scene = load_scene(tiny_demo, load_images=False)
+    assert scene.meta["points"] == "random" and "points3D" in scene.meta["points_note"]
+    assert len(scene.points) == 100_000 and np.isfinite(scene.points).all()
+    # the cameras look at the demo's target (0, 0.6, 0.6): the cube holds it
+    lo, hi = scene.points.min(0), scene.points.max(0)
+    assert np.all(lo < [0.0, 0.6, 0.6]) and np.all(hi > [0.0, 0.6, 0.6]) and np.all(hi - lo < 3.0)
 
 
 def test_loader_unknown_camera_model(tiny_demo):
