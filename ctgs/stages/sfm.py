@@ -36,7 +36,7 @@ class _Bars:
 
 
 @click.command(name="sfm")
-@click.argument("images_dir", type=click.Path(file_okay=False))
+@click.argument("images_dir", metavar="IMAGES_DIR|VIDEO", type=click.Path())
 @click.option("-o", "--output", "scene_dir", required=True, type=click.Path(file_okay=False),
               help="Scene folder to write (images/, sparse/0/, images_2/4/8/, sfm_report.json).")
 @click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential", "retrieval"]), default="auto",
@@ -52,12 +52,15 @@ class _Bars:
               help="SIFT features per photo at most; 0: 8192 up to 50 photos, 4096 above.")
 @click.option("--max-image-size", default=3200, show_default=True, help="Longest side seen by SIFT, pixels.")
 @click.option("--threads", default=-1, show_default=True, help="CPU threads (-1: all cores).")
+@click.option("--frames", "frames", default=150, show_default=True,
+              help="From a VIDEO: how many frames to keep (the sharpest of each of N equal spans); they go to "
+                   "SCENE_DIR/input with SCENE_DIR/video_frames.json.")
 @click.option("--force", is_flag=True, help="Redo every step, replacing a finished SCENE_DIR.")
 @click.option("--verbose", is_flag=True, help="Show COLMAP's own log lines.")
 def command(images_dir: str, scene_dir: str, matcher: str, mapper: str, max_features: int, max_image_size: int,
-            threads: int, force: bool, verbose: bool) -> None:
-    """Reconstruct cameras and sparse points from a folder of photos (pycolmap; SIFT on the GPU when pycolmap
-    has CUDA).
+            threads: int, frames: int, force: bool, verbose: bool) -> None:
+    """Reconstruct cameras and sparse points from a folder of photos, or from a video's frames (pycolmap; SIFT on
+    the GPU when pycolmap has CUDA).
 
     Re-running skips finished steps; an interrupted run resumes from its work folder.
     """
@@ -65,8 +68,15 @@ def command(images_dir: str, scene_dir: str, matcher: str, mapper: str, max_feat
     from rich.table import Table
 
     from ctgs.scene.sfm import SfmOptions, run_sfm
+    from ctgs.scene.video import extract_frames, is_video
 
     console = Console(stderr=True)
+    if is_video(images_dir):
+        with console.status(f"picking {frames} frames of {images_dir}..."):
+            images_dir, record = extract_frames(images_dir, scene_dir, frames, force=force)
+        console.print(f"{len(record['frames'])} of {record['frames_in_video']} frames -> {images_dir} "
+                      f"({record['method']}; video_frames.json)")
+        matcher = "sequential" if matcher == "auto" else matcher  # frames in time order
     opts = SfmOptions(matcher=matcher, mapper=mapper, max_features=max_features, max_image_size=max_image_size,
                       threads=threads, force=force)
     if console.is_terminal and not verbose:
