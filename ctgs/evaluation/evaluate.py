@@ -25,7 +25,7 @@ from ctgs.formats.readers import gaussian_file_ending, read_gaussian_file
 from ctgs.io import atomic, images
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.psnr import gain_matched_psnr, masked_psnr, psnr
-from ctgs.metrics.ssim import ssim
+from ctgs.metrics.ssim import masked_ssim, ssim
 from ctgs.render import render
 from ctgs.scene import load_scene
 from ctgs.scene.loader import check_same_frame, validation_split
@@ -49,8 +49,9 @@ class EvalOptions:
     split: str = "test"  # "test": the protocol's test views; "train": the views the run was trained on
 
 
-def _render_fn(backend: str):
-    return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg)
+def _render_fn(backend: str, background: torch.Tensor | None = None):
+    return lambda inputs, cam, deg: render(inputs, cam, backend=backend, sh_degree=deg,
+                                           background=None if background is None else background.to(cam.viewmat.device))
 
 
 def veil_share(inputs, cam, sh_degree: int, backend: str) -> float:
@@ -93,13 +94,15 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     device = torch.device(opts.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     scored = _scored_model(run, opts, device)
     backend = _backend(run, opts, device)
-    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout)
+    background = [float(c) for c in run.config.get("background") or (0.0, 0.0, 0.0)]  # the run's (ctgs train)
+    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, background=background)
     if scored.manifest is None:
         check_same_frame(run.world_origin, scene, run.run_dir)
     else:
         check_same_frame(scored.manifest.get("source", {}).get("world_origin"), scene, opts.model_dir)
     views = _views(run, scene, opts.split)
-    renders, alphas, times, veils, peak = _render_views(scored.model, views, backend, device)
+    renders, alphas, times, veils, peak = _render_views(scored.model, views, backend, device,
+                                                        torch.tensor(background, dtype=torch.float32))
 
     net, status = None, None
     if opts.lpips:
@@ -168,10 +171,10 @@ def _views(run, scene, split: str) -> list:
     raise UserError(f"eval split {split!r}: use test or train")
 
 
-def _render_views(model, views: list, backend: str, device: torch.device):
-    """Each view rendered and timed (after one warm-up render), with its alpha and veil share; and the peak
-    memory of the process (or of the GPU)."""
-    render = _render_fn(backend)
+def _render_views(model, views: list, backend: str, device: torch.device, background: torch.Tensor | None = None):
+    """Each view rendered and timed (after one warm-up render) over `background` (the run's), with its alpha and veil
+    share; and the peak memory of the process (or of the GPU)."""
+    render = _render_fn(backend, background)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     renders, alphas, times, veils = [], [], [], []
@@ -243,13 +246,18 @@ def _write_views(out: str, views: list, renders: list, alphas: list, times: list
         if gt.shape != rgb.shape:
             raise UserError(f"{view.image_path}: image is {list(gt.shape)}, render {list(rgb.shape)}; "
                             "the scene changed since training")
+        mask = None if getattr(view, "mask", None) is None else torch.as_tensor(view.mask)
+        keep = None if mask is None else mask[..., None]  # masked pixels: out of the scores, zero in both images
+        scored, seen = (rgb, gt) if mask is None else (torch.where(keep, rgb, 0.0), torch.where(keep, gt, 0.0))
         lp = None
         if net is not None:
-            lp = lpips_hwc(net, rgb.to(device), gt.to(device))
+            lp = lpips_hwc(net, scored.to(device), seen.to(device))
         open_px = alpha < OPEN_ALPHA
-        rows.append(ImageMetrics(view.name, psnr(rgb, gt), float(ssim(rgb, gt)), lp, dt * 1e3,
-                                 float(open_px.float().mean()), masked_psnr(rgb, gt, ~open_px), veil,
-                                 *gain_matched_psnr(rgb, gt)))
+        used = ~open_px if mask is None else ~open_px & mask
+        rows.append(ImageMetrics(view.name, psnr(rgb, gt) if mask is None else masked_psnr(rgb, gt, mask),
+                                 float(ssim(rgb, gt)) if mask is None else masked_ssim(rgb, gt, mask), lp, dt * 1e3,
+                                 float(open_px.float().mean()), masked_psnr(rgb, gt, used), veil,
+                                 *gain_matched_psnr(scored, seen)))
         images.write_image(os.path.join(out, "renders", os.path.splitext(view.name)[0] + ".png"), rgb.numpy())
         gts.append(gt)
 

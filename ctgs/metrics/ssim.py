@@ -58,3 +58,12 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of two [H, W, C] images in [0, 1] -> scalar tensor (differentiable)."""
     return ssim_map(a, b).mean()
+
+
+def masked_ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
+    """Mean SSIM over the pixels where `mask` [H, W] is True (a view's mask: the pixels left out count nowhere; they
+    are zero in both images, so that no window sees their values)."""
+    keep = mask[..., None]
+    zero = a.new_zeros(())
+    return float(ssim_map(torch.where(keep, a, zero), torch.where(keep, b, zero))[mask].mean()) \
+        if bool(mask.any()) else float("nan")

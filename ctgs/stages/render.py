@@ -59,11 +59,12 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     # folder is replaced whole): a failure part-way leaves nothing behind.
     with torch.no_grad(), atomic.atomic_dir(out_dir) as tmp:
         inputs = model.render_inputs()
+        bg = torch.tensor(run.config.get("background") or (0.0, 0.0, 0.0), dtype=inputs.means.dtype, device=device)
         for view in chosen:
             cam = view.camera.to(device, inputs.means.dtype)
             stem = os.path.join(tmp, os.path.splitext(os.path.basename(view.name))[0])
             if "rgb" in wanted:
-                rgb = render(inputs, cam, backend=backend, sh_degree=model.sh_degree).rgb  # [H, W, 3]
+                rgb = render(inputs, cam, backend=backend, sh_degree=model.sh_degree, background=bg).rgb  # [H, W, 3]
                 write_image(stem + ".png", rgb.clamp(0, 1).cpu().numpy())
             if "normal" in wanted or "depth" in wanted:
                 normal, alpha, depth = geometry_maps(inputs, cam, backend)

@@ -15,7 +15,7 @@ def _load_scene(cfg):
     from ctgs.scene.loader import load_scene, validation_split
 
     holdout = cfg.holdout if cfg.holdout > 0 else None
-    scene = load_scene(cfg.scene_dir, images=cfg.images, holdout=holdout)
+    scene = load_scene(cfg.scene_dir, images=cfg.images, holdout=holdout, background=cfg.background)
     if cfg.validation_holdout > 0:
         # Tuning mode: the protocol's test views are never seen; validation views come from the training set.
         scene.train, scene.test = validation_split(scene.train, cfg.validation_holdout)
@@ -34,11 +34,31 @@ def default_preset() -> str:
     return GPU_DEFAULT_PRESET if torch.cuda.is_available() else CPU_DEFAULT_PRESET
 
 
+# --background: what the run renders over, and transparent photos are composited over (ctgs.scene.photos)
+BACKGROUNDS = {"white": {"background": [1.0, 1.0, 1.0]}, "black": {"background": [0.0, 0.0, 0.0]},
+               "random": {"random_background": True}}
+
+
+def scene_background(scene_dir, background, sets):
+    """The --background a run takes: as given; for a Blender synthetic scene without one (nor --set background),
+    white, as those scenes are evaluated (random: over white as well), said on stderr."""
+    from ctgs.scene.transforms import scene_layout
+
+    if any(s.split("=", 1)[0].strip() == "background" for s in sets) or background == "black" or \
+            scene_layout(scene_dir) != "blender":
+        return [background] if background else []
+    print("ctgs train: a Blender synthetic scene: rendered over white, as it is evaluated (--background black for "
+          "another)", file=sys.stderr)
+    return ["white"] + ([background] if background == "random" else [])
+
+
 def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset=None,
-                   time_budget=None, max_params=None):
+                   time_budget=None, max_params=None, backgrounds=()):
     from ctgs.train.config import load_config, parse_set
 
     overrides = parse_set(list(sets))
+    for name in backgrounds:
+        overrides.update(BACKGROUNDS[name])
     for key, value in (("iterations", iterations), ("images", images), ("backend", backend), ("seed", seed),
                        ("time_budget", time_budget), ("max_params", max_params)):
         if value is not None:
@@ -77,11 +97,14 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
             print(f"ctgs train: preset '{preset}' ({where}; --preset preview|fast|balanced|paper to choose, "
                   f"--time-budget MINUTES to fit a time)", file=sys.stderr)
     cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
-                         time_budget, max_params)
+                         time_budget, max_params, scene_background(scene_dir, background, sets))
     created = not os.path.exists(run_dir)
     trainer = None
     try:
         scene = _load_scene(cfg)
+        for note in ("points_note", "split"):  # random initial points; a transforms file's own train/test split
+            if scene.meta.get(note):
+                print(f"ctgs train: {'views: ' if note == 'split' else ''}{scene.meta[note]}", file=sys.stderr)
         trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
         if not quiet and cfg.max_params == 0 and trainer.cfg.max_params > 0:
             print(f"ctgs train: size budget {trainer.cfg.max_params} params ({cfg.max_params_per_value:g} per observed "
@@ -146,17 +169,21 @@ def _list_keys(ctx, _param, value):
 @click.option("--backend", type=click.Choice(["auto", "cpu", "cuda", "reference"]), default=None,
               help="Renderer backend.")
 @click.option("--seed", type=int, default=None, help="Random seed.")
+@click.option("--background", type=click.Choice(["white", "black", "random"]), default=None,
+              help="What the model is rendered over and transparent photos composited over (default: black; white "
+                   "for a Blender synthetic scene); random: a new colour each step (docs/guide/masks.md).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress display.")
 @click.option("--list-keys", is_flag=True, expose_value=False, is_eager=True, callback=_list_keys,
               help="Print every config key with its default and help, then exit.")
 def command(scene_dir, run_dir, preset, time_budget, max_params, config, iterations, sets, images, resume, backend, seed,
-            quiet):
+            background, quiet):
     """Train on SCENE_DIR, writing model.pt, config.toml, log.jsonl and train_summary.json to RUN_DIR."""
     import time
 
     start = time.monotonic()
     summary = train_main(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, quiet,
-                         preset=preset, time_budget=time_budget, start_time=start, max_params=max_params)
+                         preset=preset, time_budget=time_budget, start_time=start, max_params=max_params,
+                         background=background)
     click.echo(f"done: {summary['iterations']} iterations in {summary['train_seconds']:.0f} s, "
                f"test PSNR {summary['final_test_psnr']:.2f} dB, {summary['num_primitives']} primitives, "
                f"{summary['num_texels']} texels, {summary['num_params']} params -> {run_dir}")

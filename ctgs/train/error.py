@@ -6,6 +6,7 @@ import torch
 
 from ctgs.ops.fused import error_image as fused_error_image
 from ctgs.metrics.ssim import ssim_map
+from ctgs.train.loss import masked
 
 
 def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
@@ -55,8 +56,8 @@ def compute_E(model, views, render_fn, lambda_ssim: float = 0.2, with_support: b
         # The error image of this very render (one pass on the CPU backend, see ctgs.render.render).
         g = None if gains is None else gains.get(view.name)
         stats = render_fn(inputs, view.camera,
-                          lambda rgb, gt=view.image_t, g=g: error_image((rgb if g is None else rgb * g).clamp(0, 1),
-                                                                        gt, lambda_ssim)).stats
+                          lambda rgb, gt=view.image_t, g=g, m=getattr(view, "mask_t", None):
+                          error_image(*masked((rgb if g is None else rgb * g).clamp(0, 1), gt, m), lambda_ssim)).stats
         acc.append((stats.err, stats.contrib, view.image_t.shape[0] * view.image_t.shape[1]))
         if with_support:
             support = stats.contrib.clone() if support is None else torch.maximum(support, stats.contrib)

@@ -110,6 +110,21 @@ def texture_weights(model, camera, cfg, stats=None, rasterized=None) -> torch.Te
     return weights
 
 
+def masked(rgb: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rgb, gt) with both zero where `mask` ([H, W, 1] bool, None: every pixel used) leaves pixels out (a view's
+    mask, ctgs.scene.photos): no error and no gradient there, and no SSIM window sees the photo's values there."""
+    if mask is None:
+        return rgb, gt
+    zero = rgb.new_zeros(())
+    return torch.where(mask, rgb, zero), torch.where(mask, gt, zero)
+
+
+def recomposited(gt: torch.Tensor, alpha: torch.Tensor | None, base: torch.Tensor, bg: torch.Tensor) -> torch.Tensor:
+    """A transparent photo `gt` ([H, W, 3], composited over `base` [3]) over `bg` [3] instead, from its alpha
+    ([H, W, 1]; None: an opaque photo, returned as it is)."""
+    return gt if alpha is None else gt + (bg - base) * (1 - alpha)
+
+
 def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, stats=None,
                   rasterized=None, textures=None) -> LossTerms:
     """render, gt: [H, W, 3] in [0, 1]; stats: the view's ErrorStats, if rendered; rasterized: the render's

@@ -32,7 +32,7 @@ from ctgs.train.config import TrainConfig
 from ctgs.train.events import Checkpoint, Done, Eval, Step
 from ctgs.train.init import scene_model
 from ctgs.train.kmin import compute_k_min, view_coverage
-from ctgs.train.loss import training_loss
+from ctgs.train.loss import masked, recomposited, training_loss
 from ctgs.train.run import write_outputs
 from ctgs.train.strategies import make_strategy
 
@@ -54,6 +54,8 @@ class TrainView:
     name: str
     camera: object  # Camera on the training device
     image_t: torch.Tensor  # [H, W, 3] float32 in [0, 1]
+    mask_t: torch.Tensor | None = None  # [H, W, 1] bool: the pixels in the loss and the scores (None: all)
+    alpha_t: torch.Tensor | None = None  # [H, W, 1] a transparent photo's alpha (image_t is over cfg.background)
 
 
 def pick_device(cfg: TrainConfig) -> torch.device:
@@ -69,7 +71,10 @@ def make_views(views, device) -> list[TrainView]:
     for v in views:
         if v.image is None:
             raise UserError(f"{v.image_path}: image not loaded")
-        out.append(TrainView(v.name, v.camera.to(device), torch.from_numpy(np.ascontiguousarray(v.image)).to(device)))
+        extra = [None if x is None else torch.from_numpy(np.ascontiguousarray(x)).reshape(*x.shape[:2], 1).to(device)
+                 for x in (getattr(v, "mask", None), getattr(v, "alpha", None))]
+        out.append(TrainView(v.name, v.camera.to(device), torch.from_numpy(np.ascontiguousarray(v.image)).to(device),
+                             *extra))
     return out
 
 
@@ -222,12 +227,13 @@ class Trainer:
         net = load_lpips(device=self.device)[0] if self.cfg.test_lpips else None
         psnrs, ssims, lp = [], [], []
         for v in views:
-            rgb = self.render_fn(inputs, v.camera).rgb.clamp(0, 1)
-            mse = ((rgb - v.image_t) ** 2).mean().clamp_min(1e-12)
+            rgb, gt = masked(self.render_fn(inputs, v.camera).rgb.clamp(0, 1), v.image_t, v.mask_t)
+            used = 1.0 if v.mask_t is None else float(v.mask_t.float().mean())  # MSE over the pixels in use
+            mse = ((rgb - gt) ** 2).mean().div(used).clamp_min(1e-12)
             psnrs.append(float(-10 * torch.log10(mse)))
-            ssims.append(float(ssim(rgb, v.image_t)))
+            ssims.append(float(ssim(rgb, gt)))
             if net is not None:
-                lp.append(lpips_hwc(net, rgb, v.image_t))
+                lp.append(lpips_hwc(net, rgb, gt))
         return float(np.mean(psnrs)), float(np.mean(ssims)), (float(np.mean(lp)) if lp else None)
 
     # ---- guard -----------------------------------------------------------------------------------
@@ -348,7 +354,8 @@ class Trainer:
         rgb, rasterized = self._training_render(inputs, view, bg)
         for part in self.parts:
             rgb = part.train_render(self, rgb, view)
-        terms = training_loss(rgb, view.image_t, self.model, view.camera, cfg, rasterized=rasterized,
+        gt = view.image_t if bg is None else recomposited(view.image_t, view.alpha_t, self.background, bg)
+        terms = training_loss(*masked(rgb, gt, view.mask_t), self.model, view.camera, cfg, rasterized=rasterized,
                               textures=inputs.textures)
         loss = terms.total
         if cfg.debug_nan_at and it == cfg.debug_nan_at:
