@@ -1,8 +1,9 @@
 """`ctgs convert`: a scene folder written in another layout, so that a capture moves between ctgs, nerfstudio and
 gsplat's examples (COLMAP).
 
-Both layouts get OUT/images/ (the photos, copied as they are, or undistorted where the source had distortion) and
-masks/ where the source has masks. nerfstudio: transforms.json as `ns-process-data` writes it (OpenGL camera
+Both layouts get OUT/images/ (the photos, copied as they are, or undistorted where the source had distortion), the
+source's smaller levels (images_2/, images_4/, ... beside images/) where it has them for every photo, and masks/
+where the source has masks. nerfstudio: transforms.json as `ns-process-data` writes it (OpenGL camera
 axes, its `applied_transform`, the points in sparse_pc.ply, one shared camera at the top level or one per frame,
 the source's own train/test split as `train_filenames` / `test_filenames`). COLMAP: sparse/0 with PINHOLE cameras;
 COLMAP has no split, so a scene read from it takes every 8th view as a test view. Random initial points (a source
@@ -22,6 +23,7 @@ from ctgs.io import atomic
 from ctgs.io.images import read_image, write_image
 from ctgs.scene import conventions
 from ctgs.scene.colmap_write import PinholeCamera, write_colmap_model
+from ctgs.scene.levels import LEVEL
 from ctgs.scene.loader import load_scene
 from ctgs.scene.photos import read_mask
 from ctgs.scene.ply_points import write_points_ply
@@ -31,8 +33,16 @@ LAYOUTS = ("nerfstudio", "colmap")
 POINTS_PLY = "sparse_pc.ply"  # ns-process-data's name
 
 
-def _looks_converted(names: list[str]) -> bool:
-    return "images" in names and (TRANSFORMS in names or "sparse" in names)
+def _check_output(out_dir: str, force: bool) -> None:
+    """UserError unless OUT is absent or empty, or (--force) an earlier converted scene: only that is replaced."""
+    if not os.path.lexists(out_dir):
+        return
+    names = os.listdir(out_dir) if os.path.isdir(out_dir) and not os.path.islink(out_dir) else None
+    if names == [] or (force and names and "images" in names and (TRANSFORMS in names or "sparse" in names)):
+        return
+    what = "not a converted scene" if force else "not empty"
+    raise UserError(f"{out_dir}: exists and is {what}; choose another -o"
+                    + ("" if force else ", or pass --force to replace an earlier converted scene"))
 
 
 def _model_viewmat(camera, origin: np.ndarray) -> np.ndarray:
@@ -45,10 +55,28 @@ def _model_viewmat(camera, origin: np.ndarray) -> np.ndarray:
 def _image(view, out: str, name: str) -> None:
     """OUT/images/NAME: the file as it is, or its pixels undistorted (alpha kept) where the source had a lens."""
     dst = os.path.join(out, "images", name)
+    os.makedirs(os.path.dirname(dst), exist_ok=True)
     if view.distortion is None:
         shutil.copyfile(view.image_path, dst)
     else:
         write_image(dst, view.distortion.undistort(read_image(view.image_path)))
+
+
+def _levels(scene_dir: str, views: list, out: str) -> list[str]:
+    """The source's smaller image levels (images_N/ beside images/, the photos' names) copied to OUT where every
+    view has its file there and none was undistorted; the folder names."""
+    top = os.path.join(scene_dir, "images")
+    if any(v.distortion is not None or os.path.dirname(v.image_path) != top for v in views):
+        return []
+    copied = []
+    for level in sorted(d for d in os.listdir(scene_dir) if LEVEL.match(d)):
+        files = [(os.path.join(scene_dir, level, os.path.basename(v.image_path)), v.name) for v in views]
+        if all(os.path.isfile(src) for src, _ in files):
+            os.makedirs(os.path.join(out, level))
+            for src, name in files:
+                shutil.copyfile(src, os.path.join(out, level, name))
+            copied.append(level)
+    return copied
 
 
 def _mask(view, out: str, name: str) -> str | None:
@@ -63,17 +91,13 @@ def _mask(view, out: str, name: str) -> str | None:
 
 def convert_scene(scene_dir: str, out_dir: str, to: str, force: bool = False) -> dict:
     """Write SCENE_DIR (any layout ctgs reads) into OUT_DIR as `to` ("nerfstudio" or "colmap"); returns a summary
-    ({"views", "points", "layout", "masks", "undistorted", "note"})."""
+    ({"views", "points", "layout", "masks", "levels", "undistorted", "note"})."""
     if to not in LAYOUTS:
         raise UserError(f"--to {to}: unknown layout; use one of {', '.join(LAYOUTS)}")
     src, out = os.path.realpath(scene_dir), os.path.realpath(out_dir)
     if out == src or src.startswith(out + os.sep):
         raise UserError(f"{out_dir}: the output folder would replace the scene it is made from; choose another -o")
-    if force:
-        atomic.ensure_replaceable(out_dir, _looks_converted, "a converted scene")
-    elif os.path.exists(out_dir) and (not os.path.isdir(out_dir) or os.listdir(out_dir)):
-        raise UserError(f"{out_dir}: exists and is not empty; choose another -o, or pass --force to replace an "
-                        "earlier converted scene")
+    _check_output(out_dir, force)
     scene = load_scene(scene_dir, holdout=0, load_images=False)
     views = sorted(scene.train + scene.test, key=lambda v: v.name)
     test_names = {v.name for v in scene.test}
@@ -90,6 +114,7 @@ def convert_scene(scene_dir: str, out_dir: str, to: str, force: bool = False) ->
             mask = _mask(view, tmp, view.name)
             masks += mask is not None
             rows.append((view, _model_viewmat(view.camera, scene.origin), mask))
+        levels = _levels(os.path.abspath(scene_dir), views, tmp)
         if to == "nerfstudio":
             _write_nerfstudio(tmp, rows, points, colors, test_names if "split" in scene.meta else None)
         else:
@@ -102,7 +127,7 @@ def convert_scene(scene_dir: str, out_dir: str, to: str, force: bool = False) ->
         note = "the source has no points: neither has the converted scene (training starts from random points)"
     elif to == "colmap" and "split" in scene.meta:
         note = f"COLMAP has no train/test split: the source's ({scene.meta['split']}) is not kept"
-    return {"views": len(views), "points": len(points), "layout": to, "masks": masks,
+    return {"views": len(views), "points": len(points), "layout": to, "masks": masks, "levels": levels,
             "undistorted": sum(v.distortion is not None for v in views), "note": note}
 
 

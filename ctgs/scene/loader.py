@@ -273,7 +273,8 @@ def _transforms_level(scene_dir: str, frame: Frame, images: str) -> tuple[str, i
 def _load_transforms(scene_dir: str, images: str, holdout: int | None, load_images: bool, background) -> Scene:
     fs = read_transforms(scene_dir)
     with stderr_silenced():
-        sizes = {f.path: (lambda i: (i.width, i.height))(image_info(f.path)) for f in fs.frames}
+        infos = {f.path: image_info(f.path) for f in fs.frames}  # headers only: the sizes the files have
+    sizes = {path: (info.width, info.height) for path, info in infos.items()}
     check_image_sizes(fs.frames, sizes)
     sources = []
     for f in fs.frames:

@@ -22,6 +22,7 @@ def command(scene_dir: str, to: str, out_dir: str, force: bool) -> None:
     click.echo(f"{summary['layout']}: {summary['views']} views, {summary['points']} points"
                + (f", {summary['masks']} masks" if summary["masks"] else "")
                + (f", {summary['undistorted']} photos undistorted" if summary["undistorted"] else "")
+               + (f", levels {' '.join(summary['levels'])}" if summary["levels"] else "")
                + f" -> {out_dir}")
     if summary["note"]:
         click.echo(f"note: {summary['note']}")

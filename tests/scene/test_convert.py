@@ -28,6 +28,10 @@ def test_round_trip_through_nerfstudio(tiny_demo, tmp_path):
     mask[:, 40:] = 0
     write_image(os.path.join(tiny_demo, "masks", "002.png"), mask)
     ns, back = str(tmp_path / "ns"), str(tmp_path / "back")
+    level = tiny_demo / "images_2"
+    level.mkdir()
+    for name in os.listdir(tiny_demo / "images"):  # a level of another resampling than the one ctgs makes: copied
+        write_image(str(level / name), np.full((24, 32, 3), 0.25))
     assert "nerfstudio: 10 views, 600 points" in _convert(str(tiny_demo), "--to", "nerfstudio", "-o", ns)
     with open(os.path.join(ns, "transforms.json")) as f:
         doc = json.load(f)
@@ -44,6 +48,8 @@ def test_round_trip_through_nerfstudio(tiny_demo, tmp_path):
         if x.mask is not None:
             np.testing.assert_array_equal(x.mask, y.mask)
     np.testing.assert_allclose(b.points, a.points, atol=1e-6)
+    assert os.listdir(os.path.join(ns, "images_2")) == os.listdir(level)
+    np.testing.assert_allclose(load_scene(ns, images="images_2").train[0].image, 64 / 255)
 
 
 def test_blender_to_colmap_says_what_is_lost(tiny_demo, tmp_path):
@@ -69,4 +75,5 @@ def test_output_folder_rules(tiny_demo, tmp_path):
     done = str(tmp_path / "done")
     _convert(str(tiny_demo), "--to", "nerfstudio", "-o", done)
     _convert(str(tiny_demo), "--to", "colmap", "-o", done, "--force")  # an earlier converted scene: replaced
-    assert os.path.isdir(os.path.join(done, "sparse", "0")) and not os.path.exists(os.path.join(done, "transforms.json"))
+    assert os.path.isdir(os.path.join(done, "sparse", "0"))
+    assert not os.path.exists(os.path.join(done, "transforms.json"))
