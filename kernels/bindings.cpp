@@ -115,14 +115,15 @@ std::vector<Tensor> forward_pairs_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Ten
 }
 
 // Returns v_mu_c [N,3], v_Rc [N,3,3], v_scales [N,2], v_opacities [N], v_colors [N,3], v_texel_size [N,2],
-// v_textures [T,3], v_background [3].
-std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
-                                 Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
-                                 Tensor background, double fx, double fy, double cx, double cy, int64_t width,
-                                 int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
-                                 Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
-                                 int64_t num_threads, c10::optional<Tensor> setup_prims,
-                                 c10::optional<Tensor> setup_spans) {
+// v_textures [T,3], v_background [3]; with an error image [H, W] also contrib [N] and err [N], the error statistics
+// of the pixels blended (the forward's with that error image, up to rounding).
+std::vector<Tensor> backward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                  Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                  Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                  int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
+                                  Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
+                                  int64_t num_threads, c10::optional<Tensor> setup_prims,
+                                  c10::optional<Tensor> setup_spans, c10::optional<Tensor> error_image) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, fx, fy, cx, cy, width, height, near_plane, num_threads,
                               at::kCPU, "cpu");
@@ -154,6 +155,10 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   Tensor v_opacities = torch::empty_like(opacities), v_colors = torch::empty_like(colors);
   Tensor v_texel_size = torch::empty_like(texel_size), v_textures = torch::empty_like(textures);
   Tensor v_background = torch::empty_like(background);
+  const bool stats = error_image.has_value();
+  if (stats) check_tensor(*error_image, "error_image", "[H, W]", {H, W}, dt);
+  Tensor contrib = torch::empty({stats ? mu_c.size(0) : 0}, mu_c.options());
+  Tensor err = torch::empty({stats ? mu_c.size(0) : 0}, mu_c.options());
   AT_DISPATCH_FLOATING_TYPES(dt, "ctgs_backward_cpu", [&] {
     ctgs::cpu::BackwardOut<scalar_t> o;
     o.v_mu_c = v_mu_c.data_ptr<scalar_t>();
@@ -169,9 +174,38 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
                                   n_contrib.data_ptr<int32_t>(), v_rgb.data_ptr<scalar_t>(),
                                   v_alpha.data_ptr<scalar_t>(), v_depth.data_ptr<scalar_t>(), o,
                                   reuse && setup_prims->numel() ? setup_prims->data_ptr<uint8_t>() : nullptr,
-                                  reuse && setup_spans->numel() ? setup_spans->data_ptr<int32_t>() : nullptr);
+                                  reuse && setup_spans->numel() ? setup_spans->data_ptr<int32_t>() : nullptr,
+                                  stats ? error_image->data_ptr<scalar_t>() : nullptr,
+                                  stats ? contrib.data_ptr<scalar_t>() : nullptr,
+                                  stats ? err.data_ptr<scalar_t>() : nullptr);
   });
+  if (stats) return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background, contrib, err};
   return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};
+}
+
+std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                 Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                 Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                 int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
+                                 Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
+                                 int64_t num_threads, c10::optional<Tensor> setup_prims,
+                                 c10::optional<Tensor> setup_spans) {
+  return backward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, fx,
+                       fy, cx, cy, width, height, near_plane, tile_offsets, tile_list, final_T, n_contrib, v_rgb,
+                       v_alpha, v_depth, num_threads, setup_prims, setup_spans, c10::nullopt);
+}
+
+// backward_cpu, and the error statistics of error_image [H, W] (contiguous, the scene's dtype) over the pixels blended.
+std::vector<Tensor> backward_stats_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
+                                       Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
+                                       Tensor background, double fx, double fy, double cx, double cy, int64_t width,
+                                       int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
+                                       Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
+                                       int64_t num_threads, c10::optional<Tensor> setup_prims,
+                                       c10::optional<Tensor> setup_spans, Tensor error_image) {
+  return backward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, fx,
+                       fy, cx, cy, width, height, near_plane, tile_offsets, tile_list, final_T, n_contrib, v_rgb,
+                       v_alpha, v_depth, num_threads, setup_prims, setup_spans, error_image);
 }
 
 // Adam in place on p, m, v (all contiguous, same shape and dtype as g); lr: a float, or lr_tensor of p's
@@ -589,6 +623,7 @@ TORCH_LIBRARY_IMPL(ctgs, CPU, m) {
   m.impl("sh_color", &sh_color_cpu);
   m.impl("sh_color_backward", &sh_color_backward_cpu);
   m.impl("jagged_remap", &jagged_remap_cpu);
+  m.impl("rasterize_backward_stats", &backward_stats_cpu);
   m.impl("rasterize_pairs", &forward_pairs_cpu);
   m.impl("accumulate_pairs", &accumulate_pairs_cpu);
   m.impl("adam_step", &adam_step_cpu);

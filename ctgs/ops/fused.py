@@ -184,24 +184,24 @@ def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) 
 
 class _PhotometricLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, render, gt, lambda_ssim):
-        total, l1, s, grad, _ = torch.ops.ctgs.photometric_loss(render, gt, float(lambda_ssim),
-                                                               bool(ctx.needs_input_grad[0]), False,
+    def forward(ctx, render, gt, lambda_ssim, want_error):
+        total, l1, s, grad, e = torch.ops.ctgs.photometric_loss(render, gt, float(lambda_ssim),
+                                                               bool(ctx.needs_input_grad[0]), bool(want_error),
                                                                torch.get_num_threads())
         ctx.save_for_backward(grad)
-        ctx.mark_non_differentiable(l1, s)
-        return total, l1, s
+        ctx.mark_non_differentiable(l1, s, e)
+        return total, l1, s, e
 
     @staticmethod
-    def backward(ctx, grad_total, _grad_l1, _grad_ssim):
+    def backward(ctx, grad_total, _grad_l1, _grad_ssim, _grad_e):
         (grad,) = ctx.saved_tensors
-        return grad * grad_total, None, None
+        return grad * grad_total, None, None, None
 
 
-def photometric_loss(render: torch.Tensor, gt: torch.Tensor,
-                     lambda_ssim: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def photometric_loss(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float, want_error: bool = False):
     """(1 - lambda_ssim) mean |render - gt| + lambda_ssim (1 - mean SSIM) of two [H, W, C] images (SSIM as
-    ctgs.metrics.ssim): (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached).
+    ctgs.metrics.ssim): (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached), and with want_error
+    the error image of the same pass, e [H, W] = (1 - l) mean_c |render - gt| + l mean_c (1 - SSIM map) (detached).
 
     On the CPU one compiled pass computes the value and, if render needs it, the gradient
     (kernels/cpu/ssim.cpp; 5 blurred moment images, their adjoint for the gradient); it matches the
@@ -212,11 +212,15 @@ def photometric_loss(render: torch.Tensor, gt: torch.Tensor,
     if not gt.requires_grad and gt.dtype == render.dtype:
         render_c, gt_c = render.contiguous(), gt.contiguous()
         if fusable(render_c, gt_c):
-            return _PhotometricLoss.apply(render_c, gt_c, float(lambda_ssim))
-    l1 = (render - gt).abs().mean()
-    s = ssim_map(render, gt).mean()
-    total = (1 - lambda_ssim) * l1 + lambda_ssim * (1 - s)
-    return total, l1.detach(), s.detach()
+            total, l1, s, e = _PhotometricLoss.apply(render_c, gt_c, float(lambda_ssim), bool(want_error))
+            return (total, l1, s, e) if want_error else (total, l1, s)
+    l1_map = (render - gt).abs()
+    s_map = ssim_map(render, gt)
+    total = (1 - lambda_ssim) * l1_map.mean() + lambda_ssim * (1 - s_map.mean())
+    if not want_error:
+        return total, l1_map.mean().detach(), s_map.mean().detach()
+    e = ((1 - lambda_ssim) * l1_map.mean(-1) + lambda_ssim * (1 - s_map).mean(-1)).detach()
+    return total, l1_map.mean().detach(), s_map.mean().detach(), e
 
 
 def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float) -> torch.Tensor | None:

@@ -44,6 +44,11 @@ BOTH = (
 
 # CPU-only passes (their callers use PyTorch on other devices).
 CPU_ONLY = (
+    # rasterize_backward's gradients, then contrib [N] and err [N]: the error statistics of error_image [H, W] over the
+    # pixels blended (the forward's with that error image, w from T recovered by division)
+    f"rasterize_backward_stats({_SCENE}, Tensor tile_offsets, Tensor tile_list, Tensor final_T, Tensor n_contrib, "
+    "Tensor v_rgb, Tensor v_alpha, Tensor v_depth, int knob, Tensor? setup_prims, Tensor? setup_spans, "
+    "Tensor error_image) -> Tensor[]",
     # rgb, alpha, depth, and every blended pair: pix (y * W + x) int32, prim int32, w
     f"rasterize_pairs({_SCENE}, int num_threads, bool poison) -> Tensor[]",
     # per-primitive count int32, contrib, err over a forward's blended pairs and an error image e [H, W]

@@ -7,6 +7,6 @@ live on a GPU, else cpu). The exact semantics are in docs/reference/renderer.md.
 
 from ctgs.render.api import render
 from ctgs.render.camera import Camera
-from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
+from ctgs.render.types import BackwardStats, ErrorStats, RenderOutput, SurfelInputs
 
-__all__ = ["Camera", "ErrorStats", "RenderOutput", "SurfelInputs", "render"]
+__all__ = ["BackwardStats", "Camera", "ErrorStats", "RenderOutput", "SurfelInputs", "render"]

@@ -18,7 +18,7 @@ from ctgs.render.camera import Camera
 from ctgs.render.cuda_backend import render_cuda
 from ctgs.render.rasterize import rasterize, rasterize_error_fn
 from ctgs.render.reference import render_reference
-from ctgs.render.types import RenderOutput, SurfelInputs
+from ctgs.render.types import BackwardStats, RenderOutput, SurfelInputs
 
 BACKENDS = ("auto", "cpu", "cuda", "reference")
 # Debug aid: fresh output buffers start as NaN so a pixel the kernel never wrote shows up (tests set it).
@@ -185,7 +185,8 @@ def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | 
 
 
 def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_degree: int | None = None,
-           background: torch.Tensor | None = None, error_image: torch.Tensor | None = None) -> RenderOutput:
+           background: torch.Tensor | None = None, error_image: torch.Tensor | None = None,
+           backward_stats: BackwardStats | None = None) -> RenderOutput:
     """Render `surfels` (SurfelInputs) from `camera`.
 
     Args:
@@ -196,6 +197,8 @@ def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_d
             per-primitive error statistics (no gradient flows through them). May also be a function
             rgb [H, W, 3] -> [H, W] error of this very render (one pass instead of two on the cpu
             backend when no gradient is wanted; the statistics are the same).
+        backward_stats: a BackwardStats whose error image, set after this render, the cpu backend's backward
+            sums per primitive as well (no second render); other backends leave it empty.
     Returns: RenderOutput.
     """
     if backend not in BACKENDS:
@@ -219,7 +222,7 @@ def render(surfels: SurfelInputs, camera: Camera, *, backend: str = "auto", sh_d
     if means.device.type != "cpu":
         raise ValueError(f"the cpu backend needs CPU tensors (means is on {means.device}); pass backend='auto'")
     return rasterize(surfels, camera, degree, bg, error_image, device="cpu", knob=torch.get_num_threads(),
-                     poison=POISON_OUTPUTS)
+                     poison=POISON_OUTPUTS, backward_stats=backward_stats)
 
 
 def _render_error_fn(surfels: SurfelInputs, camera: Camera, backend: str, sh_degree: int | None,

@@ -9,7 +9,8 @@ the tensors' device:
                                     n_contrib, v_rgb, v_alpha, v_depth, knob, setup_prims, setup_spans)
       -> v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background
 `knob` is the OpenMP thread count on the CPU (the CUDA kernels run on the current stream); the setup is the CPU
-forward's per-primitive work handed to its backward (empty on CUDA, whose backward redoes it per tile).
+forward's per-primitive work handed to its backward (empty on CUDA, whose backward redoes it per tile). On the CPU,
+rasterize_backward_stats is the backward that also sums an error image's statistics (BackwardStats).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from ctgs.ops.ext import load_cpu
 from ctgs.ops.ext_cuda import load_cuda
 from ctgs.render.camera import Camera
 from ctgs.render.preprocess import to_camera_space
-from ctgs.render.types import ErrorStats, RenderOutput, SurfelInputs
+from ctgs.render.types import BackwardStats, ErrorStats, RenderOutput, SurfelInputs
 
 
 def _load(device: str):
@@ -39,7 +40,7 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, mu_c, Rc, scales, opacities, colors, texel_size, textures, background,
-                tex_res, tex_offset, camera, error_image, device, knob, poison):
+                tex_res, tex_offset, camera, error_image, device, knob, poison, backward_stats):
         cam = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
                int(camera.height), float(camera.near))
         forward_op, _ = _load(device)
@@ -50,7 +51,7 @@ class _Rasterize(torch.autograd.Function):
         setup = tuple(outs[10:12])
         ctx.save_for_backward(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, tile_offsets, tile_list, final_T, n_contrib, *setup)
-        ctx.cam, ctx.device, ctx.knob = cam, device, knob
+        ctx.cam, ctx.device, ctx.knob, ctx.backward_stats = cam, device, knob, backward_stats
         ctx.mark_non_differentiable(count, contrib, err, tile_list)
         return rgb, alpha, depth, count, contrib, err, tile_list
 
@@ -63,24 +64,32 @@ class _Rasterize(torch.autograd.Function):
         v_alpha = final_T.new_zeros(H, W) if v_alpha is None else v_alpha.contiguous()
         v_depth = final_T.new_zeros(H, W) if v_depth is None else v_depth.contiguous()
         _, backward_op = _load(ctx.device)
-        grads = backward_op(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
-                            background, *ctx.cam, tile_offsets, tile_list, final_T, n_contrib, v_rgb, v_alpha,
-                            v_depth, ctx.knob, *setup)
-        v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background = grads
+        args = (mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, *ctx.cam,
+                tile_offsets, tile_list, final_T, n_contrib, v_rgb, v_alpha, v_depth, ctx.knob, *setup)
+        sink = ctx.backward_stats
+        if sink is not None and sink.error_image is not None and ctx.device == "cpu":
+            e = sink.error_image.detach().to(final_T.dtype).contiguous()
+            grads = torch.ops.ctgs.rasterize_backward_stats(*args, e)
+            sink.contrib, sink.err = grads[8], grads[9]
+        else:
+            grads = backward_op(*args)
+        v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background = grads[:8]
         return (v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background,
-                None, None, None, None, None, None, None)
+                None, None, None, None, None, None, None, None)
 
 
 def rasterize(s: SurfelInputs, camera: Camera, sh_degree: int, background: torch.Tensor,
-              error_image: torch.Tensor | None, *, device: str, knob: int, poison: bool) -> RenderOutput:
-    """Validated inputs -> RenderOutput through the compiled backend of `device` ("cpu" or "cuda")."""
+              error_image: torch.Tensor | None, *, device: str, knob: int, poison: bool,
+              backward_stats: BackwardStats | None = None) -> RenderOutput:
+    """Validated inputs -> RenderOutput through the compiled backend of `device` ("cpu" or "cuda"); backward_stats:
+    filled by this render's backward on the CPU (BackwardStats)."""
     prims = to_camera_space(s.means, s.quats, s.sh, camera, sh_degree)
     k = s.texel_size if s.texel_size.ndim == 2 else s.texel_size[:, None].expand(-1, 2)
     rgb, alpha, depth, count, contrib, err, tile_list = _Rasterize.apply(
         prims.mu_c.contiguous(), prims.Rc.contiguous(), s.scales.contiguous(), s.opacities.contiguous(),
         prims.colors.contiguous(), k.contiguous(), s.textures.contiguous(), background.contiguous(),
         s.tex_res.contiguous(), s.tex_offset.contiguous(), camera,
-        None if error_image is None else error_image.detach().contiguous(), device, knob, poison)
+        None if error_image is None else error_image.detach().contiguous(), device, knob, poison, backward_stats)
     # Every primitive in some tile list: one scatter over the lists (a few per primitive), no PyTorch
     # replay of the binning's geometry per training step.
     rasterized = torch.zeros(s.num_primitives, dtype=torch.bool, device=rgb.device)

@@ -36,6 +36,19 @@ class ErrorStats:
 
 
 @dataclass
+class BackwardStats:
+    """Error statistics from a CPU render's backward (render(..., backward_stats=...)): the caller sets `error_image`
+    [H, W] (an error of this very render, e.g. the training loss's) before the backward runs; the backward then also
+    sums, per primitive, w and e w over the pixels it blended (as a forward given that error image would: the same
+    pairs, w up to rounding) into `contrib` and `err` [N]. Without an error image, or on another backend, they stay
+    None."""
+
+    error_image: torch.Tensor | None = None
+    contrib: torch.Tensor | None = None
+    err: torch.Tensor | None = None
+
+
+@dataclass
 class RenderOutput:
     rgb: torch.Tensor  # [H, W, 3]
     alpha: torch.Tensor  # [H, W] = 1 - final transmittance

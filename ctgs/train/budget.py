@@ -59,6 +59,14 @@ MAX_SWING = 2.0
 END_SLACK = 0.05
 # The shortest run any preset makes (`preview`): below it no recorded run says what the model is worth.
 SHORTEST_MEASURED = 1000
+# The schedule dates full routines (E over up to error_views training views, splits, texel rescaling) and test
+# evaluations at fractions of the run, so a run holds as many of them whatever its length: a short plan (a small
+# budget, a busy machine) packs them into less time. On a bonsai252 run at 200x133 given 10 minutes on a machine slowed
+# 2.3x, 31 routines came every 6-8 iterations, took most of the budget, and the run ended after 238 iterations at
+# 18.1 dB. A budgeted run keeps each kind within its share of the time its steps take: where the dates at the
+# schedule's fractions would cost more, only every k-th is kept (the calendar's stride k, re-chosen at every re-plan;
+# a fixed-length run keeps every date).
+SHARE = {"routine": 0.15, "eval": 0.05}
 
 
 def _trimmed_mean(values) -> float:
@@ -151,6 +159,8 @@ class BudgetPlanner:
         # The periodic calendar's phase shift (ctgs.train.schedule.every): moved at each re-plan that changes the
         # length, so routines, evaluations and checkpoints keep their spacing; 0 for a run that is never re-planned.
         self.shift = 0.0
+        # Stride of the routine and evaluation calendars (SHARE): 1 keeps every date; set by each plan.
+        self.stride = {kind: 1 for kind in SHARE}
         self._window_cache: tuple = (None, None)
 
     # ---- measurements ------------------------------------------------------------------------------
@@ -184,6 +194,7 @@ class BudgetPlanner:
             self.observe_estimate(0)
             return self.cfg.iterations
         n = self._solve(0)
+        self.stride = self._strides(0, n)
         self.plan.initial_iterations = self.plan.iterations = n
         self.plan.history.append((0, n, round(self.budget_s_left(), 1)))
         return n
@@ -284,6 +295,7 @@ class BudgetPlanner:
             # bounded swing of the iterations left (at least one more step while the budget lasts)
             left = max(n - it, 1)
             new = min(max(new, it + max(1, math.ceil(left / MAX_SWING))), it + max(1, math.floor(left * MAX_SWING)))
+        self.stride = self._strides(it, new)
         self.plan.replans += 1
         if new != n and len(self.plan.history) < 200:
             self.plan.history.append((it, new, round(self.budget_s_left(), 1)))
@@ -318,8 +330,15 @@ class BudgetPlanner:
         textured = it > self.tex_at if self.tex_at is not None else p > a
         return self.jump * g if textured else 1.0
 
-    def _predict(self, it: int, n: int) -> float:
-        """Seconds from now to the end of a run of n iterations (at iteration `it` now)."""
+    def date_cost(self, kind: str, it: int) -> float:
+        """Predicted wall seconds of a routine or periodic evaluation ("routine", "eval") at iteration `it`."""
+        speed = self.base / self.base_calib if self.base_calib > 0 else 1.0
+        seen, cost = (self.routine_seen, self.t_routine) if kind == "routine" else (self.eval_seen, self.t_eval)
+        return cost * (1.0 if seen else speed) * self._g_now(it)
+
+    def _costs(self, it: int, n: int) -> tuple[float, dict]:
+        """(seconds from now to the end of a run of n iterations, at iteration `it` now, without its routines and
+        periodic evaluations; {kind: those seconds at every date of the schedule's calendar})."""
         c = replace(self.cfg, iterations=n)
         window = self._growth_window(c)
         # Training steps: midpoint rule over 64 slices of the remaining run.
@@ -332,13 +351,28 @@ class BudgetPlanner:
         speed = self.base / self.base_calib if self.base_calib > 0 else 1.0
         t_routine = self.t_routine * (1.0 if self.routine_seen else speed)
         t_eval = self.t_eval * (1.0 if self.eval_seen else speed)
-        total += self._count_routines(c, it, n) * t_routine * g_late
-        if c.test_every:
-            total += self._count(c, c.test_every, it, n - 1) * t_eval * g_late
+        dated = {"routine": self._count_routines(c, it, n) * t_routine * g_late,
+                 "eval": self._count(c, c.test_every, it, n - 1) * t_eval * g_late if c.test_every else 0.0}
         if c.checkpoint_every:
             total += self._count(c, c.checkpoint_every, it, n - 1) * self.t_ckpt
         total += t_eval * g_late + self.t_save  # final evaluation and outputs
-        return total
+        return total, dated
+
+    def _strides(self, it: int, n: int, costs: tuple | None = None) -> dict:
+        """{kind: the smallest calendar stride k that keeps that kind's dates within its SHARE of the time the rest of
+        a run of n iterations takes} (1 everywhere for a fixed-length run)."""
+        if self.fixed:
+            return {kind: 1 for kind in SHARE}
+        rest, dated = costs if costs is not None else self._costs(it, n)
+        return {kind: max(1, math.ceil(dated[kind] * (1 - share) / (share * max(rest, 1e-9)) - 1e-9))
+                for kind, share in SHARE.items()}
+
+    def _predict(self, it: int, n: int) -> float:
+        """Seconds from now to the end of a run of n iterations (at iteration `it` now), its routine and evaluation
+        calendars thinned to their shares (_strides)."""
+        rest, dated = costs = self._costs(it, n)
+        strides = self._strides(it, n, costs)
+        return rest + sum(dated[kind] / strides[kind] for kind in dated)
 
     @staticmethod
     def _count(c: TrainConfig, paper_period: float, lo: int, hi: int) -> int:
@@ -392,7 +426,7 @@ class BudgetPlanner:
                 "texture_start_scheduled_fraction": (round(self.cfg.texture_start / schedule.PAPER_ITERATIONS, 5)
                                                      if self.cfg.method == "content_aware"
                                                      and self.cfg.schedule_scale <= 0 else None),
-                "replans": p.replans, "plan_history": p.history}
+                "replans": p.replans, "plan_history": p.history, "calendar_stride": dict(self.stride)}
 
     def state_dict(self) -> dict:
         return {"plan": vars(self.plan).copy(), "growth": self.growth, "base": self.base, "recent": list(self.recent),
@@ -400,7 +434,7 @@ class BudgetPlanner:
                 "tex_at": self.tex_at, "n_obs": self.n_obs, "n_obs_planned": self.n_obs_planned,
                 "t_routine": self.t_routine, "t_eval": self.t_eval, "routine_seen": self.routine_seen,
                 "eval_seen": self.eval_seen, "base_calib": self.base_calib, "t_ckpt": self.t_ckpt, "t_save": self.t_save,
-                "last_replan": self.last_replan, "shift": self.shift}
+                "last_replan": self.last_replan, "shift": self.shift, "stride": dict(self.stride)}
 
     def load_state_dict(self, state: dict) -> None:
         self.plan = Plan(**state["plan"])
@@ -418,3 +452,4 @@ class BudgetPlanner:
                                                                                       "t_save"))
         self.last_replan = state["last_replan"]
         self.shift = state.get("shift", 0.0)  # older checkpoints: the calendar had no phase shift
+        self.stride = {kind: 1 for kind in SHARE} | state.get("stride", {})  # older checkpoints: every date kept

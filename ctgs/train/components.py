@@ -11,7 +11,7 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.train import calibration, schedule, size_budget
-from ctgs.train.budget import BudgetPlanner
+from ctgs.train.budget import SHARE, BudgetPlanner
 from ctgs.train.events import Estimated, Planned, Routine
 from ctgs.train.exposure import Exposure
 from ctgs.train.hooks import Component
@@ -151,6 +151,7 @@ class TimeBudget(Component):
     def __init__(self):
         self.planner = None
         self.estimator = None
+        self.last_kept: dict = {}  # {calendar kind: iteration of its last date kept} (admits)
 
     @property
     def clock(self) -> BudgetPlanner | None:
@@ -160,6 +161,19 @@ class TimeBudget(Component):
     def shift(self) -> float:
         """The periodic calendar's phase shift: the planner's (moved by its re-plans), else 0."""
         return self.planner.shift if self.planner is not None else 0.0
+
+    def admits(self, tr, kind: str, it: int) -> bool:
+        """A date of the `kind` calendar ("routine", "eval") at iteration `it`: kept, unless it would take that kind's
+        wall seconds so far past its share of the run's (ctgs.train.budget.SHARE; the first date of each kind is
+        always kept). A fixed-length run keeps every date."""
+        if self.planner is None or kind not in self.last_kept:
+            self.last_kept[kind] = it
+            return True
+        cost = self.planner.date_cost(kind, it)
+        if tr.spent[kind] + cost > SHARE[kind] * (tr.wall_seconds() + cost):
+            return False
+        self.last_kept[kind] = it
+        return True
 
     @property
     def textures_may_start(self) -> bool:
@@ -180,13 +194,14 @@ class TimeBudget(Component):
         if tr.user_cfg.time_budget <= 0:
             return
         self.planner = self._planner(tr)
+        self.last_kept = dict(state.get("calendar_last_kept", {}))
         if "planner" in state:
             self.planner.load_state_dict(state["planner"])
             if tr.strategy.textures_started and self.planner.tex_at is None:  # a checkpoint of an earlier planner
                 self.planner.observe_texture_start(min(tr.it, schedule.texture_start(tr.cfg)))
 
     def checkpoint(self) -> dict:
-        return {"planner": self.planner.state_dict()} if self.planner else {}
+        return {"planner": self.planner.state_dict(), "calendar_last_kept": dict(self.last_kept)} if self.planner else {}
 
     def begin(self, tr):
         if self.estimator is not None:

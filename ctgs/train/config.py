@@ -133,6 +133,12 @@ class TrainConfig:
     error_pixels: float = _f(0.0, "> 0: E from at most this many pixels per full routine (views x training image "
                              "size): error_views becomes at most error_pixels / HW views, at least 1 (rules.py), so a "
                              "routine costs the same renders at any image size; 0 = error_views as written")
+    error_from_steps: bool = _f(False, "CPU backend: E from the training steps since the last full routine instead of "
+                                "renders of training views at the routine: each step's backward also sums the "
+                                "statistics of its loss's error image (with the step's exposure gain and "
+                                "background), so a routine renders nothing; the model of each step is the one "
+                                "it saw, not the routine's. Other backends, init_shell runs and a routine with "
+                                "no step since the last one render E as error_views says; false = the paper")
     top_fraction: float = _f(0.1, "fraction of primitives with the largest E eligible for split/upscale")
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
     tau_tr_start: float = _f(64.0, "split threshold on active texture resolution at iteration 0")

@@ -77,3 +77,41 @@ def top_fraction_mask(values: torch.Tensor, fraction: float) -> torch.Tensor:
         return values > 0
     thr = torch.kthvalue(values.float().cpu(), k).values.to(values.device)
     return (values > thr) & (values > 0)
+
+
+class StepErrors:
+    """E accumulated over training steps (config error_from_steps): each step's backward sums its loss's error image
+    per primitive (ctgs.render.BackwardStats), and the steps since the last full routine stand for E's views, with
+    accumulate_error's formula (in float64 running sums). A change of the primitives (a routine) starts it afresh."""
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self.num = self.den = self.support = None
+        self.steps = 0
+
+    @torch.no_grad()
+    def add(self, contrib: torch.Tensor, err: torch.Tensor, hw: int) -> None:
+        c = contrib.detach().double() / hw
+        if self.num is None or self.num.shape != c.shape:
+            self.num, self.den = torch.zeros_like(c), torch.zeros_like(c)
+            self.support, self.steps = torch.zeros_like(contrib.detach()), 0
+        self.num += (err.detach().double() / hw) * c
+        self.den += c
+        self.support = torch.maximum(self.support, contrib.detach())
+        self.steps += 1
+
+    def covers(self, n: int) -> bool:
+        """Statistics of at least one step of the current n primitives."""
+        return self.steps > 0 and self.num is not None and self.num.shape[0] == n
+
+    def E(self) -> torch.Tensor:
+        return torch.where(self.den > 0, self.num / self.den.clamp_min(1e-30), torch.zeros_like(self.num)).float()
+
+    def state_dict(self) -> dict:
+        return {"num": self.num, "den": self.den, "support": self.support, "steps": self.steps}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.num, self.den, self.support = state["num"], state["den"], state["support"]
+        self.steps = int(state["steps"])

@@ -32,6 +32,7 @@ class LossTerms:
     l1: float
     ssim: float
     psnr: float
+    error_image: torch.Tensor | None = None  # [H, W] the photometric error per pixel (want_error), detached
 
 
 @torch.no_grad()
@@ -126,12 +127,13 @@ def recomposited(gt: torch.Tensor, alpha: torch.Tensor | None, base: torch.Tenso
 
 
 def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, stats=None,
-                  rasterized=None, textures=None) -> LossTerms:
+                  rasterized=None, textures=None, want_error: bool = False) -> LossTerms:
     """render, gt: [H, W, 3] in [0, 1]; stats: the view's ErrorStats, if rendered; rasterized: the render's
     [N] mask of rasterized primitives, if it has one (see texture_weights); textures: the activated texel
-    offsets the render used (SurfelInputs.textures), if the caller kept them (see ctgs.ops.fused.texel_l1)."""
+    offsets the render used (SurfelInputs.textures), if the caller kept them (see ctgs.ops.fused.texel_l1);
+    want_error: also the photometric error image of the pass (LossTerms.error_image: E's per-pixel error)."""
     # (1 - l) L1 + l (1 - SSIM): one fused pass, gradient included, on the CPU (kernels/cpu/ssim.cpp).
-    total, l1, s = photometric_loss(render, gt, cfg.lambda_ssim)
+    total, l1, s, *error = photometric_loss(render, gt, cfg.lambda_ssim, want_error=want_error)
     if cfg.lambda_opacity > 0:
         if cfg.opacity_reg_visible:
             # Only what this view rasterizes: a primitive no view shows gets no gradient, so Adam cannot move it
@@ -148,4 +150,5 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, st
         # sum_i weights[i] sum |texel of i|: one fused pass on the CPU, no [T] weight tensor.
         total = total + cfg.lambda_texture * texel_l1(model, weights, textures)
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)
-    return LossTerms(total=total, l1=float(l1), ssim=float(s), psnr=float(-10 * torch.log10(mse)))
+    return LossTerms(total=total, l1=float(l1), ssim=float(s), psnr=float(-10 * torch.log10(mse)),
+                     error_image=error[0] if error else None)

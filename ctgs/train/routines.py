@@ -22,7 +22,7 @@ def error_views(views, cfg, it: int) -> list:
 
 @torch.no_grad()
 def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None, lean: bool = True,
-                 gains=None) -> dict:
+                 gains=None, step_errors=None) -> dict:
     """E over the training views (all, or cfg.error_views of them); split (tau_tr), upscale top E (t2p_exp > min),
     downscale the others (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
 
@@ -31,13 +31,18 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     gains: {view name: gain} for E (compute_E; exposure_in_E), or None.
     lean=False: upscale first, to 2x, then downscale, and let realloc crop (the paper's order; the same final state
     with up to ~2x the texels in between: tests/train/test_routines_image.py, benchmarks/results/lean_routine/).
+    step_errors: E (and its support) from the training steps since the last routine (ctgs.train.error.StepErrors),
+    when they cover the model's primitives; otherwise E is rendered over `views`.
     """
     support = None
-    views = error_views(views, cfg, it)
-    if cfg.max_params > 0:
-        E, support = compute_E(model, views, render_fn, cfg.lambda_ssim, with_support=True, gains=gains)
+    from_steps = step_errors is not None and step_errors.covers(model.num_primitives)
+    if from_steps:
+        E, support = step_errors.E(), (step_errors.support if cfg.max_params > 0 else None)
+    elif cfg.max_params > 0:
+        E, support = compute_E(model, error_views(views, cfg, it), render_fn, cfg.lambda_ssim, with_support=True,
+                               gains=gains)
     else:
-        E = compute_E(model, views, render_fn, cfg.lambda_ssim, gains=gains)
+        E = compute_E(model, error_views(views, cfg, it), render_fn, cfg.lambda_ssim, gains=gains)
     if background is None:
         top = top_fraction_mask(E, cfg.top_fraction)
     else:
@@ -69,7 +74,8 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     budget = size_budget.fit(model, opt, cfg, keep=up[kept], support=None if support is None else support[kept])
     return {"E_mean": float(E.mean()) if E.numel() else 0.0, "E_p90": float(E.quantile(0.9)) if E.numel() else 0.0,
             "tau_tr": schedule.tau_tr(cfg, it), "n_before": n0, "split": n_split, "upscaled": int(up.sum()),
-            "downscaled": int(down.sum()), "pruned": n_pruned, **(budget or {})}
+            "downscaled": int(down.sum()), "pruned": n_pruned, "E_steps": step_errors.steps if from_steps else 0,
+            **(budget or {})}
 
 
 @torch.no_grad()

@@ -8,7 +8,8 @@ RUN_DIR/train_summary.json  {"iterations", "train_seconds", "backend", "device",
                             "num_texels", "num_params", "final_test_psnr", "final_test_ssim", "method", ...};
                             a --time-budget run adds its plan (time_budget_s, planned_iterations_initial, ...), a
                             fresh run of fixed length its wall-time estimates (estimated_wall_s, estimated_at_it);
-                            eval_peak: the periodic evaluation with the highest PSNR ({"it", "psnr", "ssim", "views"})
+                            eval_peak: the periodic evaluation with the highest PSNR ({"it", "psnr", "ssim", "views"});
+                            seconds_in: wall seconds spent in routines, periodic evaluations and checkpoints
 RUN_DIR/checkpoints/        resume state;  RUN_DIR/log.jsonl  per-step / per-routine records
 
 Reading a finished run is ctgs.train.run_model.load_run (weights only: model.pt holds no pickled objects).
@@ -63,7 +64,10 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
                "preset": trainer.user_cfg.preset, "wall_seconds": round(trainer.wall_seconds(), 2),
                "image_pixels": trainer.pixels, "observed_values": trainer.observed_values(),
                "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1),
-               "scene_extent": trainer.extent, "near_plane": trainer.near}
+               "scene_extent": trainer.extent, "near_plane": trainer.near,
+               "seconds_in": {k: round(v, 2) for k, v in trainer.spent.items()}}
+    # pairs model.pt with this summary: a model.pt copied in from another run is refused (ctgs.train.run_model)
+    summary["model_id"] = model_id = uuid.uuid4().hex
     if cfg.max_params > 0:
         summary["max_params"] = cfg.max_params
         if trainer.user_cfg.max_params == 0 and trainer.user_cfg.max_params_per_value > 0:

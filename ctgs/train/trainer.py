@@ -43,6 +43,11 @@ def _all_finite(t: torch.Tensor) -> bool:
     return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
+# What the run's wall time went to besides its steps (train_summary.json "seconds_in"): full and late routines,
+# reallocations and texture starts ("routine"), periodic test evaluations ("eval"), checkpoints ("checkpoint").
+SPENT_KINDS = ("routine", "eval", "checkpoint")
+
+
 class TrainingDiverged(UserError):
     """NaN/Inf in the loss or the parameters: training stopped, the last checkpoint is kept."""
 
@@ -128,6 +133,7 @@ class Trainer:
         self.parts = [self.strategy, *make_components(self, scene)]
         self.exposure, self.time = self.part(ExposureCompensation), self.part(TimeBudget)
         self.wall_before = 0.0  # wall seconds of earlier sessions of this run (resume)
+        self.last_routines_s = 0.0  # wall seconds of the last step's routines (their log records)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         os.makedirs(os.path.join(run_dir, "checkpoints"), exist_ok=True)
@@ -153,6 +159,7 @@ class Trainer:
         self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)
         self.opt = SurfelAdam(self.model, self.cfg.adam_eps)
         self.it, self.train_seconds, self.perm, self.perm_pos, self.log_lines, self.saved_it = 0, 0.0, None, 0, 0, 0
+        self.spent = dict.fromkeys(SPENT_KINDS, 0.0)
         for part in self.parts:
             part.initialize(self)
         open(self.log_path, "w").close()
@@ -166,6 +173,7 @@ class Trainer:
         self.cfg.iterations = int(state.get("planned_iterations", self.cfg.iterations))
         self.wall_before = float(state.get("wall_seconds", 0.0))
         self.train_seconds = float(state["train_seconds"])
+        self.spent = dict.fromkeys(SPENT_KINDS, 0.0) | state.get("spent", {})  # older checkpoints: not counted
         self.perm, self.perm_pos = state["perm"], int(state["perm_pos"])
         for part in self.parts:
             part.restore(self, state)
@@ -176,7 +184,8 @@ class Trainer:
         state = {"model": self.model.state_dict(), "opt": self.opt.state_dict(), "iteration": self.it,
                  "train_seconds": self.train_seconds, "perm": self.perm, "perm_pos": self.perm_pos,
                  "rng": ckpt.rng_state(self.gen), "log_lines": self.log_lines, "config": self.user_cfg.to_dict(),
-                 "planned_iterations": self.cfg.iterations, "wall_seconds": self.wall_seconds()}
+                 "planned_iterations": self.cfg.iterations, "wall_seconds": self.wall_seconds(),
+                 "spent": dict(self.spent)}
         for part in self.parts:
             state.update(part.checkpoint())
         return state
@@ -206,9 +215,10 @@ class Trainer:
         self.log_lines += 1
 
     # ---- rendering -------------------------------------------------------------------------------
-    def render_fn(self, inputs, camera, error_image=None, background=None):
+    def render_fn(self, inputs, camera, error_image=None, background=None, backward_stats=None):
         return render(inputs, camera, backend=self.cfg.backend, sh_degree=self.model.sh_degree,
-                      background=self.background if background is None else background, error_image=error_image)
+                      background=self.background if background is None else background, error_image=error_image,
+                      backward_stats=backward_stats)
 
     def _next_view(self) -> TrainView:
         if self.perm is None or self.perm_pos >= len(self.perm):
@@ -268,13 +278,14 @@ class Trainer:
             f"this way: check the scene (`ctgs sfm` writes a report) and --images")
 
     # ---- loop ------------------------------------------------------------------------------------
-    def _training_render(self, inputs, view, bg):
+    def _training_render(self, inputs, view, bg, backward_stats=None):
         """(rgb, rasterized) of a training step over `bg` (None: cfg.background): one render, or a part's (init_shell:
-        the scene composited over the far primitives where the view sees past the SfM points, two renders)."""
+        the scene composited over the far primitives where the view sees past the SfM points, two renders).
+        backward_stats: filled by the plain render's backward (ctgs.render.BackwardStats)."""
         for part in self.parts:
             if (out := part.render(self, inputs, view, bg)) is not None:
                 return out
-        out = self.render_fn(inputs, view.camera, background=bg)
+        out = self.render_fn(inputs, view.camera, background=bg, backward_stats=backward_stats)
         return out.rgb, out.rasterized
 
     def run(self):
@@ -299,7 +310,7 @@ class Trainer:
                        self.train_seconds)
             yield from self._logged(events)
             # scored before the step at each test multiple, where routines and opacity resets fall (after one: ~14 dB)
-            if self._due(cfg.test_every, it + 1):
+            if self._due(cfg.test_every, it + 1) and self.time.admits(self, "eval", it + 1):
                 yield self._evaluation(it, timed=True)
             if self._due(cfg.checkpoint_every, it):
                 t0 = time.perf_counter()
@@ -309,7 +320,10 @@ class Trainer:
             for part in self.parts:
                 yield from part.after_step(self, it)
         for part in self.parts:
-            yield from self._logged(part.finish(self))
+            t0 = time.perf_counter()
+            events = list(part.finish(self))
+            self.last_routines_s = time.perf_counter() - t0
+            yield from self._logged(events)
         final = self._evaluation(self.it)
         yield final
         self._save_checkpoint()
@@ -321,6 +335,7 @@ class Trainer:
             and it < self.cfg.iterations
 
     def _timed(self, what: str, seconds: float, it: int) -> None:
+        self.spent[what] += seconds
         for part in self.parts:
             part.timed(self, what, seconds, it)
 
@@ -336,7 +351,7 @@ class Trainer:
         """Log and pass on routine events."""
         for ev in events:
             self.log({"type": "routine", "it": ev.it, "kind": ev.kind, **ev.stats, "n": self.model.num_primitives,
-                      "texels": self.model.num_texels})
+                      "texels": self.model.num_texels, "step_routines_s": round(self.last_routines_s, 4)})
             yield ev
 
     def _train_step(self, cfg: TrainConfig):
@@ -351,12 +366,15 @@ class Trainer:
         # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
         bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
         inputs = self.model.render_inputs()
-        rgb, rasterized = self._training_render(inputs, view, bg)
+        stats = self.strategy.step_stats(self)  # error_from_steps: the backward sums the loss's error image
+        rgb, rasterized = self._training_render(inputs, view, bg, stats)
         for part in self.parts:
             rgb = part.train_render(self, rgb, view)
         gt = view.image_t if bg is None else recomposited(view.image_t, view.alpha_t, self.background, bg)
         terms = training_loss(*masked(rgb, gt, view.mask_t), self.model, view.camera, cfg, rasterized=rasterized,
-                              textures=inputs.textures)
+                              textures=inputs.textures, want_error=stats is not None)
+        if stats is not None:
+            stats.error_image = terms.error_image
         loss = terms.total
         if cfg.debug_nan_at and it == cfg.debug_nan_at:
             loss = loss * float("nan")  # testing hook for the NaN guard
@@ -377,6 +395,9 @@ class Trainer:
             self._no_primitives_left(events)
         t2 = time.perf_counter()
         self.train_seconds += t2 - t0
+        self.last_routines_s = t2 - t1
+        if events:
+            self.spent["routine"] += t2 - t1
         for part in self.parts:
             part.timed_step(self, it, t1 - t0, t2 - t1, events)
         return it, loss, terms, lrs, events

@@ -21,7 +21,10 @@ namespace cpu {
 
 namespace {
 // Layout of one primitive's gradient row in the per-thread buffers.
-enum : int { G_MU = 0, G_RC = 3, G_SCALE = 12, G_OPACITY = 14, G_COLOR = 15, G_TEXEL = 18, G_STRIDE = 20 };
+// G_CONTRIB, G_ERR: the error statistics of a backward given an error image (the forward's with error_image:
+// sum of w, sum of e w over the pixels blended).
+enum : int { G_MU = 0, G_RC = 3, G_SCALE = 12, G_OPACITY = 14, G_COLOR = 15, G_TEXEL = 18, G_CONTRIB = 20, G_ERR = 21,
+             G_STRIDE = 22 };
 // Above this many bytes of extra per-thread texel-gradient copies, atomics are used instead.
 constexpr size_t MAX_PRIVATE_TEXEL_BYTES = size_t(256) << 20;
 
@@ -35,6 +38,7 @@ struct BackwardTileArgs {
   const S* v_rgb;
   const S* v_alpha;
   const S* v_depth;
+  const S* error_image;  // [H, W] or null: no error statistics
   int ntx;
   S* g_thread;    // [N, G_STRIDE] this thread's per-primitive gradients
   S* v_tex;       // [T, 3] this thread's texel gradients
@@ -52,7 +56,7 @@ enum : unsigned char { SEEN_ROW = 1, SEEN_TEX = 2 };
 // Per-lane sums of one primitive over one tile.
 template <typename S>
 struct GradSums {
-  typename Lanes<S>::V color[3], opacity, sx, sy, mx, my, ku, kv, lx, ly, s, u[3], v[3], n[3], z_invalid;
+  typename Lanes<S>::V color[3], opacity, sx, sy, mx, my, ku, kv, lx, ly, s, u[3], v[3], n[3], z_invalid, cw, ew;
 };
 
 template <typename S>
@@ -69,7 +73,8 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
   const int64_t begin = b.bins->offsets[tile];
   const int x0 = (tile % b.ntx) * TILE_W, y0 = (tile / b.ntx) * TILE_H;
   const int x1 = std::min(x0 + TILE_W, Wimg), y1 = std::min(y0 + TILE_H, Himg);  // exclusive
-  alignas(32) S T[NP], acc[NP], g0[NP], g1[NP], g2[NP], gD[NP], dn[NP];
+  alignas(32) S T[NP], acc[NP], g0[NP], g1[NP], g2[NP], gD[NP], dn[NP], ev[NP];
+  const bool stats = b.error_image != nullptr;
   alignas(32) Int ncon[NP];
   alignas(32) S pxa[RS], dxa[RS], pya[TILE_H], dya[TILE_H];
   const S bg[3] = {a.background[0], a.background[1], a.background[2]};
@@ -85,7 +90,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
       const int p = r * RS + k;
       dn[p] = sqrt(dxa[k] * dxa[k] + dya[r] * dya[r] + S(1) * S(1));
       if (!(y0 + r < y1 && x0 + k < x1 && k < TILE_W)) {
-        T[p] = acc[p] = g0[p] = g1[p] = g2[p] = gD[p] = S(0);
+        T[p] = acc[p] = g0[p] = g1[p] = g2[p] = gD[p] = ev[p] = S(0);
         ncon[p] = 0;  // padding: no entry is ever in front of where it stopped
         continue;
       }
@@ -93,6 +98,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
       g0[p] = b.v_rgb[3 * pix];
       g1[p] = b.v_rgb[3 * pix + 1];
       g2[p] = b.v_rgb[3 * pix + 2];
+      ev[p] = stats ? b.error_image[pix] : S(0);
       gD[p] = b.v_depth[pix];
       T[p] = b.final_T[pix];
       b.bg_thread[0] += T[p] * g0[p];
@@ -128,7 +134,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
     }
     const int32_t* sp = P.spans + 2 * (ry0 - r.y0);
     GradSums<S> g;
-    g.opacity = g.sx = g.sy = g.mx = g.my = g.ku = g.kv = g.lx = g.ly = g.s = g.z_invalid = zero;
+    g.opacity = g.sx = g.sy = g.mx = g.my = g.ku = g.kv = g.lx = g.ly = g.s = g.z_invalid = g.cw = g.ew = zero;
     for (int c = 0; c < 3; ++c) g.color[c] = g.u[c] = g.v[c] = g.n[c] = zero;
     bool any_pass = false;
     for (int y = ry0; y <= ry1; ++y, sp += 2) {
@@ -162,6 +168,10 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
         const V one_minus = sel(om > S(T_RECOVER_EPS), om, splat(S(T_RECOVER_EPS)));
         const V T_i = Tv / one_minus;
         const V w = h.alpha * T_i;
+        if (stats) {
+          g.cw += sel(pass, w, zero);
+          g.ew += sel(pass, w * vload<V>(ev + p0), zero);
+        }
         const V f = c[0] * gc[0] + c[1] * gc[1] + c[2] * gc[2] + h.z * gd;
         const V v_a = T_i * f - accv / one_minus;
         // Colour: no gradient where clamped (c_raw <= 0); the texture gets what the colour gets.
@@ -242,15 +252,15 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
     if (!any_pass) continue;
     // The 22 lane sums of this primitive and tile at once (lanes.h hsums: the same sums as hsum, bit for bit).
     enum { H_LX, H_LY, H_S, H_MX, H_MY, H_ZI, H_U, H_V = H_U + 3, H_N = H_V + 3, H_SX = H_N + 3, H_SY, H_OP,
-           H_COL, H_KU = H_COL + 3, H_KV, H_COUNT };
+           H_COL, H_KU = H_COL + 3, H_KV, H_CW, H_EW, H_COUNT };
     V hv[H_COUNT];
     hv[H_LX] = g.lx, hv[H_LY] = g.ly, hv[H_S] = g.s, hv[H_MX] = g.mx, hv[H_MY] = g.my, hv[H_ZI] = g.z_invalid;
     for (int k = 0; k < 3; ++k) hv[H_U + k] = g.u[k], hv[H_V + k] = g.v[k], hv[H_N + k] = g.n[k];
     hv[H_SX] = g.sx, hv[H_SY] = g.sy, hv[H_OP] = g.opacity;
     for (int ch = 0; ch < 3; ++ch) hv[H_COL + ch] = g.color[ch];
-    hv[H_KU] = g.ku, hv[H_KV] = g.kv;
+    hv[H_KU] = g.ku, hv[H_KV] = g.kv, hv[H_CW] = g.cw, hv[H_EW] = g.ew;
     alignas(32) S hs[H_COUNT + 8];
-    hsums(hv, H_COUNT, hs);
+    hsums(hv, stats ? int(H_COUNT) : int(H_CW), hs);
     const S slx = hs[H_LX], sly = hs[H_LY], ss = hs[H_S];
     const S smx = hs[H_MX], smy = hs[H_MY];
     const S iz = S(1) / P.muz;
@@ -276,6 +286,10 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
     for (int ch = 0; ch < 3; ++ch) row[G_COLOR + ch] += hs[H_COL + ch];
     row[G_TEXEL] += hs[H_KU];
     row[G_TEXEL + 1] += hs[H_KV];
+    if (stats) {
+      row[G_CONTRIB] += hs[H_CW];
+      row[G_ERR] += hs[H_EW];
+    }
   }
 }
 
@@ -288,7 +302,8 @@ CTGS_LANE_CLONES void backward_tile(const BackwardTileArgs<double>& b, int tile)
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
-              unsigned char* setup_prims, const int32_t* setup_spans) {
+              unsigned char* setup_prims, const int32_t* setup_spans, const S* error_image, S* stats_contrib,
+              S* stats_err) {
   ProfTimer timer;
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
@@ -352,7 +367,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   for (int k = 0; k < num_tiles; ++k) {
     const int tile = order[k];
     const int tid = omp_get_thread_num();
-    BackwardTileArgs<S> b{&a, &bins, lp, final_T, n_contrib, v_rgb, v_alpha, v_depth,
+    BackwardTileArgs<S> b{&a, &bins, lp, final_T, n_contrib, v_rgb, v_alpha, v_depth, error_image,
                           ntx, gbuf.get() + size_t(tid) * N * G_STRIDE,
                           (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n,
                           use_atomics, bgbuf.data() + 3 * tid,
@@ -375,6 +390,10 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
     out.v_opacities[i] = row[G_OPACITY];
     for (int k = 0; k < 3; ++k) out.v_colors[3 * i + k] = row[G_COLOR + k];
     for (int k = 0; k < 2; ++k) out.v_texel_size[2 * i + k] = row[G_TEXEL + k];
+    if (error_image != nullptr) {
+      stats_contrib[i] = row[G_CONTRIB];
+      stats_err[i] = row[G_ERR];
+    }
   }
   timer.lap(PROF_BWD_REDUCE);
   if (packed) {
@@ -406,10 +425,10 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
 
 template void backward<float>(const SceneArgs<float>&, const TileBinsView&, const float*, const int32_t*,
                               const float*, const float*, const float*, const BackwardOut<float>&,
-                              unsigned char*, const int32_t*);
+                              unsigned char*, const int32_t*, const float*, float*, float*);
 template void backward<double>(const SceneArgs<double>&, const TileBinsView&, const double*, const int32_t*,
                                const double*, const double*, const double*, const BackwardOut<double>&,
-                               unsigned char*, const int32_t*);
+                               unsigned char*, const int32_t*, const double*, double*, double*);
 
 }  // namespace cpu
 }  // namespace ctgs

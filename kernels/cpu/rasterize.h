@@ -108,10 +108,14 @@ using BackwardOut = ctgs::BackwardOut<S>;
 // v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W]: dL/d outputs. final_T, n_contrib, bins from forward.
 // setup_prims / setup_spans: the forward's FrameSetup of this render (prims is updated in place: its span
 // pointers are re-aimed at setup_spans), or null to recompute it.
+// error_image [H, W] (or null): also the error statistics of the pixels blended, per primitive, as the forward's with
+// that error image: stats_contrib [N] = sum of w, stats_err [N] = sum of e w (w from T recovered by division: the
+// forward's up to rounding).
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
-              unsigned char* setup_prims = nullptr, const int32_t* setup_spans = nullptr);
+              unsigned char* setup_prims = nullptr, const int32_t* setup_spans = nullptr,
+              const S* error_image = nullptr, S* stats_contrib = nullptr, S* stats_err = nullptr);
 
 // Wall-clock seconds per phase, summed over calls since the last read (benchmarks/profile_train.py reads
 // them through the binding `profile_counters`). Only the calling thread touches them, outside parallel

@@ -12,3 +12,7 @@ class Strategy(Component):
     prune_rules = "opacity below its threshold"
 
     textures_started = False
+
+    def step_stats(self, tr):
+        """A ctgs.render.BackwardStats for this step's render to fill in its backward, or None (no statistics)."""
+        return None

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import os
 
+from ctgs.render import BackwardStats
 from ctgs.train import schedule, size_budget, texels
 from ctgs.train.components import Shell
 from ctgs.train.densify import RESET_OPACITY, reset_opacity
+from ctgs.train.error import StepErrors
 from ctgs.train.events import Routine
 from ctgs.train.kmin import compute_k_min
 from ctgs.train.routines import full_routine, late_routine
@@ -22,12 +24,29 @@ class ContentAware(Strategy):
 
     def __init__(self):
         self.textures_started = False
+        self.errors = StepErrors()  # error_from_steps: E of the steps since the last full routine
+        self.sink: BackwardStats | None = None  # the current step's statistics, filled by its backward
 
     def restore(self, tr, state: dict) -> None:
         self.textures_started = bool(state.get("textures_started", tr.it >= schedule.texture_start(tr.cfg)))
+        if "step_errors" in state:  # (older checkpoints: E is rendered at the next routine)
+            self.errors.load_state_dict(state["step_errors"])
 
     def checkpoint(self) -> dict:
-        return {"textures_started": self.textures_started}
+        return {"textures_started": self.textures_started, "step_errors": self.errors.state_dict()}
+
+    def step_stats(self, tr) -> BackwardStats | None:
+        """error_from_steps on the CPU backend: what this step's backward fills (its loss's error image, summed per
+        primitive); None where E is rendered at the routines (other backends, init_shell's composited renders)."""
+        cfg = tr.cfg
+        on_cpu = tr.device.type == "cpu" and cfg.backend in ("auto", "cpu")
+        self.sink = BackwardStats() if cfg.error_from_steps and on_cpu and cfg.init_shell <= 0 else None
+        return self.sink
+
+    def post_backward(self, tr, it: int, view) -> None:
+        sink, self.sink = self.sink, None
+        if sink is not None and sink.contrib is not None:
+            self.errors.add(sink.contrib, sink.err, view.image_t.shape[0] * view.image_t.shape[1])
 
     def start_textures(self, tr) -> None:
         """Allocate tr.model's textures (the run's texture start; the calibration does it on its copy)."""
@@ -48,6 +67,8 @@ class ContentAware(Strategy):
         # Routines refine textures: none before they start (a --time-budget run holds its texture start until
         # the plan rests on measured steps, while a short first plan's calendar may already call for routines).
         kind = schedule.routine_kind(cfg, it, shift) if self.textures_started else None
+        if kind == "full" and not tr.time.admits(tr, "routine", it):
+            kind = None  # --time-budget: a date its routine calendar leaves out (ctgs.train.budget.SHARE)
         if kind == "full":
             yield Routine(it, "full", self.full_routine(tr, it))
             if schedule.content_opacity_reset(cfg, it, shift):
@@ -56,6 +77,7 @@ class ContentAware(Strategy):
                 yield Routine(it, "opacity_reset", {"value": value})
         elif kind == "late":
             yield Routine(it, "late", late_routine(model, opt, cfg, tr.cameras))
+            self.errors.reset()  # (it prunes)
         elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it, shift):
             texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
             if (budget := size_budget.fit(model, opt, cfg)) is not None:
@@ -68,8 +90,11 @@ class ContentAware(Strategy):
         lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
         gains = tr.exposure.view_gains() if tr.exposure is not None and cfg.exposure_in_E else None
         shell = tr.part(Shell)  # init_shell: the far primitives the split/upscale ranking leaves out
-        return full_routine(tr.model, tr.opt, cfg, it, tr.train_views, tr.render_fn, tr.cameras,
-                            None if shell is None else shell.far, lean=lean, gains=gains)
+        stats = full_routine(tr.model, tr.opt, cfg, it, tr.train_views, tr.render_fn, tr.cameras,
+                             None if shell is None else shell.far, lean=lean, gains=gains,
+                             step_errors=self.errors if cfg.error_from_steps else None)
+        self.errors.reset()  # the primitives changed: the next routine's E starts from its own steps
+        return stats
 
     def finish(self, tr):
         if tr.cfg.texture_trim > 0:
