@@ -29,6 +29,7 @@ STAGES: dict[str, tuple[str, str]] = {
     "convert": ("ctgs.stages.convert", "Write a scene in another layout: nerfstudio transforms.json or COLMAP."),
     "fetch": ("ctgs.stages.fetch", "Download and extract a benchmark dataset listed in data_manifests/."),
     "render": ("ctgs.stages.render", "Render a scene's cameras with a model (or demo primitives)."),
+    "mesh": ("ctgs.stages.mesh", "A coloured triangle mesh of a trained run (TSDF fusion of its rendered depth)."),
     "view": ("ctgs.stages.view", "Web viewer (WebGL2) of a model on 127.0.0.1, textures included."),
 }
 

@@ -1,0 +1,182 @@
+"""A trained model and its cameras -> a coloured triangle mesh: plan the volume, fuse every view, extract, clean.
+
+Depth: the renderer's expected depth, depth / alpha (2DGS's `depth_ratio 0`, "mean depth"), where the pixel is at
+least half covered (alpha >= MIN_ALPHA). 2DGS's median depth (where transmittance falls below 0.5) needs an output
+neither compiled backend has, and 2DGS itself recommends the mean for unbounded and large scenes ("less
+disk-aliasing"): a median jumps from one surfel to the next where they overlap at different depths. ctgs trains
+without 2DGS's depth-distortion term, so its surfels are less often one thin layer; the mean averages them where
+the median would pick one. Colour: the render's rgb / alpha (the surfel colour without the black background), so the
+mesh carries the textures.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ctgs.errors import UserError
+from ctgs.fusion.domain import Domain, camera_sphere
+from ctgs.fusion.extract import Mesh, keep_largest, marching_cubes_blocks
+from ctgs.fusion.volume import BLOCK_VOXELS, BYTES_PER_BLOCK, TSDFVolume, allocate_blocks
+from ctgs.render import render
+
+MIN_ALPHA = 0.5  # pixels less covered than this give no depth (what lies there is mostly transparent)
+# Surfels more transparent than this allocate no voxels (they still render, so still shape the depth).
+MIN_OPACITY = 0.02
+DEFAULT_RESOLUTION = 1024  # voxels across the scene extent (2DGS's mesh_res)
+TRUNC_VOXELS = 5.0  # the default truncation distance, voxels (2DGS's sdf_trunc = 5 x voxel_size)
+DEPTH_TRUNC_RADII = 2.0  # the default depth truncation in cameras' radii (2DGS's depth_trunc)
+# What marching cubes and the cleanup need besides the volume, per block (measured: a surface crosses a block in
+# about 130 triangles; vertices, faces, colours and the components' graph).
+MESH_BYTES_PER_BLOCK = 12 * 1024
+# A plan needing more than this fraction of the free memory does not fit (the renders and Python need the rest).
+MEMORY_FRACTION = 0.8
+FIT_TRIES = 8  # voxel sizes tried when looking for one that fits
+
+
+@dataclass
+class MeshOptions:
+    bound: str = "cameras"  # "cameras": a box from the cameras; "contract": all of space, contracted
+    resolution: int = DEFAULT_RESOLUTION  # voxels across the scene extent (2 x the cameras' radius)
+    voxel_size: float | None = None  # world units; overrides resolution
+    depth_trunc: float | None = None  # world units; default DEPTH_TRUNC_RADII x radius (bounded), none (contracted)
+    sdf_trunc: float | None = None  # world units; default TRUNC_VOXELS voxels
+    pieces: int = 50  # keep the largest pieces (2DGS's num_cluster); 0 keeps all
+    max_memory: float | None = None  # bytes the volume and mesh may take; default MEMORY_FRACTION of the free memory
+
+
+@dataclass
+class MeshPlan:
+    domain: Domain
+    blocks: torch.Tensor  # [B, 3] int64
+    trunc: float  # world units
+    depth_trunc: float  # world units (inf: none)
+    bytes: int  # the volume and mesh's estimated memory
+    limit: int  # bytes allowed
+
+    @property
+    def voxels(self) -> int:
+        return len(self.blocks) * BLOCK_VOXELS
+
+
+def free_memory(device: torch.device) -> int:
+    """Bytes free for the volume on `device`: the GPU's free memory, or the machine's available memory (Linux
+    MemAvailable; the physical memory elsewhere)."""
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62  # unknown: no limit
+
+
+def estimate_bytes(blocks: int) -> int:
+    return blocks * (BYTES_PER_BLOCK + MESH_BYTES_PER_BLOCK)
+
+
+def _camera_arrays(cameras) -> tuple[np.ndarray, np.ndarray]:
+    vms = np.stack([c.viewmat.detach().cpu().double().numpy() for c in cameras])  # [C, 4, 4]
+    rot, t = vms[:, :3, :3], vms[:, :3, 3]
+    centres = -np.einsum("cji,cj->ci", rot, t)
+    forwards = rot[:, 2, :]  # camera +z in world
+    return centres, forwards
+
+
+def _surfels(model, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    with torch.no_grad():
+        keep = model.opacities.detach() >= MIN_OPACITY
+        return (model.means.detach()[keep].float().to(device), model.quats.detach()[keep].float().to(device),
+                model.scales.detach()[keep].float().to(device))
+
+
+def plan_volume(model, cameras, points: np.ndarray | None, opts: MeshOptions, device: torch.device,
+                what: str = "the model") -> MeshPlan:
+    """The domain and the blocks to fuse; UserError naming the voxel size that fits when these would not fit in memory."""
+    centres, forwards = _camera_arrays(cameras)
+    centre, radius = camera_sphere(centres, forwards, points)
+    contract = opts.bound == "contract"
+    if opts.depth_trunc is not None:
+        depth_trunc = float(opts.depth_trunc)
+    else:
+        depth_trunc = math.inf if contract else DEPTH_TRUNC_RADII * radius
+    voxel = float(opts.voxel_size) if opts.voxel_size else 2.0 * radius / opts.resolution
+    if not contract and not math.isfinite(depth_trunc):
+        raise UserError("--bound cameras needs a finite --depth-trunc (the box around the cameras reaches that far); "
+                        "pass one, or --bound contract for all of space")
+    half = float(np.abs(centres - centre).max() + depth_trunc) if not contract else 0.0
+    means, quats, scales = _surfels(model, device)
+    limit = int(opts.max_memory) if opts.max_memory is not None else int(MEMORY_FRACTION * free_memory(device))
+
+    def blocks_at(v: float) -> tuple[Domain, torch.Tensor]:
+        dom = Domain(centre=tuple(float(x) for x in centre), radius=radius, voxel=v, contract=contract, half=half)
+        return dom, allocate_blocks(dom, means, quats, scales)
+
+    domain, blocks = blocks_at(voxel)
+    need = estimate_bytes(len(blocks))
+    if need > limit:
+        fit, fit_bytes = voxel, need
+        for _ in range(FIT_TRIES):
+            # A surface's blocks go as 1 / voxel^2: aim a little past the limit's size, then check.
+            fit = _round_up(fit * math.sqrt(fit_bytes / limit) * 1.05)
+            fit_bytes = estimate_bytes(len(blocks_at(fit)[1]))
+            if fit_bytes <= limit:
+                break
+        hint = (f"pass --voxel-size {fit:.3g} (about {fit_bytes / 1e9:.3g} GB)" if fit_bytes <= limit
+                else "pass a larger --voxel-size")
+        room = (f"--max-memory allows {limit / 1e9:.3g} GB" if opts.max_memory is not None
+                else f"{limit / 1e9:.3g} GB are free")
+        raise UserError(f"{what}: the TSDF volume at voxel size {voxel:.3g} ({len(blocks) * BLOCK_VOXELS / 1e6:.3g}M "
+                        f"voxels) needs about {need / 1e9:.3g} GB but {room}; {hint}, or --max-memory GB to allow "
+                        "more")
+    trunc = float(opts.sdf_trunc) if opts.sdf_trunc else TRUNC_VOXELS * voxel
+    return MeshPlan(domain=domain, blocks=blocks, trunc=trunc, depth_trunc=depth_trunc, bytes=need, limit=limit)
+
+
+def _round_up(x: float) -> float:
+    """x rounded up to 2 significant digits (a voxel size to type)."""
+    scale = 10 ** (math.floor(math.log10(x)) - 1)
+    return math.ceil(x / scale - 1e-9) * scale
+
+
+def view_maps(inputs, camera, backend: str, sh_degree: int, depth_trunc: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(depth [H, W]: expected camera-space depth, 0 where alpha < MIN_ALPHA or beyond depth_trunc; colour [H, W, 3]
+    in [0, 1], the render without its black background) of one view."""
+    out = render(inputs, camera, backend=backend, sh_degree=sh_degree)
+    alpha = out.alpha
+    covered = alpha >= MIN_ALPHA
+    depth = torch.where(covered, out.depth / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+    depth = torch.where(depth <= depth_trunc, depth, torch.zeros_like(depth))
+    colour = (out.rgb / alpha.clamp_min(1e-6)[..., None]).clamp(0, 1)
+    return depth, colour
+
+
+def fuse(model, cameras, plan: MeshPlan, backend: str, progress: Callable[[int, int], None] | None = None) -> TSDFVolume:
+    """Render every camera and fuse its depth and colour into the plan's volume."""
+    volume = TSDFVolume(plan.domain, plan.blocks, plan.trunc)
+    device = model.means.device
+    with torch.no_grad():
+        inputs = model.render_inputs()
+        for i, cam in enumerate(cameras):
+            cam = cam.to(device, inputs.means.dtype)
+            depth, colour = view_maps(inputs, cam, backend, model.sh_degree, plan.depth_trunc)
+            volume.integrate(depth.to(plan.blocks.device), colour.to(plan.blocks.device), cam)
+            if progress is not None:
+                progress(i + 1, len(cameras))
+    return volume
+
+
+def extract(volume: TSDFVolume, pieces: int, progress: Callable[[int, int], None] | None = None) -> tuple[Mesh, int]:
+    """(the cleaned mesh, pieces dropped) of a fused volume."""
+    return keep_largest(marching_cubes_blocks(volume, progress), pieces)
