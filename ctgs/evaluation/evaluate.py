@@ -22,7 +22,7 @@ from ctgs.evaluation.report import (METRICS_SCHEMA, METRICS_VERSION, OPEN_ALPHA,
                                     write_metrics_json, write_per_image_csv)
 from ctgs.formats.model_format import read_model
 from ctgs.formats.readers import gaussian_file_ending, read_gaussian_file
-from ctgs.io import atomic, images
+from ctgs.io import images, lock, owner
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.psnr import gain_matched_psnr, masked_psnr, psnr
 from ctgs.metrics.ssim import masked_ssim, ssim
@@ -87,9 +87,13 @@ def _machine(device: torch.device) -> dict:
     return info
 
 
+# an eval folder written before folders were marked: these names only (ctgs.io.owner)
+EVAL_FOLDER = owner.names_within(frozenset({"metrics.json", "per_image.csv", "renders", "strips"}), "metrics.json")
+
+
 def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     """Write metrics.json, per_image.csv, renders/*.png and strips/*.png into opts.out_dir; returns metrics."""
-    atomic.ensure_replaceable(opts.out_dir, lambda names: "metrics.json" in names, "an earlier eval folder")
+    owner.check_ours(opts.out_dir, "eval", "an earlier `ctgs eval` folder", legacy=EVAL_FOLDER)
     run = with_scene(load_run(run_dir), opts.scene_dir)
     device = torch.device(opts.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     scored = _scored_model(run, opts, device)
@@ -113,7 +117,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
 
     # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
     # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
-    with atomic.atomic_dir(opts.out_dir) as out:
+    with lock.inside_run(opts.out_dir), owner.owned_dir(opts.out_dir, "eval") as out:
         rows, strips = _write_views(out, views, renders, alphas, times, veils, net, device)
         metrics = _metrics(run, opts, scored, rows, strips, times, renders, net is not None, status, backend,
                            device, peak)

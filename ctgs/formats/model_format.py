@@ -24,7 +24,8 @@ from ctgs.formats.packed import decode_section, encode_section
 from ctgs.formats.plain_ply import write_plain_ply
 from ctgs.formats.ply import read_ply, write_ply
 from ctgs.formats.texture_blob import TextureBlob, decode_blob, encode_blob
-from ctgs.io import atomic
+from ctgs.formats.web_bundle import WEB_SUBDIR, is_bundle
+from ctgs.io import atomic, owner
 from ctgs.model.surfels import SurfelModel
 
 FORMAT_NAME = "ctgs-model"
@@ -59,9 +60,13 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
 
 
-def _ensure_replaceable(out_dir: str) -> None:
-    # Replacing means deleting: only ever an earlier model folder (never, say, the run folder).
-    atomic.ensure_replaceable(out_dir, lambda names: MANIFEST in names, "a ctgs model folder")
+def check_replaceable(out_dir: str) -> None:
+    """UserError unless `out_dir` may become a model folder: absent, empty or an earlier model folder. Replacing means
+    deleting: never the run folder, never the user's files (ctgs.io.owner); `ctgs export --format web` adds web/."""
+    owner.check_ours(out_dir, "model", "an earlier ctgs model folder",
+                     also=lambda name: name == WEB_SUBDIR and is_bundle(os.path.join(out_dir, name)),
+                     legacy=owner.names_within({MANIFEST, PRIMITIVES, TEXTURES, PLAIN_PLY, PACKED, WEB_SUBDIR},
+                                               MANIFEST))
 
 
 def primitive_columns(model: SurfelModel, half: bool = False) -> tuple[dict[str, np.ndarray], list[str]]:
@@ -105,13 +110,13 @@ def write_model(model: SurfelModel, out_dir: str, *, blob: TextureBlob | None = 
     plain_ply: also write the 3DGS-style approximation (ctgs.formats.plain_ply).
     """
     model.validate()
-    _ensure_replaceable(out_dir)
+    check_replaceable(out_dir)
     if blob is None:
         blob = TextureBlob(_np(model.textures_raw))
     if blob.num_texels != model.num_texels:
         raise ValueError(f"texture blob has {blob.num_texels} texels, model {model.num_texels}")
     cols, halves = primitive_columns(model, half)
-    with atomic.atomic_dir(out_dir) as tmp:
+    with owner.owned_dir(out_dir, "model") as tmp:
         write_ply(os.path.join(tmp, PRIMITIVES), cols, comments=[f"{FORMAT_NAME} {FORMAT_VERSION}"])
         atomic.write_bytes(os.path.join(tmp, TEXTURES), encode_blob(blob))
         files = [PRIMITIVES, TEXTURES]
@@ -163,8 +168,8 @@ def write_packed_model(packed, out_dir: str, *, extra: dict | None = None, jobs:
     """Write a `ctgs.formats.compress.Packed` as a version-2 folder (replaced atomically). Returns the manifest.
     jobs > 1: large xz sections coded as independent streams on that many threads (ctgs.formats.packed)."""
     spec = packed.header["spec"]
-    _ensure_replaceable(out_dir)
-    with atomic.atomic_dir(out_dir) as tmp:
+    check_replaceable(out_dir)
+    with owner.owned_dir(out_dir, "model") as tmp:
         entries, offset = [], 0
         with open(os.path.join(tmp, PACKED), "wb") as f:
             for section in packed.sections:

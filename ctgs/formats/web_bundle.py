@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from ctgs.errors import UserError
-from ctgs.io import atomic
+from ctgs.io import atomic, owner
 from ctgs.model.surfels import SurfelModel, jagged_offsets
 from ctgs.render.types import SurfelInputs
 from ctgs.scene.loader import load_scene
@@ -193,12 +194,10 @@ def write_web_bundle(model: SurfelModel, out_dir: str, cameras: list[dict], *, t
     pages = atlas_pages(textures, res, model.tex_offset.detach().cpu().numpy(), layout, texel_bits)
     arrays = _surfel_arrays(model, layout, res)
 
-    if os.path.exists(out_dir) and not (os.path.isdir(out_dir) and (
-            not os.listdir(out_dir) or os.path.isfile(os.path.join(out_dir, BUNDLE_JSON)))):
-        raise UserError(f"{out_dir}: exists and is not a ctgs web bundle; choose another output folder")
+    owner.check_ours(out_dir, "web", "an earlier ctgs web bundle", legacy=_legacy_bundle)
     # Built in a hidden sibling that replaces OUT_DIR whole when complete, with the modes of every other output
     # (the bundle is served to a browser and may be copied to a web server: readable by others, not 0700).
-    with atomic.atomic_dir(out_dir) as tmp:
+    with owner.owned_dir(out_dir, "web") as tmp:
         layout_json, offset = {}, 0
         with open(os.path.join(tmp, SURFELS_BIN), "wb") as f:
             for name, a in arrays.items():
@@ -241,6 +240,20 @@ def write_web_bundle(model: SurfelModel, out_dir: str, cameras: list[dict], *, t
         for name in os.listdir(tmp):
             os.chmod(os.path.join(tmp, name), atomic.FILE_MODE)
     return bundle
+
+
+_ATLAS_PAGE = re.compile(r"^atlas_\d{3,}\.bin$")
+
+
+def is_bundle(folder: str) -> bool:
+    """Whether `folder` is a web bundle ctgs wrote (marked, or from before folders were marked: its names only)."""
+    if not os.path.isdir(folder):
+        return False
+    return owner.kind_of(folder) == "web" or _legacy_bundle(os.listdir(folder))
+
+
+def _legacy_bundle(names: list[str]) -> bool:
+    return BUNDLE_JSON in names and all(n in (BUNDLE_JSON, SURFELS_BIN) or _ATLAS_PAGE.match(n) for n in names)
 
 
 def read_bundle_json(bundle_dir: str) -> dict:

@@ -23,7 +23,7 @@ import socket
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 
 from ctgs.errors import UserError
@@ -54,7 +54,8 @@ def _tmp_prefix(path: str) -> str:
     return "." + os.path.basename(os.path.normpath(path)) + TMP_TAG + f"{os.getpid()}-{_HOST}-"
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process `pid` of this machine is running."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -80,7 +81,7 @@ def sweep_temps(folder: str) -> list[str]:
         if m is None or (m.group(1) == str(os.getpid()) and m.group(2) == _HOST):
             continue
         try:
-            dead = m.group(2) == _HOST and not _pid_alive(int(m.group(1)))
+            dead = m.group(2) == _HOST and not pid_alive(int(m.group(1)))
             if not dead and now - entry.stat(follow_symlinks=False).st_mtime <= STALE_TEMP_S:
                 continue
             if entry.is_dir(follow_symlinks=False):
@@ -240,25 +241,12 @@ def torch_save(obj, path: str, *, fsync: bool = True) -> None:
         raise _named(inner, path) from None
 
 
-def ensure_replaceable(out_dir: str, looks_ours: Callable[[list[str]], bool], what: str) -> None:
-    """UserError unless `out_dir` is absent, an empty folder, or a folder whose entry names `looks_ours`
-    accepts. Replacing a folder deletes it: only ever an earlier output of the same kind (never, say, the
-    run folder passed as -o by mistake)."""
-    if not os.path.lexists(out_dir):
-        return
-    if os.path.isdir(out_dir) and not os.path.islink(out_dir):
-        names = os.listdir(out_dir)
-        if not names or looks_ours(names):
-            return
-    raise UserError(f"{out_dir}: exists and is not {what}; choose another output folder (-o) or remove it")
-
-
 @contextmanager
 def atomic_dir(out_dir: str, *, replace: bool = True) -> Iterator[str]:
     """Yield an empty temporary folder next to `out_dir`; fill it, and on success it becomes `out_dir`.
 
     replace: an existing `out_dir` is swapped out and deleted (callers decide beforehand whether that
-    folder may be deleted); otherwise an existing `out_dir` makes the rename fail with OSError. On any
+    folder may be deleted: ctgs.io.owner); otherwise an existing `out_dir` makes the rename fail with OSError. On any
     exception the temporary folder and everything in it is removed and `out_dir` is left as it was.
     """
     out_dir = os.path.normpath(out_dir)

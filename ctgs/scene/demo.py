@@ -18,8 +18,9 @@ import os
 import numpy as np
 
 from ctgs.errors import UserError
-from ctgs.io import atomic
+from ctgs.io import atomic, owner
 from ctgs.io.images import write_image
+from ctgs.scene.levels import LEVEL
 from ctgs.scene.colmap_write import PinholeCamera, write_colmap_model
 from ctgs.scene.raycast import Rect, render
 
@@ -238,7 +239,7 @@ def make_demo_scene(out_dir: str, *, num_views: int = 40, width: int = 256, heig
     """Render the demo scene into out_dir (COLMAP layout); returns out_dir's absolute path.
 
     Idempotent: if out_dir already holds a demo scene made with the same parameters it is kept as is.
-    A non-empty out_dir holding anything else is an error unless `overwrite`.
+    Another demo scene in out_dir is an error unless `overwrite`; a folder of other files always is.
     """
     if num_views < 3 or width < 16 or height < 16 or points < 1 or supersample < 1:
         raise UserError(f"demo scene: need >= 3 views, >= 16x16 pixels, >= 1 point, supersample >= 1 "
@@ -249,11 +250,14 @@ def make_demo_scene(out_dir: str, *, num_views: int = 40, width: int = 256, heig
     meta_path = os.path.join(out_dir, META_NAME)
     if os.path.isfile(meta_path) and not overwrite and _read_meta(meta_path).get("params") == params:
         return out_dir  # (a damaged demo_meta.json reads as {}: not an identical scene, refused below)
+    # --force replaces an earlier demo scene, never a folder of the user's (ctgs.io.owner)
+    owner.check_ours(out_dir, DEMO_KIND, "an earlier demo scene", legacy=_legacy_demo, also=_level)
     if os.path.isdir(out_dir) and os.listdir(out_dir) and not overwrite:
         if os.path.isfile(meta_path) and not _read_meta(meta_path):
             raise UserError(f"{meta_path}: damaged, so this folder cannot be checked to be the same demo scene; "
                             f"remove {out_dir} or pass --force")
-        raise UserError(f"{out_dir}: folder exists and is not an identical demo scene; remove it or pass --force")
+        raise UserError(f"{out_dir}: holds a demo scene made with other options; pass --force to replace it, or "
+                        "choose another folder")
 
     rects = demo_surfaces()
     camera, viewmats = demo_cameras(num_views, width, height, seed)
@@ -261,7 +265,7 @@ def make_demo_scene(out_dir: str, *, num_views: int = 40, width: int = 256, heig
     _prefilter(rects, centers, camera.fx)
     pts, cols = sample_points(rects, points, seed)
 
-    with atomic.atomic_dir(out_dir) as tmp:
+    with owner.owned_dir(out_dir, DEMO_KIND) as tmp:
         names = [f"{i:03d}.png" for i in range(num_views)]
         for name, viewmat in zip(names, viewmats):
             image = render(rects, viewmat, camera.fx, camera.fy, camera.cx, camera.cy, width, height,
@@ -280,6 +284,19 @@ def make_demo_scene(out_dir: str, *, num_views: int = 40, width: int = 256, heig
         }
         atomic.write_json(os.path.join(tmp, META_NAME), meta, indent=1)
     return out_dir
+
+
+DEMO_KIND = "demo-scene"
+
+
+def _level(name: str) -> bool:
+    """images_N: a level training made in the scene (ctgs.scene.levels)."""
+    return bool(LEVEL.match(name))
+
+
+def _legacy_demo(names: list[str]) -> bool:
+    """A demo scene written before folders were marked: its names only."""
+    return META_NAME in names and all(n in ("images", "sparse", META_NAME) or _level(n) for n in names)
 
 
 def load_demo_meta(scene_dir: str) -> dict:

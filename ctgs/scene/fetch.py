@@ -18,7 +18,7 @@ from pathlib import Path, PurePosixPath
 from urllib.parse import urlparse
 
 from ctgs.errors import UserError
-from ctgs.io import atomic
+from ctgs.io import atomic, owner
 from ctgs.io.download import download
 from ctgs.scene.manifests import data_root, load_manifest
 
@@ -112,6 +112,8 @@ def fetch_dataset(dataset: str, scenes: list[str] | None = None, *, root: str | 
         done = (target / MARKER).is_file()
         results[scene] = FetchedScene(manifest["name"], scene, str(target), info["images"], info["holdout"], done)
         if not done:
+            # a folder there that no fetch finished is the user's (a fetch builds beside it and renames when whole)
+            owner.check_ours(str(target), "fetch", f"a scene `ctgs fetch {manifest['name']}` made")
             todo.setdefault(info["archive"], []).append(scene)
 
     for archive_name, archive_scenes in todo.items():
@@ -119,9 +121,10 @@ def fetch_dataset(dataset: str, scenes: list[str] | None = None, *, root: str | 
         dest = base / ".downloads" / _archive_file(archive["url"], archive_name, archive["format"])
         fetched = download(archive["url"], str(dest), size=archive["size"], sha256=archive["sha256"], quiet=quiet)
         # Each scene is built in a temporary sibling and renamed into place only if every scene of this
-        # archive extracted and checked out (an unmarked leftover of an interrupted older run is replaced).
+        # archive extracted and checked out.
         with contextlib.ExitStack() as stack:
-            staging = {s: Path(stack.enter_context(atomic.atomic_dir(str(dataset_dir / s)))) for s in archive_scenes}
+            staging = {s: Path(stack.enter_context(owner.owned_dir(str(dataset_dir / s), "fetch")))
+                       for s in archive_scenes}
             prefixes = {s: manifest["scenes"][s]["path"] for s in archive_scenes}
             found = _extract(str(dest), archive["format"], prefixes, staging, quiet)
             for scene in archive_scenes:

@@ -30,7 +30,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 
 from ctgs.errors import UserError
-from ctgs.io import atomic
+from ctgs.io import atomic, owner
 from ctgs.io.images import image_info, list_images, read_image, resize_image, stderr_silenced, write_image
 from ctgs.scene import sfm_pairs
 from ctgs.scene.align import umeyama  # noqa: F401  (moved to ctgs.scene.align; kept importable from here)
@@ -42,6 +42,9 @@ MIN_IMAGES = 3
 MIN_REGISTERED_FRACTION = 0.5
 PYRAMID_FACTORS = (2, 4, 8)
 REPORT_NAME = "sfm_report.json"
+SCENE_KIND = "scene"  # the ownership marker's kind (ctgs.io.owner)
+# what sfm installs in SCENE_DIR
+SCENE_ENTRIES = ("images", "sparse", *(f"images_{f}" for f in PYRAMID_FACTORS), REPORT_NAME)
 STEPS = ("features", "matches", "mapping", "undistort", "pyramid")
 # What COLMAP's image reader decodes; float formats (EXR/HDR) must be tone-mapped to 8/16 bit first.
 SFM_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -193,6 +196,18 @@ def _cpu_seconds() -> float:
     return time.process_time() + children.ru_utime + children.ru_stime
 
 
+def _step_figures(marker: str) -> tuple[float, float]:
+    """(seconds, CPU seconds) a step's marker recorded; NaN for what a damaged marker no longer says (the step's
+    result is checked by the steps after it, not by its marker's figures)."""
+    try:
+        with open(marker, encoding="utf-8") as f:
+            figures = [float(x) for x in f.read().split()[:2]]
+    except (ValueError, UnicodeDecodeError):
+        figures = []
+    figures += [float("nan")] * (2 - len(figures))
+    return figures[0], figures[1]
+
+
 def _invalidate_from(work: str, step: str) -> None:
     for later in STEPS[STEPS.index(step):]:
         marker = os.path.join(work, f"{later}.done")
@@ -240,7 +255,7 @@ def _read_fingerprint(path: str) -> dict | None:
             previous = json.load(f)
     except FileNotFoundError:
         return None
-    except (ValueError, UnicodeDecodeError):
+    except (ValueError, UnicodeDecodeError, RecursionError, IsADirectoryError):  # cut, garbled, nested, a folder
         print(f"ctgs: {path}: unreadable (damaged); the SfM steps are redone from the photos", file=sys.stderr)
         return None
     return previous if isinstance(previous, dict) else None
@@ -541,10 +556,8 @@ def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: 
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if cam.model.name == "SIMPLE_PINHOLE" else p[:4]
     seconds, cpu_seconds = {}, {}
     for step in STEPS:
-        with open(os.path.join(work, f"{step}.done")) as f:
-            figures = f.read().split()
-        seconds[step] = float(figures[0])
-        cpu_seconds[step] = float(figures[1]) if len(figures) > 1 else float("nan")
+        figures = _step_figures(os.path.join(work, f"{step}.done"))
+        seconds[step], cpu_seconds[step] = figures[0], figures[1]
     pairs = _count_rows(os.path.join(work, "database.db"), "two_view_geometries") or 0
     reregistered = _read_json(os.path.join(work, "map_global.result.json")).get("reregistered", [])
     return SfmReport(
@@ -560,19 +573,36 @@ def _report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: 
 
 def _install(built: str, scene_dir: str) -> None:
     """Move the finished scene into place: one rename if SCENE_DIR is new, else entry by entry
-    (SCENE_DIR may hold the input images), with the report, the completion marker, last."""
+    (SCENE_DIR may hold the input images), with the report, the completion marker, last. The entries it replaces
+    are sfm's own (_foreign_entries said so before any step ran); the folder is marked as holding them."""
+    entries = sorted(os.listdir(built), key=lambda n: n == REPORT_NAME)
     if not os.path.exists(scene_dir):
+        owner.mark(built, SCENE_KIND, entries)
         os.replace(built, scene_dir)
         return
-    entries = sorted(os.listdir(built), key=lambda n: n == REPORT_NAME)
+    before = owner.read_marker(scene_dir) or {}
     for name in entries:
         target = os.path.join(scene_dir, name)
         if os.path.isdir(target) and not os.path.islink(target):
             shutil.rmtree(target)
-        elif os.path.exists(target):
+        elif os.path.lexists(target):
             os.remove(target)
         os.replace(os.path.join(built, name), target)
     shutil.rmtree(built, ignore_errors=True)
+    kept = before.get("entries") or [] if before.get("kind") == SCENE_KIND else []
+    owner.mark(scene_dir, SCENE_KIND, sorted(set(kept) | set(entries)))
+
+
+def _foreign_entries(scene_dir: str) -> list[str]:
+    """The names sfm installs that SCENE_DIR holds and sfm did not write (the user's: never replaced)."""
+    if not os.path.isdir(scene_dir):
+        return []
+    marker = owner.read_marker(scene_dir)
+    if marker is not None:
+        ours = set(marker.get("entries") or []) if marker["kind"] == SCENE_KIND else set()
+    else:  # a scene written before folders were marked: its report says sfm made it
+        ours = set(SCENE_ENTRIES) if os.path.isfile(os.path.join(scene_dir, REPORT_NAME)) else set()
+    return [n for n in SCENE_ENTRIES if os.path.lexists(os.path.join(scene_dir, n)) and n not in ours]
 
 
 def read_report(scene_dir: str) -> SfmReport | None:
@@ -626,6 +656,10 @@ def run_sfm(images_dir: str, scene_dir: str, opts: SfmOptions | None = None,
             not images_dir.startswith(scene_dir + os.sep):
         raise UserError(f"{scene_dir}: folder exists and is not a finished `ctgs sfm` scene; pass --force to "
                         f"replace its images/ and sparse/ or choose another -o")
+    foreign = _foreign_entries(scene_dir)
+    if foreign:
+        raise UserError(f"{scene_dir}: holds {', '.join(foreign)} that `ctgs sfm` did not write; nothing was changed: "
+                        "choose another -o folder")
 
     status("checking images")
     names = check_input_images(images_dir)

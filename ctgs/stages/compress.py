@@ -42,11 +42,13 @@ def command(model_dir: str, out_dir: str, target: str, texels: str | None, codeb
     from dataclasses import asdict, replace
 
     from ctgs.formats.compress import TARGETS, compress_model
-    from ctgs.formats.model_format import read_model, write_packed_model
+    from ctgs.formats.model_format import check_replaceable, read_model, write_packed_model
     from ctgs.formats.packed import XZ_STREAM_BYTES
+    from ctgs.io import lock
 
     if os.path.abspath(model_dir) == os.path.abspath(out_dir):
         raise UserError(f"{out_dir}: output must differ from the input model folder")
+    check_replaceable(out_dir)  # before the work: OUT_DIR must be absent, empty or an earlier model folder
     model, files = read_model(model_dir)
     if files.manifest.get("texture_encoding") != "raw" or "compression" in files.manifest:
         raise UserError(f"{model_dir}: already compressed; compress the exported model (`ctgs export`) instead")
@@ -70,7 +72,8 @@ def command(model_dir: str, out_dir: str, target: str, texels: str | None, codeb
     if "source" in files.manifest:
         extra["source"] = files.manifest["source"]
     t_code = time.perf_counter()
-    manifest = write_packed_model(packed, out_dir, extra=extra, jobs=jobs)
+    with lock.inside_run(out_dir):  # never while a training writes the run folder OUT_DIR is in
+        manifest = write_packed_model(packed, out_dir, extra=extra, jobs=jobs)
     t_code = time.perf_counter() - t_code
     after = os.path.getsize(os.path.join(out_dir, "manifest.json")) + sum(manifest["file_bytes"].values())
     tex = packed.stats["texels"]

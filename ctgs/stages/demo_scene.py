@@ -15,7 +15,9 @@ import click
 @click.option("--seed", default=0, show_default=True, help="Seed of the camera jitter and point sampling.")
 @click.option("--points", default=5000, show_default=True, help="Surface-sampled SfM points written.")
 @click.option("--supersample", default=3, show_default=True, help="Sub-pixel rays per axis (antialiasing).")
-@click.option("--force", is_flag=True, help="Overwrite OUT_DIR if it holds something else.")
+@click.option("--force", is_flag=True,
+              help="Replace OUT_DIR when it holds a demo scene made with other options (a folder of other files is "
+                   "never replaced).")
 def command(out_dir: str, num_views: int, width: int, height: int, seed: int, points: int, supersample: int,
             force: bool) -> None:
     """Generate the demo scene: OUT_DIR/images, OUT_DIR/sparse/0 (true PINHOLE cameras), demo_meta.json."""

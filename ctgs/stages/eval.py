@@ -44,9 +44,14 @@ def _paper_rows(metrics: list[dict]) -> dict:
     return rows
 
 
+TABLE_FILES = ("table.md", "table.csv")
+
+
 def _table(paths: tuple[str, ...], out: str) -> None:
-    from ctgs.io import atomic
+    from ctgs.io import atomic, owner
     from ctgs.evaluation.report import METRICS_SCHEMA, build_table
+
+    owner.check_ours(out, "table", "an earlier `ctgs eval --table` folder", legacy=owner.names_within(set(TABLE_FILES)))
 
     metrics = []
     for p in paths:
@@ -61,8 +66,9 @@ def _table(paths: tuple[str, ...], out: str) -> None:
             raise UserError(f"{mp}: not a ctgs metrics.json; pass run folders evaluated by `ctgs eval`")
         metrics.append(m)
     md, csv_text = build_table(metrics, _paper_rows(metrics))
-    atomic.write_text(os.path.join(out, "table.md"), md)
-    atomic.write_text(os.path.join(out, "table.csv"), csv_text)
+    for name, text in zip(TABLE_FILES, (md, csv_text)):
+        atomic.write_text(os.path.join(out, name), text)
+    owner.mark(out, "table", list(TABLE_FILES))
     click.echo(md)
 
 

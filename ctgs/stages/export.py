@@ -13,6 +13,7 @@ from ctgs.errors import UserError
 from ctgs.formats import BAKED_FORMATS, FORMATS, Export, spz
 from ctgs.formats.bake import bake_bound, bake_texels, plan_levels
 from ctgs.formats.model_format import MANIFEST, read_model
+from ctgs.io import lock
 from ctgs.train.run_model import load_run
 
 
@@ -82,6 +83,7 @@ def command(source: str, out: str | None, fmt: str, plain_ply: bool, texel_bits:
         model = bake_texels(model, levels=levels, max_splats=spz.MAX_POINTS if fmt == "spz" else None)
     parent = os.path.dirname(os.path.abspath(out))
     os.makedirs(parent, exist_ok=True)
-    summary = FORMATS[fmt].write(Export(model=model, out=out, source=info, plain_ply=plain_ply,
-                                        texel_bits=int(texel_bits), baked=bake_textures, bake_note=note))
+    with lock.inside_run(out):  # never while a training writes the run folder OUT is in
+        summary = FORMATS[fmt].write(Export(model=model, out=out, source=info, plain_ply=plain_ply,
+                                            texel_bits=int(texel_bits), baked=bake_textures, bake_note=note))
     click.echo(f"{out}: {summary}")

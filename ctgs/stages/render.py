@@ -10,8 +10,8 @@ import click
 @click.command(name="render")
 @click.argument("run_dir", type=click.Path(file_okay=False))
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Folder for the rendered PNGs, named after the views (created; an earlier render folder is "
-                   "replaced whole).")
+              help="Folder for the rendered PNGs, named after the views (created; an earlier `ctgs render` folder is "
+                   "replaced whole, any other non-empty folder refused).")
 @click.option("--backend", type=click.Choice(["auto", "cpu", "cuda", "reference"]), default="auto",
               show_default=True, help="Renderer backend; `reference` is the slow pure-PyTorch one.")
 @click.option("--views", type=click.Choice(["test", "train", "all"]), default="test", show_default=True,
@@ -30,7 +30,7 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     """Render RUN_DIR/model.pt (or --model) from the cameras of the scene it was trained on."""
     import torch
 
-    from ctgs.io import atomic
+    from ctgs.io import lock, owner
     from ctgs.io.images import write_image
     from ctgs.train.run_model import load_run, with_scene
     from ctgs.render import render
@@ -40,8 +40,7 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     unknown = sorted(set(wanted) - set(MAPS))
     if unknown or not wanted:
         raise click.BadParameter(f"{maps!r}: use a comma-separated list of {', '.join(MAPS)}", param_hint="--maps")
-    atomic.ensure_replaceable(out_dir, lambda names: all(n.endswith((".png", ".exr")) for n in names),
-                              "an earlier render folder (PNG and EXR files only)")
+    owner.check_ours(out_dir, "render", "an earlier `ctgs render` folder")
     device = "cuda" if backend == "cuda" or (backend == "auto" and torch.cuda.is_available()) else "cpu"
     run = with_scene(load_run(run_dir, device=device), scene_dir)
     scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
@@ -57,7 +56,7 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
         check_same_frame(files.manifest.get("source", {}).get("world_origin"), scene, model_dir)
     # Rendered into a temporary sibling that becomes OUT_DIR when every view is written (an earlier render
     # folder is replaced whole): a failure part-way leaves nothing behind.
-    with torch.no_grad(), atomic.atomic_dir(out_dir) as tmp:
+    with torch.no_grad(), lock.inside_run(out_dir), owner.owned_dir(out_dir, "render") as tmp:
         inputs = model.render_inputs()
         bg = torch.tensor(run.config.get("background") or (0.0, 0.0, 0.0), dtype=inputs.means.dtype, device=device)
         for view in chosen:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import sys
@@ -9,6 +10,7 @@ import sys
 import click
 
 from ctgs.errors import Terminated, UserError
+from ctgs.io import lock, owner
 
 
 def _load_scene(cfg):
@@ -72,9 +74,21 @@ def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume,
     return cfg
 
 
+# `ctgs train`'s marker kind (ctgs.io.owner), and the names it (or a Slurm job, slurm.log) writes in a run folder
+RUN_KIND = "run"
+RUN_NAMES = frozenset({"config.toml", "log.jsonl", "checkpoints", "model.pt", "train_summary.json", "slurm.log",
+                       lock.LOCK_NAME})
+
+
+def _earlier_run(names: list[str]) -> bool:
+    """A run folder written before folders were marked: only a training's names, or a training's config and log
+    (with the exports and evaluations made in it since)."""
+    return set(names) <= RUN_NAMES or {"config.toml", "log.jsonl"} <= set(names)
+
+
 def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images=None, resume=False,
                backend=None, seed=None, quiet=False, preset=None, time_budget=None, start_time=None,
-               max_params=None) -> dict:
+               max_params=None, background=None) -> dict:
     """Train; returns the summary. Without preset and config the machine's default preset is used (said on
     stderr unless quiet). A failure before the first checkpoint leaves no run folder behind."""
     import time
@@ -86,6 +100,10 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     start_time = time.monotonic() if start_time is None else start_time
     if not os.path.isdir(scene_dir):
         raise UserError(f"{scene_dir}: scene folder not found; pass a folder made by `ctgs sfm` or `ctgs demo-scene`")
+    if time_budget is not None and time_budget <= 0:
+        raise UserError(f"--time-budget {time_budget:g}: a budget is a number of minutes above 0; leave the option out "
+                        "to train the preset's fixed length")
+    owner.check_ours(run_dir, RUN_KIND, "a ctgs run folder", legacy=_earlier_run)
     if not resume and os.path.exists(os.path.join(run_dir, "model.pt")):
         raise UserError(f"{run_dir}: already holds a finished run; choose another -o folder or delete it")
     if preset is None and config is None and not (resume and os.path.exists(os.path.join(run_dir, "config.toml"))):
@@ -99,8 +117,10 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
                          time_budget, max_params, scene_background(scene_dir, background, sets))
     created = not os.path.exists(run_dir)
+    held = lock.RunLock(run_dir, "ctgs train")  # one writer: a second training or --resume here is refused
     trainer = None
     try:
+        owner.mark(run_dir, RUN_KIND)
         scene = _load_scene(cfg)
         for note in ("points_note", "split"):  # random initial points; a transforms file's own train/test split
             if scene.meta.get(note):
@@ -120,6 +140,9 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         resumable = has_checkpoint(run_dir)
         if created and not resumable:
             shutil.rmtree(run_dir, ignore_errors=True)
+        elif not resumable:  # a folder made before (a Slurm job's): no empty checkpoints/ that looks resumable
+            with contextlib.suppress(OSError):
+                os.rmdir(os.path.join(run_dir, "checkpoints"))
         if isinstance(exc, (KeyboardInterrupt, Terminated)):  # Ctrl-C, or SIGTERM through the CLI
             if resumable:
                 print(f"ctgs train: stopped; {run_dir}/checkpoints/last.pt holds the last checkpoint: continue with "
@@ -128,6 +151,8 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
                 print("ctgs train: stopped before the first checkpoint" + (f"; {run_dir} removed" if created else ""),
                       file=sys.stderr)
         raise
+    finally:
+        held.release()
 
 
 # `ctgs train` says so when the last evaluation ends this far below the run's best one.
@@ -156,7 +181,7 @@ def _list_keys(ctx, _param, value):
               help="Recipe: paper = the authors' exactly (default with a GPU); fast (default on a CPU), "
                    "preview and balanced trade time for quality (docs/guide/training.md).")
 @click.option("--time-budget", "time_budget", type=float, default=None, metavar="MINUTES",
-              help="Plan the iteration count so the whole run ends within MINUTES on this machine (without it, "
+              help="Plan the iteration count so the whole run ends within MINUTES (> 0) on this machine (without it, "
                    "the run says how long its fixed length will take).")
 @click.option("--max-params", "max_params", type=click.IntRange(min=1), default=None, metavar="N",
               help="Size budget: the model ends with at most N parameters (textures coarsened where that loses "
@@ -200,13 +225,19 @@ def command(scene_dir, run_dir, preset, time_budget, max_params, config, iterati
                    f"photos past what carries to new views"
                    + ("; to choose a length, compare runs on validation views (--set validation_holdout=8), "
                       "not on these test views" if peak["views"] == "test" else ""))
+    missed = None
     if summary.get("max_params"):
         over = summary["num_params"] - summary["max_params"]
         per = summary.get("max_params_per_value")
-        click.echo(f"size budget {summary['max_params']} params" + (f" ({per:g} per observed value)" if per else "")
-                   + ": " + ("held" if over <= 0 else
-                   f"missed by {over} (what is left cannot be coarsened: textures 2 texels wide; "
-                   f"the 'budget' lines of {run_dir}/log.jsonl)"))
+        said = (f"size budget {summary['max_params']} params" + (f" ({per:g} per observed value)" if per else "")
+                + ": " + ("held" if over <= 0 else
+                f"missed by {over} (what is left cannot be coarsened: textures 2 texels wide; "
+                f"the 'budget' lines of {run_dir}/log.jsonl)"))
+        if over > 0 and not per:  # the budget asked for (--max-params) was not met: not a success
+            missed = (f"{run_dir}/model.pt: {said}; the model is kept; for a budget it meets, pass --max-params "
+                      f"{summary['num_params']} or more")
+        else:
+            click.echo(said)
     if "time_budget_s" in summary:
         click.echo(f"time budget {summary['time_budget_s'] / 60:.1f} min: planned {summary['planned_iterations_initial']} "
                    f"iterations at start, ran {summary['iterations']} ({summary['replans']} re-plans), wall "
@@ -215,3 +246,11 @@ def command(scene_dir, run_dir, preset, time_budget, max_params, config, iterati
         if tex_at is not None and frac and summary["iterations"]:
             click.echo(f"textures started after iteration {tex_at}: {100 * tex_at / summary['iterations']:.2f}% of the "
                        f"run (the schedule's {100 * frac:.2f}%, placed from the speed measured in the first steps)")
+    if missed:
+        raise SizeBudgetMissed(missed)
+
+
+class SizeBudgetMissed(UserError):
+    """The run finished above the --max-params it was given (its model.pt is written): an error line and exit 3."""
+
+    exit_code = 3

@@ -63,6 +63,16 @@ def stage_commands(p: dict, dest: str) -> dict[str, tuple[list[str], str]]:
 STAGES = list(stage_commands({k: "" for k in ("photos", "scene", "run", "model")}, "").keys())
 
 
+def tiny_manifest(folder: str, scene: str = "tiny") -> str:
+    """A dataset manifest, `tinyset`, listing `scene` (its archive is never downloaded) in `folder` (made): the folder
+    for CTGS_MANIFEST_DIR."""
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, "tinyset.toml"), "w") as fh:
+        fh.write('name = "tinyset"\nholdout = 4\nimages = "images"\n\n[archives.none]\n'
+                 f'url = "http://127.0.0.1:9/none.zip"\n\n[scenes.{scene}]\narchive = "none"\n')
+    return folder
+
+
 def cli(args: list[str]):
     """`ctgs ARGS` in this process (CliRunner: stderr apart from stdout). Python warnings, which a real run prints
     on stderr and CliRunner does not capture, are added to `result.warnings` as the lines they would print."""

