@@ -80,6 +80,10 @@ class LazyGroup(click.Group):
                 raise
             click.secho(f"error: {describe_os_error(exc)}", fg="red", err=True)
             sys.exit(OS_ERROR_EXIT)
+        finally:
+            # The stage is over: a TERM from now on (a cluster sends a second one at its time limit) ends the process
+            # as the signal does, not as a Terminated raised inside the interpreter's exit handlers (a traceback).
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -175,7 +175,8 @@ def stage(runs: str, scene: str) -> str:
                       ("model.pt", "exporting")):
         if os.path.isfile(os.path.join(run, rel)):
             return said
-    return "training (checkpointed)" if os.path.isdir(os.path.join(run, "checkpoints")) else "training"
+    checkpointed = any(os.path.isfile(os.path.join(run, "checkpoints", n)) for n in ("last.pt", "prev.pt"))
+    return "training (checkpointed)" if checkpointed else "training"
 
 
 def scene_states(runs: str, scenes: list[str], jobs: dict) -> list[tuple[str, str, str, str]]:
@@ -319,9 +320,10 @@ def submit(args) -> int:
         raise UserError('SCENES is empty; name the scenes: make all SCENES="bicycle garden ..." LAUNCHER=slurm')
     sc, tb = _job_options(args)
     extra = sc["extra"] + shlex.split(args.sbatch_opts or "")
-    # A scene no manifest lists fails here, not on the node an hour later.
+    # A scene no manifest lists, or a SCENE_DIR_<scene> that is not a folder, fails here, not on the node an hour later.
     for s in scenes:
         scene_vars(s)
+    check_scene_dirs(root, scenes, args.make_args)
     _need("sbatch")
     os.makedirs(os.path.join(runs, "slurm"), exist_ok=True)
     jobs = read_jobs(runs)
@@ -354,6 +356,18 @@ def submit(args) -> int:
     if args.wait:
         return wait(runs, scenes, jobs)
     return 0
+
+
+def check_scene_dirs(root: str, scenes: list[str], make_args: list[str]) -> None:
+    """UserError for a SCENE_DIR_<scene>=PATH among the jobs' make arguments that names no folder (relative paths
+    from `root`, where the jobs run make)."""
+    for arg in make_args:
+        name, sep, path = arg.partition("=")
+        if not sep or not name.startswith("SCENE_DIR_") or name[len("SCENE_DIR_"):] not in scenes:
+            continue
+        if not os.path.isdir(os.path.join(root, os.path.expanduser(path))):
+            raise UserError(f"{name}={path}: no such folder (from {root}); pass the folder of that scene's COLMAP "
+                            f"layout (images/, sparse/0/), or leave {name} out to fetch the scene")
 
 
 def _job_options(args) -> tuple[dict, dict]:
@@ -435,13 +449,13 @@ def wait(runs: str, scenes: list[str], jobs: dict, poll: float = 2.0) -> int:
 def resumed(run_dir: str) -> int:
     """The job script's line on a restart: the iteration of the checkpoint the training resumes from."""
     # Imported here: a checkpoint needs torch, which `make status` and submitting on a login node do not.
-    from ctgs.train.checkpoint import load_checkpoint
+    from ctgs.train.checkpoint import readable_checkpoint
 
-    state = load_checkpoint(run_dir)
-    if state is None:
-        print(f"{MARK} no checkpoint in {run_dir}/checkpoints: the training starts over")
+    found = readable_checkpoint(run_dir)
+    if found is None:
+        print(f"{MARK} no readable checkpoint in {run_dir}/checkpoints: the training starts over")
     else:
-        print(f"{MARK} resuming {run_dir} from the checkpoint at iteration {int(state['iteration'])}")
+        print(f"{MARK} resuming {run_dir} from the checkpoint at iteration {found[1]}")
     return 0
 
 

@@ -56,6 +56,22 @@ def has_checkpoint(run_dir: str) -> bool:
     return os.path.exists(checkpoint_path(run_dir)) or os.path.exists(previous_path(run_dir))
 
 
+def readable_checkpoint(run_dir: str) -> tuple[str, int] | None:
+    """(path, iteration) of the checkpoint `--resume` would start from (last.pt, else prev.pt), when it reads as a
+    whole ctgs checkpoint; None when neither does (none yet, an empty checkpoints/, a cut file). The file is memory-
+    mapped, not read: quick whatever its size. Changes nothing (load_checkpoint sets an unreadable last.pt aside)."""
+    for path in (checkpoint_path(run_dir), previous_path(run_dir)):
+        if not os.path.isfile(path):
+            continue
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+            if isinstance(state, dict) and "model" in state and "iteration" in state:
+                return path, int(state["iteration"])
+        except _UNREADABLE:
+            continue
+    return None
+
+
 def save_checkpoint(run_dir: str, state: dict) -> str:
     """Write `state` as last.pt (atomically, fsynced); the last.pt it replaces becomes prev.pt. At every moment
     at least one whole checkpoint is on disk under one of the two names. Returns last.pt's path."""
@@ -145,3 +161,19 @@ def rerun_hint(run_dir: str) -> str:
         return "no checkpoint was written yet; lower the learning rates (--set lr_...) and retrain"
     return (f"last good checkpoint {checkpoint_path(run_dir)} (iteration {last['iteration']}) kept; "
             f"lower the learning rates (--set lr_...) and rerun with --resume")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m ctgs.train.checkpoint RUN_DIR`: prints `--resume` when RUN_DIR holds a checkpoint a training can
+    resume from, nothing otherwise (the Makefile's train rules ask it, not whether checkpoints/ exists)."""
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1:
+        print("usage: python -m ctgs.train.checkpoint RUN_DIR", file=sys.stderr)
+        return 2
+    if readable_checkpoint(args[0]) is not None:
+        print("--resume")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

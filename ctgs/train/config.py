@@ -180,6 +180,10 @@ class TrainConfig:
     test_lpips: bool = _f(False, "also score LPIPS (VGG) at each periodic test evaluation, for curves over iterations "
                                  "(about 0.1 s per 200x133 view on a CPU core; the final evaluation of `ctgs eval` always has it)")
     checkpoint_every: int = _f(1000, "iterations between atomic checkpoints (0 = only at the end)")
+    checkpoint_first_s: float = _f(60.0, "wall seconds after the command started when a run without any "
+                                   "checkpoint yet writes one, whatever checkpoint_every says (0 = off)")
+    checkpoint_every_s: float = _f(600.0, "wall seconds at most between checkpoints: one is written when this long "
+                                   "has passed since the last, so a kill -9 loses at most this much (0 = off)")
     debug_nan_at: int = _f(0, "testing hook: poison the loss with NaN at this iteration (0 = off)")
 
     def validate(self) -> None:
@@ -256,7 +260,8 @@ _RANGES = [
     ("densify_grad_threshold", _gt(0), "> 0"), ("percent_dense", _gt(0), "> 0"),
     ("opacity_reset_every", _gt(0), "> 0"), ("prune_opacity_2dgs", _prob, "in [0, 1)"),
     ("log_every", _ge(1), ">= 1"), ("test_every", _ge(0), ">= 0 (0 = only at the end)"),
-    ("checkpoint_every", _ge(0), ">= 0 (0 = only at the end)"), ("debug_nan_at", _ge(0), ">= 0"),
+    ("checkpoint_every", _ge(0), ">= 0 (0 = only at the end)"), ("checkpoint_first_s", _ge(0), ">= 0 (0 = off)"),
+    ("checkpoint_every_s", _ge(0), ">= 0 (0 = off)"), ("debug_nan_at", _ge(0), ">= 0"),
 ]
 
 

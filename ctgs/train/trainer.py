@@ -108,6 +108,7 @@ class Trainer:
         self.user_cfg = cfg
         self.run_dir = run_dir
         self.start_time = time.monotonic() if start_time is None else start_time
+        self.saved_at = self.start_time  # when this session's last checkpoint was written (the clock's checkpoints)
         self.device = pick_device(cfg)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)  # OpenMP spin-waiting on an oversubscribed CPU costs ~5x
@@ -202,6 +203,7 @@ class Trainer:
         self._check_finite(None, full=True)
         path = ckpt.save_checkpoint(self.run_dir, self._state())  # the one before stays as prev.pt
         self.saved_it = self.it
+        self.saved_at = time.monotonic()
         return path
 
     def checkpoint_on_stop(self) -> None:
@@ -312,7 +314,7 @@ class Trainer:
             # scored before the step at each test multiple, where routines and opacity resets fall (after one: ~14 dB)
             if self._due(cfg.test_every, it + 1) and self.time.admits(self, "eval", it + 1):
                 yield self._evaluation(it, timed=True)
-            if self._due(cfg.checkpoint_every, it):
+            if self._due(cfg.checkpoint_every, it) or self._checkpoint_late(it):
                 t0 = time.perf_counter()
                 path = self._save_checkpoint()
                 self._timed("checkpoint", time.perf_counter() - t0, it)
@@ -333,6 +335,13 @@ class Trainer:
         """A periodic evaluation or checkpoint at `it` (none at the last iteration: the run's end has its own)."""
         return bool(paper_period) and schedule.every(self.cfg, paper_period, it, self.time.shift) \
             and it < self.cfg.iterations
+
+    def _checkpoint_late(self, it: int) -> bool:
+        """A checkpoint by the clock: the first once checkpoint_first_s have passed since the command started, then
+        one whenever checkpoint_every_s have passed since the last, so that a kill -9 loses at most that much."""
+        first = self.cfg.checkpoint_first_s if self.saved_it == 0 else 0.0
+        limits = [s for s in (first, self.cfg.checkpoint_every_s) if s > 0]
+        return bool(limits) and time.monotonic() - self.saved_at >= min(limits) and it < self.cfg.iterations
 
     def _timed(self, what: str, seconds: float, it: int) -> None:
         self.spent[what] += seconds
