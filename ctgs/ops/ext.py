@@ -8,7 +8,8 @@ every platform, CPU or CUDA torch alike), the extension is compiled against the 
 Build folder: `$TORCH_EXTENSIONS_DIR/<name>` when that is set (torch's own variable), else the per-user
 cache `<CTGS_CACHE_DIR or ~/.cache/ctgs>/torch_extensions/<name>-<key>`, never inside the package (which
 may be a read-only site-packages). The key hashes every kernel source and header, the flags, the compiler,
-torch's and Python's versions, and where the kernels, torch and Python's headers are: checkouts or installs with
+torch's and Python's versions, the ninja that runs the build (always the `ninja` package's when it is installed,
+whatever PATH holds), and where the kernels, torch and Python's headers are: checkouts or installs with
 different kernels never share (or fight over) a build, and a header change rebuilds. Neither do two checkouts or
 venvs with the same kernels: torch writes absolute source and include paths into the folder's build.ninja, so one
 folder shared by two of them was rebuilt (a minute) at every switch between them.
@@ -20,13 +21,18 @@ has taken BUILD_NOTE_S.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import platform
 import shutil
+import subprocess
 import sys
 import sysconfig
 import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import ModuleType
 
@@ -47,6 +53,8 @@ CPU_LDFLAGS = ["-fopenmp"]
 KEYED_SUFFIXES = (".cpp", ".h", ".cu", ".cuh")
 KEY_CHARS = 16  # hex digits of the sha256 kept in the folder name: 64 bits, no collisions in practice
 BUILT_MARKER = ".ctgs-built"  # holds the key of the last successful build in that folder
+BUILD_LOCK = ".ctgs-build-lock"  # one builder per folder (_one_builder)
+TORCH_BATON = "lock"  # torch.utils.cpp_extension's FileBaton in the build folder
 # Loading an up-to-date build takes about a second (torch runs ninja, which finds nothing to do); longer, and it is
 # compiling: say so rather than sit silent for a minute.
 BUILD_NOTE_S = 5.0
@@ -69,20 +77,88 @@ def require_compiler(what: str, fallback: str) -> None:
                         f"g++ (e.g. apt-get install g++) or set CXX to a compiler, or pass --backend {fallback}")
 
 
-def _ensure_ninja(fallback: str) -> None:
-    """torch runs `ninja` from PATH; the pip package `ninja` (a dependency) puts it in the environment's
-    bin folder, which is not on PATH when ctgs is run as `venv/bin/ctgs` without activating the venv."""
-    if shutil.which("ninja"):
-        return
+def ninja_binary(fallback: str) -> str:
+    """The ninja every build runs: the pip package `ninja`'s (a dependency) whatever PATH holds, else PATH's. One ninja
+    per environment: two ninja versions read each other's build log as out of date and rebuild everything (a venv's
+    and the system's, on PATH in turn, rebuilt the extension at every switch)."""
     try:
-        # not importable: said with the fix here, rather than as torch's traceback
+        # not importable: PATH's, or said with the fix here rather than as torch's traceback
         import ninja
 
-        os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
+        path = os.path.join(ninja.BIN_DIR, "ninja")
+        if os.access(path, os.X_OK):
+            return path
     except (ImportError, AttributeError):
         pass
-    if shutil.which("ninja") is None:
+    found = shutil.which("ninja")
+    if found is None:
         raise UserError(f"the build tool `ninja` was not found on PATH: pip install ninja, or pass --backend {fallback}")
+    return found
+
+
+def ninja_version(ninja: str) -> str:
+    try:
+        return subprocess.run([ninja, "--version"], capture_output=True, text=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+@contextmanager
+def _first_on_path(folder: str) -> Iterator[None]:
+    """`folder` first on PATH for the block: torch runs `ninja` from PATH."""
+    before = os.environ.get("PATH")
+    os.environ["PATH"] = folder + (os.pathsep + before if before else "")
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("PATH", None)
+        else:
+            os.environ["PATH"] = before
+
+
+@contextmanager
+def _one_builder(folder: Path) -> Iterator[None]:
+    """One process at a time loads (and so builds) the extension in `folder`, by an fcntl lock the kernel releases
+    however its holder ends. torch's own baton (a file `lock` its holder removes) stayed behind when a load was
+    killed while compiling (kill -9, a cluster's time limit), and every later load waited for it forever; under this
+    lock such a file is a dead load's, and goes once the build it left running (its ninja and compilers, which
+    outlive it) has ended."""
+    fd = os.open(folder / BUILD_LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)  # waits while another process loads here
+        except OSError:
+            yield  # a filesystem without locks: torch's baton alone, as before
+            return
+        if (folder / TORCH_BATON).exists():
+            if _working_in(folder):
+                print(f"ctgs: waiting for the build a stopped process left running in {folder} ...", file=sys.stderr,
+                      flush=True)
+                while _working_in(folder):
+                    time.sleep(1.0)
+            with suppress(FileNotFoundError):
+                os.remove(folder / TORCH_BATON)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _working_in(folder: Path) -> bool:
+    """Whether a process works in `folder` (torch runs ninja there, and ninja its compilers): Linux's /proc; elsewhere
+    none is seen."""
+    target = os.path.realpath(folder)
+    try:
+        pids = [p for p in os.listdir("/proc") if p.isdigit()]
+    except OSError:
+        return False
+    for pid in pids:
+        try:
+            if os.readlink(f"/proc/{pid}/cwd") == target:
+                return True
+        except OSError:
+            continue
+    return False
 
 
 def hash_kernel_sources(h):
@@ -93,11 +169,14 @@ def hash_kernel_sources(h):
     return h
 
 
-def build_key(name: str, flags: dict) -> str:
-    """Hash of everything that makes one build differ from another (see the module docstring)."""
+def build_key(name: str, flags: dict, ninja: str = "") -> str:
+    """Hash of everything that makes one build differ from another (see the module docstring); `ninja`: the ninja
+    binary that runs it (its path and version)."""
     h = hash_kernel_sources(hashlib.sha256())
     context = [name, sorted((k, list(v)) for k, v in flags.items()), compiler(), torch.__version__,
                torch.version.cuda, sys.version_info[:2], platform.machine(), *build_paths()]
+    if ninja:
+        context += [os.path.realpath(ninja), ninja_version(ninja)]
     h.update(repr(context).encode())
     return h.hexdigest()[:KEY_CHARS]
 
@@ -128,11 +207,11 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
     if missing:
         raise UserError(f"{kernels}: kernel sources {missing} not found (an incomplete install?); reinstall "
                         f"ctgs, or pass --backend {fallback}")
-    _ensure_ninja(fallback)
+    ninja = ninja_binary(fallback)
     # torch's build tooling only to build: importing ctgs must not load it (tests/render/test_cpu_inputs.py)
     from torch.utils import cpp_extension
 
-    key = build_key(name, flags)
+    key = build_key(name, flags, ninja)
     folder = build_dir(name, key)
     marker = folder / BUILT_MARKER
     try:
@@ -153,16 +232,17 @@ def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbos
         late.start()
     schemas.declare()  # the ops the extension's kernels register for, declared before it loads
     try:
-        module = cpp_extension.load(
-            name=name,
-            sources=[str(kernels / s) for s in sources],
-            extra_include_paths=[str(kernels / "include"), str(kernels)],
-            build_directory=str(folder),
-            verbose=verbose or os.environ.get("CTGS_VERBOSE_BUILD", "") == "1",
-            # copies: torch appends to the lists it is given (-L paths to extra_ldflags), which would change
-            # the module-level flag lists and so the build key of a later call
-            **{k: list(v) for k, v in flags.items()},
-        )
+        with _one_builder(folder), _first_on_path(os.path.dirname(ninja)):
+            module = cpp_extension.load(
+                name=name,
+                sources=[str(kernels / s) for s in sources],
+                extra_include_paths=[str(kernels / "include"), str(kernels)],
+                build_directory=str(folder),
+                verbose=verbose or os.environ.get("CTGS_VERBOSE_BUILD", "") == "1",
+                # copies: torch appends to the lists it is given (-L paths to extra_ldflags), which would change
+                # the module-level flag lists and so the build key of a later call
+                **{k: list(v) for k, v in flags.items()},
+            )
     except (RuntimeError, OSError, ImportError) as exc:
         if late is not None:
             late.cancel()

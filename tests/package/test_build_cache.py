@@ -5,10 +5,13 @@ None of these tests compiles anything: torch's builder is replaced by a stand-in
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import subprocess
 import sys
+import threading
+import time
 import types
 from pathlib import Path
 
@@ -199,10 +202,57 @@ def _tiny_run(tmp_path: Path) -> str:
     return str(run)
 
 
-def test_ninja_from_the_pip_package_when_not_on_path(monkeypatch, tmp_path):
-    """`venv/bin/ctgs` run without activating the venv: torch's build still finds the pip-installed ninja."""
+def test_one_ninja_whatever_path_holds(monkeypatch, tmp_path):
+    """`venv/bin/ctgs` run without activating the venv (no ninja on PATH), or with another ninja first on PATH (the
+    system's): every build runs the pip package's ninja, so the build folder is never rebuilt at a switch."""
     ninja = pytest.importorskip("ninja")
+    own = os.path.join(ninja.BIN_DIR, "ninja")
     monkeypatch.setenv("PATH", str(tmp_path))
     assert shutil.which("ninja") is None
-    ext._ensure_ninja("reference")
-    assert shutil.which("ninja") and os.environ["PATH"].startswith(ninja.BIN_DIR)
+    assert ext.ninja_binary("reference") == own
+    other = tmp_path / "ninja"
+    other.write_text("#!/bin/sh\necho 1.0.0\n")
+    other.chmod(0o755)
+    assert shutil.which("ninja") == str(other)
+    assert ext.ninja_binary("reference") == own
+    with ext._first_on_path(os.path.dirname(own)):
+        assert shutil.which("ninja") == own  # what torch's build runs
+    assert os.environ["PATH"] == str(tmp_path)
+
+
+def test_the_build_key_names_the_ninja(tmp_path):
+    """Another ninja (another version) gets its own build folder rather than rebuilding the other's."""
+    fake = tmp_path / "ninja"
+    fake.write_text("#!/bin/sh\necho 1.0.0\n")
+    fake.chmod(0o755)
+    own = ext.ninja_binary("reference")
+    assert ext.build_key("ctgs_cpu", CPU_FLAGS, own) == ext.build_key("ctgs_cpu", CPU_FLAGS, own)
+    assert ext.build_key("ctgs_cpu", CPU_FLAGS, str(fake)) != ext.build_key("ctgs_cpu", CPU_FLAGS, own)
+
+
+def test_a_build_killed_while_compiling_blocks_no_later_load(tmp_path):
+    """torch's baton (a file `lock`) stays when a load is killed mid-build; the next load waits for the build that
+    load left running (a process working in the folder), then goes on instead of waiting for the baton forever."""
+    folder = tmp_path / "build"
+    folder.mkdir()
+    (folder / ext.TORCH_BATON).write_text("")
+    left = subprocess.Popen(["sleep", "2"], cwd=folder)  # the dead load's ninja, still compiling
+    t0 = time.monotonic()
+    with ext._one_builder(folder):
+        assert left.poll() is not None and time.monotonic() - t0 > 1.0
+        assert not (folder / ext.TORCH_BATON).exists()
+    # while another process holds the folder (a build under way), a load waits for it
+    held = os.open(folder / ext.BUILD_LOCK, os.O_RDWR)
+    fcntl.flock(held, fcntl.LOCK_EX)
+    entered = threading.Event()
+
+    def load():
+        with ext._one_builder(folder):
+            entered.set()
+
+    waiter = threading.Thread(target=load)
+    waiter.start()
+    assert not entered.wait(0.5)
+    os.close(held)  # the builder ended, however it ended
+    assert entered.wait(10)
+    waiter.join()
