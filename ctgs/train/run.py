@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import uuid
 
 import tomli_w
 
@@ -84,7 +85,8 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     try:
         atomic.torch_save({"model": model.state_dict(), "scene_dir": cfg.scene_dir, "images": cfg.images,
                            "holdout": cfg.holdout, "iteration": trainer.it, "config": trainer.user_cfg.to_dict(),
-                           "resolved_config": cfg.to_dict(), "world_origin": trainer.world_origin},
+                           "resolved_config": cfg.to_dict(), "world_origin": trainer.world_origin,
+                           "model_id": model_id},
                           os.path.join(trainer.run_dir, "model.pt"))
     except BaseException:
         os.remove(summary_path)

@@ -67,11 +67,28 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
         except ValueError as exc:
             raise UserError(f"{spath}: corrupt training summary ({exc}); re-run `ctgs train` or delete the file "
                             "(only the training time comes from it)") from None
+    if summary is not None:
+        _check_same_run(path, ckpt, spath, summary)
     return RunModel(run_dir=os.path.abspath(run_dir), model=model, scene_dir=ckpt["scene_dir"],
                     images=ckpt.get("images", "images"), holdout=int(ckpt.get("holdout", 8)),
                     iteration=int(ckpt.get("iteration", -1)), config=ckpt.get("config") or {},
                     summary=summary, model_bytes=os.path.getsize(path),
                     world_origin=tuple(float(x) for x in ckpt.get("world_origin") or (0.0, 0.0, 0.0)))
+
+
+def _check_same_run(path: str, ckpt: dict, spath: str, summary: dict) -> None:
+    """UserError when model.pt and train_summary.json are of two runs (a model.pt copied in from another run folder):
+    the summary's iterations and times would be reported for another model. Both name the model they were written
+    with (model_id); runs from before that must agree on the iteration count."""
+    ids = ckpt.get("model_id"), summary.get("model_id") if isinstance(summary, dict) else None
+    ours = summary.get("iterations") if isinstance(summary, dict) else None
+    if ids == (None, None) and (ours is None or int(ckpt.get("iteration", -1)) == int(ours)):
+        return
+    if ids[0] is not None and ids[0] == ids[1]:
+        return
+    raise UserError(f"{path}: another run's model (iteration {ckpt.get('iteration', '?')}), not the one {spath} "
+                    f"describes (iteration {ours}); copy a run folder whole, or remove {SUMMARY_FILE} to use this "
+                    "model.pt alone")
 
 
 def _corrupt(path: str, exc: BaseException) -> UserError:
