@@ -1,4 +1,4 @@
-"""`ctgs view MODEL_DIR [--scene SCENE_DIR] [--port N] [--no-browser]`: the WebGL2 viewer on 127.0.0.1."""
+"""`ctgs view MODEL_DIR [--scene SCENE_DIR] [--mesh MESH] [--port N] [--no-browser]`: the WebGL2 viewer on 127.0.0.1."""
 
 from __future__ import annotations
 
@@ -50,10 +50,12 @@ def resolve_bundle(model_dir: str, scene_dir: str | None, tmp_root: str) -> tupl
 @click.option("--scene", "scene_dir", default=None, type=click.Path(file_okay=False),
               help="Scene folder whose training and test cameras the viewer can jump to "
                    "(default: the cameras stored in the bundle, i.e. of the scene the model was trained on).")
+@click.option("--mesh", "mesh_path", default=None, type=click.Path(dir_okay=False),
+              help="A mesh written by `ctgs mesh` (.ply, .obj or .glb) to show instead of the surfels at a keystroke (M).")
 @click.option("--port", default=8765, show_default=True, type=click.IntRange(0, 65535),
               help="Port on 127.0.0.1 (0 = any free port).")
 @click.option("--no-browser", is_flag=True, help="Only serve; do not open a browser window.")
-def command(model_dir: str, scene_dir: str | None, port: int, no_browser: bool) -> None:
+def command(model_dir: str, scene_dir: str | None, mesh_path: str | None, port: int, no_browser: bool) -> None:
     """Serve MODEL_DIR's web viewer on http://127.0.0.1:PORT/ (WebGL2; every script ships with ctgs)."""
     import webbrowser
 
@@ -62,10 +64,15 @@ def command(model_dir: str, scene_dir: str | None, port: int, no_browser: bool) 
 
     if not os.path.isdir(model_dir):
         raise UserError(f"{model_dir}: model folder not found; write one with `ctgs export RUN_DIR --format web`")
+    mesh = None
+    if mesh_path:
+        from ctgs.formats.mesh import read_mesh, viewer_mesh
+
+        mesh = viewer_mesh(*read_mesh(mesh_path))
     with tempfile.TemporaryDirectory(prefix="ctgs-view-") as tmp:
         bundle_dir, cameras, how = resolve_bundle(model_dir, scene_dir, tmp)
         try:
-            server = ViewerServer(bundle_dir, port=port, cameras=cameras, quiet=True)
+            server = ViewerServer(bundle_dir, port=port, cameras=cameras, quiet=True, mesh=mesh)
         except OSError as exc:
             raise UserError(f"127.0.0.1:{port}: cannot listen ({exc.strerror}); pass another --port "
                             "(0 = any free port)") from exc

@@ -39,10 +39,12 @@ class ViewerPage:
     def fit_viewport(self, width: int, height: int) -> None:
         self.browser.set_viewport(PANEL_CSS_PX + width, max(height, 600))
 
-    def capture(self, camera: int, textures: bool = True, size: tuple[int, int] | None = None) -> np.ndarray:
+    def capture(self, camera: int, textures: bool = True, size: tuple[int, int] | None = None, mesh: bool = False,
+                shade: bool = True) -> np.ndarray:
         """Recorded camera `camera` at its image size (or resized to size = (W, H)) -> [H, W, 3] float32
-        RGB screenshot of the canvas."""
-        opts = {"camera": camera, "textures": textures, "size": list(size) if size else None}
+        RGB screenshot of the canvas (mesh: of the mesh `ctgs view --mesh` shows, shaded or in its plain colours)."""
+        opts = {"camera": camera, "textures": textures, "size": list(size) if size else None, "mesh": mesh,
+                "shade": shade}
         rect = self.browser.evaluate(f"window.viewer.show({json.dumps(opts)})")
         w, h = rect["imageWidth"], rect["imageHeight"]
         if round(rect["width"]) != w or round(rect["height"]) != h:

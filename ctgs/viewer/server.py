@@ -4,7 +4,8 @@ Bound to 127.0.0.1 only, and answering only requests addressed to it (the Host h
 it through DNS rebinding); a malformed path gets 400. Nothing is fetched from the internet: every script is in
 ctgs/viewer/static.
 URL layout: /  -> static/index.html and its assets; /bundle/<file> -> the web bundle folder, with
-bundle.json's cameras replaced when the server was given other cameras (`ctgs view --scene`).
+bundle.json's cameras replaced when the server was given other cameras (`ctgs view --scene`), and a mesh to show
+beside the surfels (`ctgs view --mesh`) as /bundle/mesh.bin, from memory (bundle.json's `mesh` entry describes it).
 """
 
 from __future__ import annotations
@@ -12,13 +13,13 @@ from __future__ import annotations
 import json
 import mimetypes
 import os
-import sys
 import threading
 from functools import partial
 from http import HTTPStatus
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import unquote, urlsplit
 
+from ctgs.formats.mesh import VIEWER_MESH_BIN
 from ctgs.formats.web_bundle import BUNDLE_JSON, read_bundle_json
 
 STATIC_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "static")
@@ -33,9 +34,11 @@ CSP = ("default-src 'self'; script-src 'self'; connect-src 'self'; img-src 'self
 
 
 class _Handler(SimpleHTTPRequestHandler):
-    def __init__(self, *args, bundle_dir: str, bundle_json: bytes, quiet: bool, **kwargs):
+    def __init__(self, *args, bundle_dir: str, bundle_json: bytes, quiet: bool, mesh_bin: bytes | None = None,
+                 **kwargs):
         self.bundle_dir = bundle_dir
         self.bundle_json = bundle_json
+        self.mesh_bin = mesh_bin
         self.quiet = quiet
         super().__init__(*args, directory=STATIC_DIR, **kwargs)
 
@@ -75,17 +78,10 @@ class _Handler(SimpleHTTPRequestHandler):
         rel = unquote(urlsplit(path).path)
         if rel.startswith("/bundle/"):
             name = rel[len("/bundle/"):]
-            target = os.path.join(self.bundle_dir, name)
-            # the bundle is flat: its own files only, never a listing, a hidden file, or a link leading out of it
-            if not name or "/" in name or name.startswith(".") or not os.path.isfile(target) or \
-                    os.path.dirname(os.path.realpath(target)) != os.path.realpath(self.bundle_dir):
-                return os.path.join(self.bundle_dir, ".invalid")
-            return target
+            if "/" in name or name.startswith("."):
+                return os.path.join(self.bundle_dir, ".invalid")  # the bundle is flat: nothing else to serve
+            return os.path.join(self.bundle_dir, name)
         return super().translate_path(path)
-
-    def list_directory(self, path):
-        self.send_error(HTTPStatus.NOT_FOUND, "no listings here")  # neither the bundle folder nor the page's own
-        return None
 
     def do_HEAD(self):
         if self._refused():
@@ -95,12 +91,15 @@ class _Handler(SimpleHTTPRequestHandler):
     def do_GET(self):
         if self._refused():
             return
-        if urlsplit(self.path).path == "/bundle/" + BUNDLE_JSON:
+        path = urlsplit(self.path).path
+        if path == "/bundle/" + BUNDLE_JSON or (path == "/bundle/" + VIEWER_MESH_BIN and self.mesh_bin is not None):
+            data, kind = ((self.bundle_json, "application/json") if path.endswith(BUNDLE_JSON)
+                          else (self.mesh_bin, "application/octet-stream"))
             self.send_response(HTTPStatus.OK)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(self.bundle_json)))
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(data)))
             self.end_headers()
-            self.wfile.write(self.bundle_json)
+            self.wfile.write(data)
             return
         super().do_GET()
 
@@ -109,26 +108,20 @@ class _Handler(SimpleHTTPRequestHandler):
             super().log_message(format, *args)
 
 
-class _Server(ThreadingHTTPServer):
-    daemon_threads = True
-
-    def handle_error(self, request, client_address):
-        if isinstance(sys.exc_info()[1], (ConnectionError, TimeoutError)):
-            return  # a client that went away before its answer was sent (a closed tab, a reload): nothing to say
-        super().handle_error(request, client_address)
-
-
 class ViewerServer:
     """Serves the viewer for one bundle folder. port=0 picks a free port. Use as a context manager or
     call serve_forever(); `url` is the page's address."""
 
-    def __init__(self, bundle_dir: str, *, port: int = 0, cameras: list[dict] | None = None, quiet: bool = True):
+    def __init__(self, bundle_dir: str, *, port: int = 0, cameras: list[dict] | None = None, quiet: bool = True,
+                 mesh: tuple[dict, bytes] | None = None):
         bundle = read_bundle_json(bundle_dir)  # UserError naming the file when the bundle is damaged
         if cameras is not None:
             bundle["cameras"] = cameras
-        handler = partial(_Handler, bundle_dir=os.path.abspath(bundle_dir),
-                          bundle_json=json.dumps(bundle).encode(), quiet=quiet)
-        self.httpd = _Server((HOST, port), handler)
+        if mesh is not None:  # (ctgs.formats.mesh.viewer_mesh)
+            bundle["mesh"] = mesh[0]
+        handler = partial(_Handler, bundle_dir=os.path.abspath(bundle_dir), bundle_json=json.dumps(bundle).encode(),
+                          quiet=quiet, mesh_bin=None if mesh is None else mesh[1])
+        self.httpd = ThreadingHTTPServer((HOST, port), handler)
         self.httpd.daemon_threads = True
         self.port = self.httpd.server_address[1]
         self.url = f"http://{HOST}:{self.port}/"

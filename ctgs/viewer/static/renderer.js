@@ -13,7 +13,7 @@ function compile(gl, type, source, name) {
   return s;
 }
 
-function program(gl, vs, fs, names) {
+export function program(gl, vs, fs, names) {
   const p = gl.createProgram();
   gl.attachShader(p, compile(gl, gl.VERTEX_SHADER, vs, names[0]));
   gl.attachShader(p, compile(gl, gl.FRAGMENT_SHADER, fs, names[1]));

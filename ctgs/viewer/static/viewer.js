@@ -4,7 +4,8 @@
 import {loadBundle} from "./bundle.js";
 import {Controls, MOVE_CODES, typesText, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm,
   column} from "./camera.js";
-import {Renderer} from "./renderer.js";
+import {Renderer, program} from "./renderer.js";
+import {loadMesh, MeshLayer} from "./mesh.js";
 
 const $ = (id) => document.getElementById(id);
 const SHADERS = {surfelVert: "surfel.vert", surfelFrag: "surfel.frag", compositeVert: "composite.vert",
@@ -38,6 +39,8 @@ class Viewer {
     this.params = new URLSearchParams(location.search);
     this.textures = this.params.get("textures") !== "0";
     this.fit = this.params.get("fit") === "1";
+    this.showMesh = this.params.get("mesh") === "1";  // the mesh (`ctgs view --mesh`) instead of the surfels
+    this.shadeMesh = this.params.get("shade") !== "0";
     this.camIndex = -1;
     this.dirty = true;
     this.sortId = 0;
@@ -67,6 +70,13 @@ class Viewer {
     const {bundle, arrays, pages} = loaded;
     this.bundle = bundle;
     this.renderer.init(bundle, arrays, pages, shaders);
+    if (bundle.mesh) {
+      status("mesh");
+      const gl = this.renderer.gl;
+      const [meshArrays, vs, fs] = await Promise.all([loadMesh(bundleBase, bundle.mesh), fetchText("mesh.vert"),
+        fetchText("mesh.frag")]);
+      this.mesh = new MeshLayer(gl, program(gl, vs, fs, ["mesh.vert", "mesh.frag"]), meshArrays, bundle.background);
+    }
     this.cameras = bundle.cameras || [];
     this.center = bundle.center;
     this.up = sceneUp(this.cameras);
@@ -194,7 +204,8 @@ class Viewer {
     const dpr = window.devicePixelRatio || 1;
     canvas.style.width = `${cam.width / dpr}px`;
     canvas.style.height = `${cam.height / dpr}px`;
-    this.renderer.draw(cam, this.textures);
+    if (this.showMesh && this.mesh) this.mesh.draw(cam, this.shadeMesh);
+    else this.renderer.draw(cam, this.textures);
     return cam;
   }
 
@@ -236,17 +247,22 @@ class Viewer {
     const r = this.renderer;
     return {glRenderer: r.glRenderer, accumFormat: r.accumFormat.name, numSurfels: this.bundle.num_surfels,
       numTexels: this.bundle.num_texels, texelFormat: this.bundle.atlas.texel_format, cameras: this.cameras.length,
-      webgl2: true};
+      meshTriangles: this.mesh ? this.mesh.count / 3 : 0, webgl2: true};
   }
 
   // Render recorded camera i exactly (fit: its image size and intrinsics, or resized to size = [W, H]
   // with the intrinsics scaled; fit = false: the view's size), wait until the GPU is done, and return
-  // the canvas rectangle in CSS pixels for a screenshot.
-  async show({camera, textures = true, size = null, fit = true}) {
+  // the canvas rectangle in CSS pixels for a screenshot. mesh: the mesh instead of the surfels (shade: lit from the
+  // camera).
+  async show({camera, textures = true, size = null, fit = true, mesh = false, shade = true}) {
     await this.ready;
+    if (mesh && !this.mesh) throw new Error("no mesh to show: start the viewer with ctgs view --mesh FILE");
     const held = this.holdLoop;
     this.holdLoop = true;  // no animation-frame draw meanwhile: it would queue ahead of ours
     try {
+      this.showMesh = mesh;
+      this.shadeMesh = shade;
+      if (this.mesh) { $("mesh").checked = mesh; $("shade").checked = shade; }
       return await this.showHeld({camera, textures, size, fit});
     } finally {
       this.holdLoop = held;
@@ -336,6 +352,11 @@ class Viewer {
     $("textures").onchange = (e) => { this.textures = e.target.checked; this.dirty = true; };
     $("fit").checked = this.fit;
     $("fit").onchange = (e) => { this.fit = e.target.checked; this.dirty = true; };
+    $("mesh-section").hidden = !this.mesh;
+    $("mesh").checked = this.showMesh;
+    $("mesh").onchange = (e) => { this.showMesh = e.target.checked; this.dirty = true; };
+    $("shade").checked = this.shadeMesh;
+    $("shade").onchange = (e) => { this.shadeMesh = e.target.checked; this.dirty = true; };
     for (const r of document.querySelectorAll("input[name=mode]")) {
       r.onchange = () => { this.controls.mode = r.value; };
       r.checked = r.value === (this.params.get("mode") || "orbit");
@@ -347,6 +368,8 @@ class Viewer {
       if (typesText(e.target) || e.ctrlKey || e.metaKey || e.altKey) return;
       const key = e.key.toLowerCase();
       if (key === "t") $("textures").click();
+      else if (key === "m" && this.mesh) $("mesh").click();
+      else if (key === "l" && this.mesh) $("shade").click();
       else if (key === "f") {
         const next = this.controls.mode === "orbit" ? "fly" : "orbit";
         document.querySelector(`input[name=mode][value=${next}]`).click();
@@ -367,7 +390,8 @@ class Viewer {
     const count = (x) => Number(x).toLocaleString();
     lines(stats, [`${count(b.num_surfels)} surfels · ${count(b.num_texels)} texels`,
       `SH degree ${b.sh_degree} · atlas ${b.atlas.pages.length} × ${b.atlas.page_size}² ${b.atlas.texel_format}`,
-      `bundle ${mb(b.surfels.bytes + b.atlas.bytes)} MB`, ""]);
+      `bundle ${mb(b.surfels.bytes + b.atlas.bytes)} MB`,
+      ...(b.mesh ? [`mesh ${count(b.mesh.triangles)} triangles · ${mb(b.mesh.bytes)} MB`] : []), ""]);
     lines(dim, [String(this.renderer.glRenderer), `accumulation ${this.renderer.accumFormat.name}`]);
     stats.appendChild(dim);
   }
