@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import mimetypes
 import os
+import sys
 import threading
 from functools import partial
 from http import HTTPStatus
@@ -78,10 +79,17 @@ class _Handler(SimpleHTTPRequestHandler):
         rel = unquote(urlsplit(path).path)
         if rel.startswith("/bundle/"):
             name = rel[len("/bundle/"):]
-            if "/" in name or name.startswith("."):
-                return os.path.join(self.bundle_dir, ".invalid")  # the bundle is flat: nothing else to serve
-            return os.path.join(self.bundle_dir, name)
+            target = os.path.join(self.bundle_dir, name)
+            # the bundle is flat: its own files only, never a listing, a hidden file, or a link leading out of it
+            if not name or "/" in name or name.startswith(".") or not os.path.isfile(target) or \
+                    os.path.dirname(os.path.realpath(target)) != os.path.realpath(self.bundle_dir):
+                return os.path.join(self.bundle_dir, ".invalid")
+            return target
         return super().translate_path(path)
+
+    def list_directory(self, path):
+        self.send_error(HTTPStatus.NOT_FOUND, "no listings here")  # neither the bundle folder nor the page's own
+        return None
 
     def do_HEAD(self):
         if self._refused():
@@ -108,6 +116,15 @@ class _Handler(SimpleHTTPRequestHandler):
             super().log_message(format, *args)
 
 
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):
+        if isinstance(sys.exc_info()[1], (ConnectionError, TimeoutError)):
+            return  # a client that went away before its answer was sent (a closed tab, a reload): nothing to say
+        super().handle_error(request, client_address)
+
+
 class ViewerServer:
     """Serves the viewer for one bundle folder. port=0 picks a free port. Use as a context manager or
     call serve_forever(); `url` is the page's address."""
@@ -121,7 +138,7 @@ class ViewerServer:
             bundle["mesh"] = mesh[0]
         handler = partial(_Handler, bundle_dir=os.path.abspath(bundle_dir), bundle_json=json.dumps(bundle).encode(),
                           quiet=quiet, mesh_bin=None if mesh is None else mesh[1])
-        self.httpd = ThreadingHTTPServer((HOST, port), handler)
+        self.httpd = _Server((HOST, port), handler)
         self.httpd.daemon_threads = True
         self.port = self.httpd.server_address[1]
         self.url = f"http://{HOST}:{self.port}/"
