@@ -4,6 +4,7 @@ growth guess; its first plan is close to the run when the calibration measured t
 
 from __future__ import annotations
 
+import os
 import types
 
 import pytest
@@ -540,3 +541,43 @@ def test_a_short_first_plan_runs_no_routine_before_the_texture_start(tmp_path, m
     start = routines[0]["it"]
     assert start >= budget_mod.REPLAN_MIN_ITERS
     assert all(e["texels"] == 0 for e in events if e["type"] == "step" and e["it"] < start)
+
+
+def test_a_real_run_on_a_slowed_machine_keeps_routines_to_their_share_and_ends_on_time(tmp_path, monkeypatch):
+    """End to end on a machine made slow: busy processes (two per core) take most of the CPU from a one-thread run,
+    and every rendered E costs 0.3 s more (a routine of many views, as 64 views at 200x133 cost on a slow machine).
+    The one-minute run still ends within its budget, its routines take about their share of it (the first one,
+    before any is measured, aside), and it trains steps rather than routines."""
+    import json
+    import subprocess
+    import sys
+    import time as time_mod
+
+    import ctgs.train.routines as routines_mod
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import train_main
+
+    real = routines_mod.compute_E
+
+    def slow_E(*args, **kwargs):
+        time_mod.sleep(0.3)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(routines_mod, "compute_E", slow_E)
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=64, height=48, points=300)
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2 * (os.cpu_count() or 1))]
+    try:
+        summary = train_main(scene_dir, str(tmp_path / "run"), preset="fast", time_budget=1.0, quiet=True,
+                             sets=("threads=1", "error_from_steps=false"))
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    full = [r for r in log if r["type"] == "routine" and r["kind"] == "full"]
+    wall, routine_s = summary["wall_seconds"], summary["seconds_in"]["routine"]
+    assert 0.85 * 60 <= wall <= 1.05 * 60, summary.get("plan_history")
+    assert full, "no full routine at all"
+    first = full[0]["step_routines_s"]
+    assert routine_s - first <= (budget_mod.SHARE["routine"] + 0.05) * wall, (routine_s, first, len(full), wall)
+    assert summary["iterations"] >= 100, summary["iterations"]

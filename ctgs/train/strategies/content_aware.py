@@ -26,6 +26,7 @@ class ContentAware(Strategy):
         self.textures_started = False
         self.errors = StepErrors()  # error_from_steps: E of the steps since the last full routine
         self.sink: BackwardStats | None = None  # the current step's statistics, filled by its backward
+        self.sink_used = False  # whether the steps sum E (error_from_steps where it applies)
 
     def restore(self, tr, state: dict) -> None:
         self.textures_started = bool(state.get("textures_started", tr.it >= schedule.texture_start(tr.cfg)))
@@ -41,7 +42,17 @@ class ContentAware(Strategy):
         cfg = tr.cfg
         on_cpu = tr.device.type == "cpu" and cfg.backend in ("auto", "cpu")
         self.sink = BackwardStats() if cfg.error_from_steps and on_cpu and cfg.init_shell <= 0 else None
+        self.sink_used = self.sink is not None
         return self.sink
+
+    def errors_ready(self, tr) -> bool:
+        """error_from_steps: the steps since the last full routine hold at least as many views as a rendered E would
+        (error_views, or every training view): a short plan's routine dates come every few steps, and an E of a handful
+        of views ranks the primitives those views show. True where E is rendered."""
+        if not self.sink_used:
+            return True
+        need = tr.cfg.error_views if tr.cfg.error_views > 0 else len(tr.train_views)
+        return self.errors.steps >= min(need, len(tr.train_views))
 
     def post_backward(self, tr, it: int, view) -> None:
         sink, self.sink = self.sink, None
@@ -67,6 +78,8 @@ class ContentAware(Strategy):
         # Routines refine textures: none before they start (a --time-budget run holds its texture start until
         # the plan rests on measured steps, while a short first plan's calendar may already call for routines).
         kind = schedule.routine_kind(cfg, it, shift) if self.textures_started else None
+        if kind == "full" and not self.errors_ready(tr):
+            kind = None  # error_from_steps: E of fewer steps than E would render views waits for more
         if kind == "full" and not tr.time.admits(tr, "routine", it):
             kind = None  # --time-budget: a date its routine calendar leaves out (ctgs.train.budget.SHARE)
         if kind == "full":
