@@ -180,8 +180,9 @@ class TrainConfig:
     test_lpips: bool = _f(False, "also score LPIPS (VGG) at each periodic test evaluation, for curves over iterations "
                                  "(about 0.1 s per 200x133 view on a CPU core; the final evaluation of `ctgs eval` always has it)")
     checkpoint_every: int = _f(1000, "iterations between atomic checkpoints (0 = only at the end)")
-    checkpoint_first_s: float = _f(60.0, "wall seconds after the command started when a run without any "
-                                   "checkpoint yet writes one, whatever checkpoint_every says (0 = off)")
+    checkpoint_first_s: float = _f(60.0, "wall seconds of training (from the first step, the start-up not "
+                                   "counted) after which a run without any checkpoint yet writes one, whatever "
+                                   "checkpoint_every says (0 = off)")
     checkpoint_every_s: float = _f(600.0, "wall seconds at most between checkpoints: one is written when this long "
                                    "has passed since the last, so a kill -9 loses at most this much (0 = off)")
     debug_nan_at: int = _f(0, "testing hook: poison the loss with NaN at this iteration (0 = off)")

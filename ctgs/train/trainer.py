@@ -108,7 +108,7 @@ class Trainer:
         self.user_cfg = cfg
         self.run_dir = run_dir
         self.start_time = time.monotonic() if start_time is None else start_time
-        self.saved_at = self.start_time  # when this session's last checkpoint was written (the clock's checkpoints)
+        self.saved_at: float | None = None  # the clock's checkpoints: when the last was written, or the first step ended
         self.device = pick_device(cfg)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)  # OpenMP spin-waiting on an oversubscribed CPU costs ~5x
@@ -337,8 +337,12 @@ class Trainer:
             and it < self.cfg.iterations
 
     def _checkpoint_late(self, it: int) -> bool:
-        """A checkpoint by the clock: the first once checkpoint_first_s have passed since the command started, then
-        one whenever checkpoint_every_s have passed since the last, so that a kill -9 loses at most that much."""
+        """A checkpoint by the clock: the first once checkpoint_first_s of training have passed (counted from this
+        session's first step: not the start-up, an extension build included), then one whenever checkpoint_every_s
+        have passed since the last, so that a kill -9 loses at most that much training."""
+        if self.saved_at is None:
+            self.saved_at = time.monotonic()
+            return False
         first = self.cfg.checkpoint_first_s if self.saved_it == 0 else 0.0
         limits = [s for s in (first, self.cfg.checkpoint_every_s) if s > 0]
         return bool(limits) and time.monotonic() - self.saved_at >= min(limits) and it < self.cfg.iterations

@@ -80,10 +80,10 @@ def test_a_stop_before_the_first_checkpoint_leaves_nothing_resumable(pipeline, t
     assert readable_checkpoint(str(run)) is None
 
 
-@pytest.mark.parametrize(("first_s", "every_s", "prev_it"), [(1e-6, 0, 1), (0, 1e-6, 19), (0, 0, None)])
+@pytest.mark.parametrize(("first_s", "every_s", "prev_it"), [(1e-6, 0, 2), (0, 1e-6, 19), (0, 0, None)])
 def test_checkpoints_by_the_clock(first_s, every_s, prev_it, pipeline, tmp_path):
     """checkpoint_every = 0 (iterations: only at the end): the clock's checkpoints are what a kill -9 would resume
-    from; the end's checkpoint rotates the last of them into prev.pt."""
+    from (the clock starts at the first step); the end's checkpoint rotates the last of them into prev.pt."""
     run = str(tmp_path / "run")
     opts = [o if o != "30" else "20" for o in TRAIN_OPTS] + ["--set", "checkpoint_every=0", "--set",
                                                             f"checkpoint_first_s={first_s}", "--set",
