@@ -11,7 +11,6 @@ Both read back as an ordinary `SurfelModel`, so eval, render and export never kn
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 
@@ -26,6 +25,7 @@ from ctgs.formats.ply import read_ply, write_ply
 from ctgs.formats.texture_blob import TextureBlob, decode_blob, encode_blob
 from ctgs.formats.web_bundle import WEB_SUBDIR, is_bundle
 from ctgs.io import atomic, owner
+from ctgs.io.versioned import VersionedJson
 from ctgs.model.surfels import SurfelModel
 
 FORMAT_NAME = "ctgs-model"
@@ -147,21 +147,17 @@ def write_model(model: SurfelModel, out_dir: str, *, blob: TextureBlob | None = 
     return manifest
 
 
+MANIFEST_FILE = VersionedJson(
+    MANIFEST, FORMAT_NAME, READ_VERSIONS,
+    missing=f"{{folder}}: no {MANIFEST}; pass a folder written by `ctgs export` or `ctgs compress`",
+    unreadable="{path}: unreadable manifest ({exc}); re-export the model",
+    other_format="{path}: not a ctgs model manifest; pass a folder written by `ctgs export`",
+    other_version=f"{{path}}: model format version {{version}}, this ctgs reads versions "
+                  f"{', '.join(map(str, READ_VERSIONS))}; re-export the model with this version of ctgs")
+
+
 def read_manifest(model_dir: str) -> dict:
-    path = os.path.join(model_dir, MANIFEST)
-    if not os.path.isfile(path):
-        raise UserError(f"{model_dir}: no {MANIFEST}; pass a folder written by `ctgs export` or `ctgs compress`")
-    try:
-        with open(path) as f:
-            manifest = json.load(f)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: unreadable manifest ({exc}); re-export the model") from exc
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
-        raise UserError(f"{path}: not a ctgs model manifest; pass a folder written by `ctgs export`")
-    if manifest.get("version") not in READ_VERSIONS:
-        raise UserError(f"{path}: model format version {manifest.get('version')}, this ctgs reads versions "
-                        f"{', '.join(map(str, READ_VERSIONS))}; re-export the model with this version of ctgs")
-    return manifest
+    return MANIFEST_FILE.read(model_dir)
 
 
 def write_packed_model(packed, out_dir: str, *, extra: dict | None = None, jobs: int = 1) -> dict:

@@ -21,6 +21,7 @@ import torch
 
 from ctgs.errors import UserError
 from ctgs.io import atomic, owner
+from ctgs.io.versioned import VersionedJson
 from ctgs.model.surfels import SurfelModel, jagged_offsets
 from ctgs.render.types import SurfelInputs
 from ctgs.scene.loader import load_scene
@@ -256,21 +257,18 @@ def _legacy_bundle(names: list[str]) -> bool:
     return BUNDLE_JSON in names and all(n in (BUNDLE_JSON, SURFELS_BIN) or _ATLAS_PAGE.match(n) for n in names)
 
 
+BUNDLE_FILE = VersionedJson(
+    BUNDLE_JSON, BUNDLE_FORMAT, (BUNDLE_VERSION,),
+    missing=f"{{folder}}: no {BUNDLE_JSON}; write one with `ctgs export RUN_DIR --format web`",
+    unreadable="{path}: unreadable ({exc}); re-export with `ctgs export --format web`",
+    other_format="{path}: not a ctgs web bundle; re-export with `ctgs export --format web`",
+    other_version=f"{{path}}: web bundle version {{version}}, this ctgs reads {BUNDLE_VERSION}; "
+                  "re-export with `ctgs export --format web`")
+
+
 def read_bundle_json(bundle_dir: str) -> dict:
-    path = os.path.join(bundle_dir, BUNDLE_JSON)
-    if not os.path.isfile(path):
-        raise UserError(f"{bundle_dir}: no {BUNDLE_JSON}; write one with `ctgs export RUN_DIR --format web`")
-    try:
-        with open(path) as f:
-            bundle = json.load(f)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: unreadable ({exc}); re-export with `ctgs export --format web`") from exc
-    if not isinstance(bundle, dict) or bundle.get("format") != BUNDLE_FORMAT:
-        raise UserError(f"{path}: not a ctgs web bundle; re-export with `ctgs export --format web`")
-    if bundle.get("version") != BUNDLE_VERSION:
-        raise UserError(f"{path}: web bundle version {bundle.get('version')}, this ctgs reads {BUNDLE_VERSION}; "
-                        "re-export with `ctgs export --format web`")
-    _check_bundle_files(bundle_dir, bundle, path)
+    bundle = BUNDLE_FILE.read(bundle_dir)
+    _check_bundle_files(bundle_dir, bundle, os.path.join(bundle_dir, BUNDLE_JSON))
     return bundle
 
 

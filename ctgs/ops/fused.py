@@ -15,7 +15,6 @@ from types import ModuleType
 import torch
 
 from ctgs.errors import UserError
-from ctgs.metrics.ssim import ssim_map
 from ctgs.ops.ext import load_cpu
 
 _ext: ModuleType | None = None
@@ -63,6 +62,14 @@ def cpu_ext() -> ModuleType | None:
 def fusable(*tensors: torch.Tensor) -> bool:
     return all(t.device.type == "cpu" and t.is_contiguous() and t.dtype in (torch.float32, torch.float64)
                for t in tensors) and cpu_ext() is not None
+
+
+def all_finite(t: torch.Tensor) -> bool:
+    """True when t holds no NaN and no +-inf. min/max propagate NaN and expose +-inf in one pass, without a bool
+    temporary of t's size (textures are big)."""
+    with torch.no_grad():
+        lo, hi = torch.aminmax(t.detach())
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
 class _DeferredTexelL1:
@@ -199,28 +206,21 @@ class _PhotometricLoss(torch.autograd.Function):
 
 
 def photometric_loss(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float, want_error: bool = False):
-    """(1 - lambda_ssim) mean |render - gt| + lambda_ssim (1 - mean SSIM) of two [H, W, C] images (SSIM as
-    ctgs.metrics.ssim): (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached), and with want_error
-    the error image of the same pass, e [H, W] = (1 - l) mean_c |render - gt| + l mean_c (1 - SSIM map) (detached).
+    """(1 - lambda_ssim) mean |render - gt| + lambda_ssim (1 - mean SSIM) of two [H, W, C] images in one compiled
+    pass on the CPU: (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached), and with want_error the
+    error image of the same pass, e [H, W] = (1 - l) mean_c |render - gt| + l mean_c (1 - SSIM map) (detached).
+    None where the extension does not apply (the caller computes it with PyTorch: ctgs.train.loss.photometric_loss).
 
-    On the CPU one compiled pass computes the value and, if render needs it, the gradient
-    (kernels/cpu/ssim.cpp; 5 blurred moment images, their adjoint for the gradient); it matches the
-    PyTorch expression below to float rounding (tests/train/test_fused.py)."""
-    if render.shape != gt.shape or render.ndim != 3:
-        raise ValueError(f"photometric_loss expects two [H, W, C] images of one shape, got {list(render.shape)}, "
-                         f"{list(gt.shape)}")
-    if not gt.requires_grad and gt.dtype == render.dtype:
-        render_c, gt_c = render.contiguous(), gt.contiguous()
-        if fusable(render_c, gt_c):
-            total, l1, s, e = _PhotometricLoss.apply(render_c, gt_c, float(lambda_ssim), bool(want_error))
-            return (total, l1, s, e) if want_error else (total, l1, s)
-    l1_map = (render - gt).abs()
-    s_map = ssim_map(render, gt)
-    total = (1 - lambda_ssim) * l1_map.mean() + lambda_ssim * (1 - s_map.mean())
-    if not want_error:
-        return total, l1_map.mean().detach(), s_map.mean().detach()
-    e = ((1 - lambda_ssim) * l1_map.mean(-1) + lambda_ssim * (1 - s_map).mean(-1)).detach()
-    return total, l1_map.mean().detach(), s_map.mean().detach(), e
+    The pass computes the value and, if render needs it, the gradient (kernels/cpu/ssim.cpp; 5 blurred moment
+    images, their adjoint for the gradient); it matches the PyTorch expression to float rounding
+    (tests/train/test_fused.py)."""
+    if render.shape != gt.shape or render.ndim != 3 or gt.requires_grad or gt.dtype != render.dtype:
+        return None
+    render_c, gt_c = render.contiguous(), gt.contiguous()
+    if not fusable(render_c, gt_c):
+        return None
+    total, l1, s, e = _PhotometricLoss.apply(render_c, gt_c, float(lambda_ssim), bool(want_error))
+    return (total, l1, s, e) if want_error else (total, l1, s)
 
 
 def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float) -> torch.Tensor | None:

@@ -14,6 +14,7 @@ import torch
 
 import ctgs.ops.ext as ext_mod
 import ctgs.ops.ext_cuda as ext_cuda_mod
+from ctgs.ops.fused import all_finite
 from ctgs.render.camera import Camera
 from ctgs.render.cuda_backend import render_cuda
 from ctgs.render.rasterize import rasterize, rasterize_error_fn
@@ -30,13 +31,6 @@ def _fail(name: str, expected: str, t: torch.Tensor) -> None:
     raise ValueError(f"{name} must have shape {expected}, got {list(t.shape)} ({t.dtype}, {t.device})")
 
 
-def _all_finite(t: torch.Tensor) -> bool:
-    # min/max propagate NaN and expose +-inf in one pass without a [T, 3] bool temporary (textures are big).
-    with torch.no_grad():
-        lo, hi = torch.aminmax(t.detach())
-    return bool(torch.isfinite(lo) & torch.isfinite(hi))
-
-
 def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like: torch.Tensor,
                  finite: bool = True) -> None:
     if not isinstance(t, torch.Tensor):
@@ -47,7 +41,7 @@ def _check_float(name: str, t: torch.Tensor, expected: str, shape_ok: bool, like
         raise ValueError(f"{name} must have dtype {like.dtype} (the dtype of means), shape {expected}; got {t.dtype}")
     if t.device != like.device:
         raise ValueError(f"{name} must be on {like.device} (the device of means), shape {expected}; got {t.device}")
-    if finite and t.numel() and not _all_finite(t):
+    if finite and t.numel() and not all_finite(t):
         raise ValueError(f"{name} (shape {expected}) contains NaN or infinite values")
 
 
@@ -156,7 +150,7 @@ def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | 
     if checked:
         return
     for name, t, expected, _ in floats:
-        if t.numel() and not _all_finite(t):
+        if t.numel() and not all_finite(t):
             raise ValueError(f"{name} (shape {expected}) contains NaN or infinite values")
     with torch.no_grad():
         if n and bool((s.scales <= 0).any()):
@@ -180,7 +174,7 @@ def validate_inputs(s: SurfelInputs, camera: Camera, background: torch.Tensor | 
             raise ValueError("camera.viewmat must be a finite [4, 4] tensor")
         for name, t, expected in (("background", background, "[3]"),
                                   ("error_image", error_image, f"[{camera.height}, {camera.width}]")):
-            if t is not None and t.numel() and not _all_finite(t):
+            if t is not None and t.numel() and not all_finite(t):
                 raise ValueError(f"{name} (shape {expected}) contains NaN or infinite values")
 
 

@@ -14,7 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ctgs.ops.fused import photometric_loss, texel_l1
+from ctgs.metrics.ssim import ssim_map
+from ctgs.ops.fused import photometric_loss as fused_photometric_loss
+from ctgs.ops.fused import texel_l1
 from ctgs.render import render
 from ctgs.render.constants import CUTOFF_RHO, FILTER_INV_SQUARE, MAX_ALPHA, MIN_ALPHA
 from ctgs.render.geometry import quat_to_rotmat
@@ -124,6 +126,26 @@ def recomposited(gt: torch.Tensor, alpha: torch.Tensor | None, base: torch.Tenso
     """A transparent photo `gt` ([H, W, 3], composited over `base` [3]) over `bg` [3] instead, from its alpha
     ([H, W, 1]; None: an opaque photo, returned as it is)."""
     return gt if alpha is None else gt + (bg - base) * (1 - alpha)
+
+
+def photometric_loss(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float, want_error: bool = False):
+    """(1 - lambda_ssim) mean |render - gt| + lambda_ssim (1 - mean SSIM) of two [H, W, C] images (SSIM as
+    ctgs.metrics.ssim): (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached), and with want_error
+    the error image of the same pass, e [H, W] = (1 - l) mean_c |render - gt| + l mean_c (1 - SSIM map) (detached).
+    One compiled pass on the CPU (ctgs.ops.fused.photometric_loss), this PyTorch expression elsewhere."""
+    if render.shape != gt.shape or render.ndim != 3:
+        raise ValueError(f"photometric_loss expects two [H, W, C] images of one shape, got {list(render.shape)}, "
+                         f"{list(gt.shape)}")
+    fused = fused_photometric_loss(render, gt, lambda_ssim, want_error)
+    if fused is not None:
+        return fused
+    l1_map = (render - gt).abs()
+    s_map = ssim_map(render, gt)
+    total = (1 - lambda_ssim) * l1_map.mean() + lambda_ssim * (1 - s_map.mean())
+    if not want_error:
+        return total, l1_map.mean().detach(), s_map.mean().detach()
+    e = ((1 - lambda_ssim) * l1_map.mean(-1) + lambda_ssim * (1 - s_map).mean(-1)).detach()
+    return total, l1_map.mean().detach(), s_map.mean().detach(), e
 
 
 def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, stats=None,

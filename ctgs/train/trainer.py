@@ -19,6 +19,7 @@ import torch
 
 from ctgs.errors import Terminated, UserError
 from ctgs.io import atomic
+from ctgs.io.signals import signals_deferred
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
@@ -35,12 +36,6 @@ from ctgs.train.kmin import compute_k_min, view_coverage
 from ctgs.train.loss import masked, recomposited, training_loss
 from ctgs.train.run import write_outputs
 from ctgs.train.strategies import make_strategy
-
-
-def _all_finite(t: torch.Tensor) -> bool:
-    # min/max propagate NaN and expose +-inf in one pass without a bool temporary of the tensor's size.
-    lo, hi = torch.aminmax(t.detach())
-    return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
 # What the run's wall time went to besides its steps (train_summary.json "seconds_in"): full and late routines,
@@ -260,7 +255,7 @@ class Trainer:
             names = ALL_PARAMS if full else self.opt.nonfinite + self.opt.unchecked
             for name in ALL_PARAMS:
                 p = getattr(self.model, name)
-                if name in names and p.numel() and (name in self.opt.nonfinite or not _all_finite(p)):
+                if name in names and p.numel() and (name in self.opt.nonfinite or not fused.all_finite(p)):
                     bad = f"parameter {name}"
                     break
         if bad is None:
@@ -426,7 +421,7 @@ class Trainer:
         that state is written before the stop goes on: `--resume` loses no step (the periodic checkpoint may be
         up to checkpoint_every iterations older)."""
         try:
-            with atomic.signals_deferred():
+            with signals_deferred():
                 yield
         except (KeyboardInterrupt, Terminated):
             if self.it > 0:

@@ -11,6 +11,7 @@ import torch
 
 from ctgs.errors import Terminated
 from ctgs.io import atomic
+from ctgs.io.signals import signals_deferred
 
 
 class Boom(Exception):
@@ -114,10 +115,10 @@ def test_signals_deferred_holds_a_signal_and_delivers_it_once_after(tmp_path):
     before = signal.getsignal(signal.SIGINT)
     signal.signal(signal.SIGINT, lambda s, f: calls.append(s))
     try:
-        with atomic.signals_deferred():
+        with signals_deferred():
             pass
         assert calls == []
-        with atomic.signals_deferred():
+        with signals_deferred():
             os.kill(os.getpid(), signal.SIGINT)
             os.kill(os.getpid(), signal.SIGINT)
             for _ in range(1000):  # give the interpreter bytecode boundaries to run the (holding) handler
