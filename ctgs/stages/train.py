@@ -10,7 +10,7 @@ import sys
 import click
 
 from ctgs.errors import Terminated, UserError
-from ctgs.io import lock, owner
+from ctgs.io import atomic, lock, owner
 
 
 def _load_scene(cfg):
@@ -117,14 +117,17 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
                          time_budget, max_params, scene_background(scene_dir, background, sets))
     created = not os.path.exists(run_dir)
-    held = lock.RunLock(run_dir, "ctgs train")  # one writer: a second training or --resume here is refused
-    trainer = None
+    held = trainer = None
     try:
-        owner.mark(run_dir, RUN_KIND)
         scene = _load_scene(cfg)
         for note in ("points_note", "split"):  # random initial points; a transforms file's own train/test split
             if scene.meta.get(note):
                 print(f"ctgs train: {'views: ' if note == 'split' else ''}{scene.meta[note]}", file=sys.stderr)
+        # the folder appears only now: a TERM while the scene loads (pycolmap's import, where glog's handler ends the
+        # process at once) leaves nothing behind
+        with atomic.signals_deferred():  # a stop while the lock is taken lands once it is held (and is cleaned up)
+            held = lock.RunLock(run_dir, "ctgs train")  # one writer: a second training or --resume here is refused
+        owner.mark(run_dir, RUN_KIND)
         trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
         if not quiet and cfg.max_params == 0 and trainer.cfg.max_params > 0:
             print(f"ctgs train: size budget {trainer.cfg.max_params} params ({cfg.max_params_per_value:g} per observed "
@@ -132,15 +135,17 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         write_config(run_dir, cfg.to_dict())
         return run_with_progress(trainer, quiet=quiet)
     except BaseException as exc:
-        # Nothing half-written: a run folder this invocation created goes if no checkpoint made it resumable.
+        # Nothing half-written: a run folder this invocation created goes if no checkpoint made it resumable (only
+        # once it holds the folder's lock: before, the folder is not there yet, or is another process's).
         from ctgs.train.checkpoint import has_checkpoint
 
         if isinstance(exc, (KeyboardInterrupt, Terminated)) and trainer is not None:
             trainer.checkpoint_on_stop()
-        resumable = has_checkpoint(run_dir)
-        if created and not resumable:
+        resumable = held is not None and has_checkpoint(run_dir)
+        removed = held is not None and created and not resumable
+        if removed:
             shutil.rmtree(run_dir, ignore_errors=True)
-        elif not resumable:  # a folder made before (a Slurm job's): no empty checkpoints/ that looks resumable
+        elif held is not None and not resumable:  # a folder made before (a Slurm job's): no empty checkpoints/
             with contextlib.suppress(OSError):
                 os.rmdir(os.path.join(run_dir, "checkpoints"))
         if isinstance(exc, (KeyboardInterrupt, Terminated)):  # Ctrl-C, or SIGTERM through the CLI
@@ -148,11 +153,12 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
                 print(f"ctgs train: stopped; {run_dir}/checkpoints/last.pt holds the last checkpoint: continue with "
                       f"`ctgs train {scene_dir} -o {run_dir} --resume`", file=sys.stderr)
             else:
-                print("ctgs train: stopped before the first checkpoint" + (f"; {run_dir} removed" if created else ""),
+                print("ctgs train: stopped before the first checkpoint" + (f"; {run_dir} removed" if removed else ""),
                       file=sys.stderr)
         raise
     finally:
-        held.release()
+        if held is not None:
+            held.release()
 
 
 # `ctgs train` says so when the last evaluation ends this far below the run's best one.

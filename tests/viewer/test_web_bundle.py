@@ -105,7 +105,7 @@ def test_rewrite_replaces_a_bundle_but_never_another_folder(tmp_path):
     assert read_bundle_json(str(tmp_path / "web"))["atlas"]["texel_format"] == "float16"
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "keep.txt").write_text("x")
-    with pytest.raises(UserError, match="not a ctgs web bundle"):
+    with pytest.raises(UserError, match="not an earlier ctgs web bundle: it holds files ctgs did not write"):
         write_web_bundle(model, str(tmp_path / "other"), [])
     assert (tmp_path / "other" / "keep.txt").exists()
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".tmp")]
