@@ -46,7 +46,7 @@ def _commit() -> str:
     """The checkout's commit, "+" when ctgs's sfm code differs from it (others' uncommitted work elsewhere in the
     shared checkout does not count)."""
     out = subprocess.run(["git", "-C", REPO, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    sfm_code = ["ctgs/scene/sfm.py", "ctgs/scene/sfm_pairs.py", "ctgs/scene/sfm_worker.py", "ctgs/stages/sfm.py"]
+    sfm_code = ["ctgs/scene/sfm", "ctgs/stages/sfm.py"]
     changed = subprocess.run(["git", "-C", REPO, "status", "--porcelain", *sfm_code],
                              capture_output=True, text=True).stdout.strip()
     return (out.stdout.strip() or "unknown") + ("+" if changed else "")

@@ -19,7 +19,7 @@ import torch
 from fault_helpers import TRAIN_OPTS, assert_one_line_failure, cli, tiny_manifest
 
 from ctgs.launch import slurm
-from ctgs.scene import sfm
+from ctgs.scene.sfm import markers as sfm_markers
 from ctgs.viewer.server import ViewerServer
 
 
@@ -96,7 +96,7 @@ def test_a_folder_where_the_record_of_the_inputs_goes_is_damage_too(tmp_path, ca
     (work / "inputs.json").mkdir(parents=True)
     fingerprint = {"images_dir": str(tmp_path), "files": [], "max_image_size": 0, "max_features": 0,
                    "matcher": "exhaustive", "mapper": "incremental"}
-    sfm._prepare_work(str(work), fingerprint, force=False)
+    sfm_markers.prepare_work(str(work), fingerprint, force=False)
     assert (work / "inputs.json").is_file() and "unreadable (damaged)" in capsys.readouterr().err
 
 
@@ -104,7 +104,7 @@ def test_a_damaged_step_marker_reads_as_unknown_figures(tmp_path):
     marker = tmp_path / "features.done"
     for text, figures in (("12.5 30.0\n", (12.5, 30.0)), ("12.5\n", (12.5, None)), ("\x00garbage", (None, None))):
         marker.write_text(text)
-        got = sfm._step_figures(str(marker))
+        got = sfm_markers.step_figures(str(marker))
         assert [None if g != g else g for g in got] == list(figures)  # NaN for what it no longer says
 
 

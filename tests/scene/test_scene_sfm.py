@@ -17,6 +17,7 @@ from ctgs.scene import load_scene
 from ctgs.scene.colmap import read_colmap_model
 from ctgs.scene.demo import make_demo_scene
 from ctgs.scene import sfm
+from ctgs.scene.sfm import markers, pipeline, steps, supervise
 from ctgs.scene.sfm import umeyama
 
 VIEWS, WIDTH, HEIGHT = 24, 256, 192
@@ -54,15 +55,15 @@ def test_sfm_reconstructs_the_demo_scene(tmp_path, monkeypatch, demo24):
         raise KeyboardInterrupt
 
     with monkeypatch.context() as patch:
-        patch.setattr(sfm, "_undistort", interrupted)
+        patch.setattr(steps, "undistort", interrupted)
         with pytest.raises(KeyboardInterrupt):
             sfm.run_sfm(os.path.join(demo, "images"), str(scene_dir), sfm.SfmOptions(threads=2))
     assert not scene_dir.exists() and (tmp_path / ".recon.sfm-work" / "mapping.done").is_file()
 
     # The re-run resumes: extraction, matching and mapping are not redone.
     calls = []
-    for step in ("_extract", "_match", "_map"):
-        monkeypatch.setattr(sfm, step, lambda *a, _s=step, **k: calls.append(_s))
+    for step in ("extract_features", "match_pairs", "map_photos"):
+        monkeypatch.setattr(steps, step, lambda *a, _s=step, **k: calls.append(_s))
     result = CliRunner().invoke(main, ["sfm", os.path.join(demo, "images"), "-o", str(scene_dir), "--threads", "2"])
     assert result.exit_code == 0, result.output
     assert calls == []
@@ -129,7 +130,7 @@ def test_sigterm_ends_sfm_at_once_during_its_steps_and_is_restored_after(tmp_pat
 
     previous = signal.signal(signal.SIGTERM, handler)
     try:
-        monkeypatch.setattr(sfm, "_extract", extract)
+        monkeypatch.setattr(steps, "extract_features", extract)
         with pytest.raises(KeyboardInterrupt):
             sfm.run_sfm(os.path.join(demo, "images"), str(tmp_path / "recon"), sfm.SfmOptions(threads=1))
         assert seen == [signal.SIG_DFL]
@@ -144,7 +145,7 @@ def test_retrieval_pairs_and_global_mapper_reconstruct_the_demo_scene(tmp_path, 
     mapper register the arc, with the same report and layout; progress reaches every step's total. The repair after
     the global mapper (a photo it keeps with too few 3D points is registered again by the incremental mapper, the
     rest held fixed) is forced on the demo photos with the fewest points."""
-    monkeypatch.setattr(sfm, "MIN_POINTS_PER_IMAGE", 450)
+    monkeypatch.setattr(steps, "MIN_POINTS_PER_IMAGE", 450)
     seen: dict[str, list] = {}
     report, ran = sfm.run_sfm(os.path.join(demo24, "images"), str(tmp_path / "big"),
                               sfm.SfmOptions(matcher="retrieval", mapper="global", threads=2),
@@ -181,7 +182,7 @@ def test_auto_modes_follow_the_number_of_photos():
 
 
 def test_pairings():
-    from ctgs.scene import sfm_pairs
+    from ctgs.scene.sfm import pairs as sfm_pairs
 
     assert sfm_pairs.name_order_pairs(4, 2, quadratic=False) == {(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)}
     # Quadratic overlap: also 2^k ahead (k < overlap), as COLMAP's sequential pairing.
@@ -228,7 +229,7 @@ def test_a_finished_scene_of_the_same_photos_is_reused(tmp_path, tiny_demo_maste
     images = os.path.join(tiny_demo_master, "images")
     names = sorted(os.listdir(images))
     copy = shutil.copytree(images, tmp_path / "copied")  # another folder, new dates: the same photos
-    scene = _finished_scene(tmp_path, len(names), digest=sfm._inputs_digest(images, names))
+    scene = _finished_scene(tmp_path, len(names), digest=markers.inputs_digest(images, names))
     result = CliRunner().invoke(main, ["sfm", str(copy), "-o", scene])
     assert result.exit_code == 0 and "already reconstructed" in " ".join(result.output.split())
 
@@ -239,7 +240,7 @@ def _sfm_lines(images, scene) -> tuple[int, list[str]]:
 
 
 def test_too_little_free_space_is_said_before_starting(tmp_path, monkeypatch, tiny_demo_master):
-    monkeypatch.setattr(sfm.shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(10**9, 10**9 - 10**5, 10**5))
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(10**9, 10**9 - 10**5, 10**5))
     code, lines = _sfm_lines(os.path.join(tiny_demo_master, "images"), str(tmp_path / "out"))
     assert code == 2 and len(lines) == 1 and "GB free" in lines[0] and str(tmp_path) in lines[0], lines
     assert not (tmp_path / "out").exists()
@@ -252,7 +253,7 @@ def test_a_colmap_abort_is_one_line_and_the_work_is_kept(tmp_path, monkeypatch, 
     message = "SQLite error: database or disk is full" if fault == "disk full" else "Check failed: num_images > 0"
     script = (f"import os, sys; sys.stderr.write('F20261127 database.cc:42] {message}\\n*** Check failure stack "
               f"trace: ***\\n    @ 0x7f colmap::Database::Open\\n'); sys.stderr.flush(); os.abort()")
-    monkeypatch.setattr(sfm, "_worker_command", lambda job: [sys.executable, "-c", script])
+    monkeypatch.setattr(supervise, "worker_command", lambda job: [sys.executable, "-c", script])
     code, lines = _sfm_lines(os.path.join(tiny_demo_master, "images"), str(tmp_path / "out"))
     assert code == 2 and len(lines) == 1, lines
     if fault == "disk full":
@@ -271,7 +272,7 @@ def test_a_really_full_disk_is_one_line(tmp_path, monkeypatch, tiny_demo_master)
                                            capture_output=True).returncode != 0:
         pytest.skip("mounting a small tmpfs needs root")
     try:
-        monkeypatch.setattr(sfm, "check_free_space", lambda *args, **kwargs: None)
+        monkeypatch.setattr(pipeline, "check_free_space", lambda *args, **kwargs: None)
         code, lines = _sfm_lines(os.path.join(tiny_demo_master, "images"), str(small / "out"))
         assert code == 2 and len(lines) == 1, lines
         assert "the disk is full" in lines[0] and "SIFT extraction" in lines[0] and str(small) in lines[0]
@@ -289,7 +290,7 @@ def test_a_damaged_record_of_the_inputs_redoes_every_step(tmp_path, capsys):
     (work / "inputs.json").write_bytes(b'{"images_dir": "/ph')
     fingerprint = {"images_dir": str(tmp_path), "files": [["a.jpg", 1, 2]], "max_image_size": 0, "max_features": 0,
                    "matcher": "exhaustive", "mapper": "incremental"}
-    sfm._prepare_work(str(work), fingerprint, force=False)
+    markers.prepare_work(str(work), fingerprint, force=False)
     assert os.listdir(work) == ["inputs.json"]
     assert json.loads((work / "inputs.json").read_text()) == fingerprint
     assert "inputs.json: unreadable (damaged)" in capsys.readouterr().err

@@ -1,8 +1,8 @@
-"""One pycolmap call of `ctgs sfm`, in a process of its own: `python -m ctgs.scene.sfm_worker JOB.json`.
+"""One pycolmap call of `ctgs sfm`, in a process of its own: `python -m ctgs.scene.sfm.worker JOB.json`.
 
-`ctgs.scene.sfm` runs each long pycolmap call here so that (1) a native abort (COLMAP ends the process with a
-stack dump when SQLite reports "database or disk is full", or on any failed CHECK) ends this process only, and
-the parent prints one line about it; (2) the parent stays free to draw progress bars while the call runs.
+`ctgs.scene.sfm.supervise` runs each long pycolmap call here so that (1) a native abort (COLMAP ends the process
+with a stack dump when SQLite reports "database or disk is full", or on any failed CHECK) ends this process only,
+and the parent prints one line about it; (2) the parent stays free to draw progress bars while the call runs.
 
 JOB.json holds {"call": NAME, "result": PATH, "progress": PATH, "log_level": N, ...the call's arguments}.
 The call's figures go to `result` (JSON, written at the end); the incremental mapper's registered-image count
