@@ -6,8 +6,8 @@ them with setuptools' package-dir). Every caller asks this module, so both layou
 an editable install or a plain checkout) resolve to the same files; nothing else hard-codes a path.
 
 The per-user cache (compiled extensions, converted LPIPS weights) is $CTGS_CACHE_DIR, else ~/.cache/ctgs
-(the same rule as ctgs.metrics.vgg_weights and the Makefile): never inside the package, whose folder may
-be read-only (site-packages of a system Python) or shared between users.
+(`cache_dir`, the one place that says so; the Makefile follows the same rule): never inside the package, whose
+folder may be read-only (site-packages of a system Python) or shared between users.
 """
 
 from __future__ import annotations
