@@ -208,3 +208,15 @@ def test_status_from_the_files_alone(tmp_path):
     rows = launch.scene_states(str(runs), ["a", "b", "c"], launch.read_jobs(str(runs)))
     assert [r[:3] for r in rows] == [("a", "done", "7_0"), ("b", "failed", "7_1"), ("c", "not submitted", "")]
     assert rows[1][3].startswith("error: out of memory (")
+
+
+def test_the_job_scripts_are_their_templates_filled_in(tmp_path):
+    """The shipped templates (ctgs/launch/templates/) with every @NAME@ filled in, quoted for bash, and valid bash."""
+    root, runs, scenes, make_args = "/clone of ctgs", "/runs/it's", ["bicycle", "garden"], ["PRESET=fast", "X=a b"]
+    for name, text in (("scene.sh", launch._scene_script(root, runs, scenes, make_args, "/venv/bin/python")),
+                       ("table.sh", launch._table_script(root, runs, scenes, make_args))):
+        assert text.startswith("#!/bin/bash\n") and not launch.PLACEHOLDER.search(text), text
+        assert "cd '/clone of ctgs'" in text and "'X=a b'" in text and "bicycle garden" in text
+        (tmp_path / name).write_text(text)
+        r = subprocess.run(["bash", "-n", str(tmp_path / name)], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
