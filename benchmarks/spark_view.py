@@ -42,7 +42,7 @@ from ctgs.metrics.psnr import psnr  # noqa: E402
 from ctgs.render import render  # noqa: E402
 from ctgs.resources import cache_dir  # noqa: E402
 from ctgs.scene import load_scene  # noqa: E402
-from ctgs.viewer.headless import Browser, find_chromium  # noqa: E402
+from headless import Browser, find_chromium  # noqa: E402 (benchmarks/headless.py)
 
 PACKAGES = ("three@0.180.0", "@sparkjsdev/spark@2.2.0")
 FRAMES = 60  # at most this many renders per view (--frames), WAIT_MS apart, until two in a row change nothing

@@ -35,9 +35,9 @@ from ctgs.formats.web_bundle import read_web_bundle, scene_cameras, write_web_bu
 from ctgs.model.surfels import SurfelModel, jagged_offsets  # noqa: E402
 from ctgs.render import render  # noqa: E402
 from ctgs.render.camera import Camera  # noqa: E402
-from ctgs.viewer.capture import PANEL_CSS_PX, ViewerPage  # noqa: E402
-from ctgs.viewer.headless import Browser, find_chromium  # noqa: E402
 from ctgs.viewer.server import ViewerServer  # noqa: E402
+from headless import Browser, find_chromium  # noqa: E402 (benchmarks/headless.py)
+from viewer_page import PANEL_CSS_PX, ViewerPage  # noqa: E402 (benchmarks/viewer_page.py)
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESULTS = os.path.join(REPO, "benchmarks", "results", "viewer_bench")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import urllib.error
 import urllib.request
 
@@ -14,9 +15,12 @@ from surface_model import demo_scene, surface_model
 
 from ctgs.formats.mesh import viewer_mesh, write_mesh
 from ctgs.formats.web_bundle import scene_cameras, write_web_bundle
-from ctgs.viewer.capture import ViewerPage
-from ctgs.viewer.headless import Browser, BrowserError, find_chromium
 from ctgs.viewer.server import ViewerServer
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                                "benchmarks"))  # the headless-browser libraries of the benchmarks
+from headless import Browser, BrowserError, find_chromium  # noqa: E402
+from viewer_page import ViewerPage  # noqa: E402
 
 CAMERA = 3
 NO_CHROMIUM = "no Chromium to drive (Debian: apt-get install -y chromium, which .ci/run does; or set CTGS_CHROMIUM)"

@@ -8,6 +8,7 @@ test camera is compared at its image size, with textures on and off.
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -17,10 +18,13 @@ from click.testing import CliRunner
 from ctgs.cli import main
 from ctgs.io.images import read_rgb, write_image
 from ctgs.formats.web_bundle import read_bundle_json
-from ctgs.viewer.capture import ViewerPage
-from ctgs.viewer.headless import Browser, BrowserError, find_chromium
 from ctgs.viewer.server import ViewerServer
 from viewer_models import psnr
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                                "benchmarks"))  # the headless-browser libraries of the benchmarks
+from headless import Browser, BrowserError, find_chromium  # noqa: E402
+from viewer_page import ViewerPage  # noqa: E402
 
 pytestmark = pytest.mark.skipif(
     find_chromium() is None,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import threading
 from functools import partial
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
@@ -18,10 +19,13 @@ from urllib.parse import quote
 import pytest
 
 from ctgs.formats.web_bundle import BUNDLE_JSON, write_web_bundle
-from ctgs.viewer.capture import PANEL_CSS_PX, READY_TIMEOUT_S
-from ctgs.viewer.headless import Browser, BrowserError, find_chromium
 from ctgs.viewer.server import ViewerServer
 from viewer_models import camera, textured_model
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                                "benchmarks"))  # the headless-browser libraries of the benchmarks
+from headless import Browser, BrowserError, find_chromium  # noqa: E402
+from viewer_page import PANEL_CSS_PX, READY_TIMEOUT_S  # noqa: E402
 
 pytestmark = pytest.mark.skipif(
     find_chromium() is None,

@@ -6,6 +6,9 @@ state (was WebGL2 there at all?). Playwright's Python package downloads its own 
 offline) and pulls Node. CDP over `--remote-debugging-pipe` needs no websocket library: the browser
 reads NUL-terminated JSON messages on fd 3 and writes them on fd 4. That is all the tests need:
 navigate, evaluate JavaScript (awaiting the viewer's promises) and capture a PNG screenshot.
+
+A library of the benchmarks (viewer_bench.py, spark_view.py) and of the browser tests, which put benchmarks/ on
+their sys.path.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Screenshots and frame times of the viewer in headless Chromium (used by tests and benchmarks)."""
+"""Screenshots and frame times of `ctgs view`'s page in headless Chromium (benchmarks/viewer_bench.py and the
+browser tests of tests/viewer and tests/fusion; a library on their sys.path, beside headless.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import json
 import cv2
 import numpy as np
 
-from ctgs.viewer.headless import Browser, BrowserError
+from headless import Browser, BrowserError
 
 # Sidebar width of static/viewer.css: the viewport must hold the panel and the image side by side.
 PANEL_CSS_PX = 260
