@@ -1,10 +1,10 @@
 """The speed/accuracy trade from every recorded run: each preset and the 2dgs baseline, over seeds where there are some.
 
 Nothing is trained here. The script reads the JSON records other benchmarks wrote (trade.py, paired.py,
-equal_time.py; the registry below names each file and which runs of it make a point), and writes for each scene
-a table (mean, standard deviation and count over seeds; the commit of every source) and a plot: test PSNR against
-wall-clock minutes and against parameters, content-aware in red and 2dgs in blue, one panel column per image
-size, error bars one standard deviation over seeds where a point has several.
+equal_time.py, scene_trade.py; the registry beside it, trade_summary.toml, names each file and which runs of it
+make a point), and writes for each scene a table (mean, standard deviation and count over seeds; the commit of every
+source) and a plot: test PSNR against wall-clock minutes and against parameters, content-aware in red and 2dgs in
+blue, one panel column per image size, error bars one standard deviation over seeds where a point has several.
 
 The records come from different commits (the trainer changed between them; each file names its commit), and
 single runs on herzjesu25 move by up to 1 dB with the seed: read the seeded points first.
@@ -20,198 +20,42 @@ import platform
 import statistics
 import subprocess
 import time
+import tomllib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 
-# One point: (method, label, [(file, selector), ...]). A selector picks runs of a file:
+# The points of each scene and image size, in order: benchmarks/trade_summary.toml (its header says how a source
+# picks the runs of a record). Loaded as {scene: {size: [(method, label, [(record, selector), ...]), ...]}}, a
+# selector picking runs of a record:
 #   ("trade", scale, row name)      rows of a trade.py record
 #   ("paired", run label)           runs of a paired.py record
 #   ("equal_time", method)          the test-split run of an equal_time.py record (ca | 2dgs)
 #   ("scene_trade", variant)        the rows (seeds) of a scene_trade.py record for one variant
-HERZ_EQUAL_TIME_192 = ["equal_time/herzjesu25_192_d64bc36.json", "equal_time/herzjesu25_192_seed1_d64bc36.json", "equal_time/herzjesu25_192_seed2_1c1d1a1.json",
-                       "equal_time/herzjesu25_192_seed3_1c1d1a1.json"] + [
-    f"equal_time/herzjesu25_192_seed{s}_edb494c.json" for s in range(4, 8)]
-HERZ_EQUAL_TIME_384 = ["equal_time/herzjesu25_384_seed0_5de4149.json", "equal_time/herzjesu25_384_seed1_4865d28.json",
-                       "equal_time/herzjesu25_384_seed2_4865d28.json"]
-
-
-def size_budget_points(record: str, scale: str) -> list:
-    """The size-budget trade pairs of a trade.py record: `fast` and `preview` with their size budget, and 2DGS given
-    each one's wall time."""
-    points = []
-    for method, prefix, suffix in (("content-aware", "ca", ""), ("2dgs", "2dgs", "'s time")):
-        for preset in ("fast", "preview"):
-            points.append((method, f"{preset} + size budget{suffix}",
-                           [(record, ("trade", scale, f"{prefix}_{preset}"))]))
-    return points
-
-
+REGISTRY_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "trade_summary.toml")
 MIN_PSNR_SPAN = 2.0  # dB: the least PSNR range a panel shows (the seed spread of one herzjesu25 run is ~1 dB)
-BONSAI_15 = "scene_trade/bonsai252_images_4_15min_fast_2dgs_3seeds_531a0a8.json"
-BONSAI_60 = "scene_trade/bonsai252_images_4_60min_balanced_1seed_531a0a8.json"
-BONSAI_10 = "scene_trade/bonsai252_images_4_10min_fast_2dgs_1seed_db41397.json"
-BONSAI_15P = "scene_trade/bonsai252_images_4_15min_preview_1seed_531a0a8.json"
-BONSAI_15P12 = "scene_trade/bonsai252_images_4_15min_preview_seeds1-2_d42cfeb.json"
-BONSAI_60S1 = "scene_trade/bonsai252_images_4_60min_balanced_seed1_d42cfeb.json"
-BONSAI2_60 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_1seed_d42cfeb.json"
-BONSAI2_60B = "scene_trade/bonsai252_images_2_60min_balanced_1seed_d42cfeb.json"
-BONSAI2_60E = "scene_trade/bonsai252_images_2_60min_fast_2dgs_1seed_16f95c3.json"
-BONSAI2_60E1 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_seed1_d4cb9cb.json"
-BONSAI2_60E2 = "scene_trade/bonsai252_images_2_60min_fast_2dgs_seed2_86bc3e1.json"
-BONSAI2_60EB = "scene_trade/bonsai252_images_2_60min_balanced_seed0_d4cb9cb.json"
-BONSAI2_60EB1 = "scene_trade/bonsai252_images_2_60min_balanced_seed1_f579504.json"
-BONSAI2_60EB2 = "scene_trade/bonsai252_images_2_60min_balanced_seed2_a216826.json"
-BONSAI2_60P = "scene_trade/bonsai252_images_2_60min_preview_seed0_f579504.json"
-BONSAI2_60P1 = "scene_trade/bonsai252_images_2_60min_preview_seed1_a216826.json"
-BONSAI2_60P2 = "scene_trade/bonsai252_images_2_60min_preview_seed2_a216826.json"
-BONSAI_60S2 = "scene_trade/bonsai252_images_4_60min_balanced_seed2_d4cb9cb.json"
-REGISTRY = {
-    "bonsai252": {
-        "200x133": [
-            ("content-aware", "preview, --time-budget 15",
-             [(BONSAI_15P, ("scene_trade", "preview")), (BONSAI_15P12, ("scene_trade", "preview"))]),
-            ("content-aware", "fast, --time-budget 15", [(BONSAI_15, ("scene_trade", "fast"))]),
-            ("content-aware", "balanced, --time-budget 60",
-             [(BONSAI_60, ("scene_trade", "balanced")), (BONSAI_60S1, ("scene_trade", "balanced")),
-              (BONSAI_60S2, ("scene_trade", "balanced"))]),
-            ("content-aware", "fast at 0.4 primitives per pixel, --time-budget 10", [(BONSAI_10, ("scene_trade", "fast"))]),
-            ("2dgs", "the same 15 min", [(BONSAI_15, ("scene_trade", "2dgs"))]),
-            ("2dgs", "the same 10 min", [(BONSAI_10, ("scene_trade", "2dgs"))]),
-        ],
-        "399x266": [
-            ("content-aware", "fast, --time-budget 60 (E from 16 views, as shipped)",
-             [(BONSAI2_60E, ("scene_trade", "fast")), (BONSAI2_60E1, ("scene_trade", "fast")),
-              (BONSAI2_60E2, ("scene_trade", "fast"))]),
-            ("content-aware", "balanced, --time-budget 60 (E from 16 views, as shipped)",
-             [(BONSAI2_60EB, ("scene_trade", "balanced")), (BONSAI2_60EB1, ("scene_trade", "balanced")),
-              (BONSAI2_60EB2, ("scene_trade", "balanced"))]),
-            ("content-aware", "preview, --time-budget 60", [(BONSAI2_60P, ("scene_trade", "preview")),
-                                                        (BONSAI2_60P1, ("scene_trade", "preview")),
-                                                        (BONSAI2_60P2, ("scene_trade", "preview"))]),
-            ("content-aware", "fast, --time-budget 60, E from 64 views (before error_pixels)",
-             [(BONSAI2_60, ("scene_trade", "fast"))]),
-            ("content-aware", "balanced, --time-budget 60, E from 64 views (before error_pixels)",
-             [(BONSAI2_60B, ("scene_trade", "balanced"))]),
-            ("2dgs", "the same 60 min (seeds 0, 0, 1, 2)",
-             [(BONSAI2_60, ("scene_trade", "2dgs")), (BONSAI2_60E, ("scene_trade", "2dgs")), (BONSAI2_60E1, ("scene_trade", "2dgs")),
-              (BONSAI2_60E2, ("scene_trade", "2dgs"))]),
-        ],
-    },
-    "herzjesu25": {
-        "192x128": [
-            ("content-aware", "preview (1000 it.)", [("trade/herzjesu25_preview_66660b4.json", ("trade", "images_8", "ca_preview"))]),
-            ("content-aware", "fast (3000 it.)",
-             [("paired/herzjesu25_balanced_fast_eca05b4.json", ("paired", "fast"))]),
-            ("content-aware", "fast, length chosen on validation",
-             [(f, ("equal_time", "ca")) for f in HERZ_EQUAL_TIME_192]),
-            ("content-aware", "balanced (10k it.)",
-             [("paired/herzjesu25_balanced_fast_eca05b4.json", ("paired", "balanced"))]),
-            ("content-aware", "paper (30k it.)", [("trade/herzjesu25_paper_3d53175.json", ("trade", "images_8", "ca_paper"))]),
-            *size_budget_points("trade/herzjesu25_3148d9f.json", "images_8"),
-            ("content-aware", "fast + size budget, 3000 it.",
-             [("paired/herzjesu25_192_balanced_budget_fast_4seeds_17aac07.json", ("paired", "fast"))]),
-            ("content-aware", "balanced + size budget, 10k it.",
-             [("paired/herzjesu25_192_balanced_budget_fast_4seeds_17aac07.json", ("paired", "balanced"))]),
-            ("content-aware", "balanced, no size budget, 10k it.",
-             [("paired/herzjesu25_192_balanced_nobudget_budget_4seeds_030852a.json",
-               ("paired", "balanced_max_params_per_value0"))]),
-            ("content-aware", "balanced + size budget, trade run",
-             [("trade/herzjesu25_96fa9a6.json", ("trade", "images_8", "ca_balanced"))]),
-            ("content-aware", "fast as it ships (+ exposure gains), 3000 it.",
-             [("paired/herzjesu25_192_balanced_fast_exposure_both_4seeds_f91220f.json", ("paired", "fast"))]),
-            ("content-aware", "balanced as it ships (+ opacity resets, exposure gains), 10k it.",
-             [("paired/herzjesu25_192_balanced_fast_exposure_both_4seeds_f91220f.json", ("paired", "balanced"))]),
-            ("2dgs", "preview's time", [("trade/herzjesu25_preview_66660b4.json", ("trade", "images_8", "2dgs_preview"))]),
-            ("2dgs", "fast's time", [("trade/herzjesu25_fff5bb3.json", ("trade", "images_8", "2dgs_fast"))]),
-            ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_192]),
-            ("2dgs", "balanced's time", [("trade/herzjesu25_balanced_37db8bd.json", ("trade", "images_8", "2dgs_balanced"))]),
-            ("2dgs", "balanced + size budget's time", [("trade/herzjesu25_96fa9a6.json", ("trade", "images_8", "2dgs_balanced"))]),
-            ("2dgs", "paper's time", [("trade/herzjesu25_paper_3d53175.json", ("trade", "images_8", "2dgs_paper"))]),
-        ],
-        "384x256": [
-            ("content-aware", "fast (3000 it.)",
-             [("paired/herzjesu25_384_balanced_fast_0f67e86.json", ("paired", "fast"))]),
-            ("content-aware", "fast, length chosen on validation",
-             [(f, ("equal_time", "ca")) for f in HERZ_EQUAL_TIME_384]),
-            ("content-aware", "balanced (10k it.)",
-             [("paired/herzjesu25_384_balanced_fast_0f67e86.json", ("paired", "balanced"))]),
-            ("content-aware", "balanced, --time-budget 57",
-             [("paired/herzjesu25_384_balanced_hour_fast_3seeds_b366019.json", ("paired", "balanced_time_budget57"))]),
-            ("content-aware", "fast, --time-budget 10",
-             [("paired/herzjesu25_384_fast_2dgs_budget10_calendar_3seeds_c1f0a0a.json", ("paired", "fast_time_budget10"))]),
-            ("content-aware", "fast, --time-budget 20",
-             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_e80749d.json", ("paired", "fast_time_budget20"))]),
-            ("content-aware", "fast + tau_ds 0.04, --time-budget 20",
-             [("paired/herzjesu25_384_fast_tau04_2dgs_budget20_3seeds_7044685.json",
-               ("paired", "fast_tau_ds0.04_time_budget20"))]),
-            ("content-aware", "fast + size budget, --time-budget 10",
-             [("paired/herzjesu25_384_fast_default_budget_2dgs_budget10_3seeds_bd1eb71.json",
-               ("paired", "fast_time_budget10"))]),
-            ("content-aware", "fast + size budget, --time-budget 20",
-             [("paired/herzjesu25_384_fast_default_budget_2dgs_budget20_3seeds_08494ec.json",
-               ("paired", "fast_time_budget20"))]),
-            ("content-aware", "fast + size budget, 3000 it.",
-             [("paired/herzjesu25_384_balanced_budget_fast_3seeds_dbca6cf.json", ("paired", "fast"))]),
-            ("content-aware", "balanced + size budget, 10k it.",
-             [("paired/herzjesu25_384_balanced_budget_fast_3seeds_dbca6cf.json", ("paired", "balanced"))]),
-            ("content-aware", "fast --max-params 1.28M, --time-budget 20",
-             [("paired/herzjesu25_384_fast_maxparams_2dgs_budget20_3seeds_6ef5119.json",
-               ("paired", "fast_time_budget20_max_params1284162"))]),
-            ("content-aware", "fast as it ships (+ exposure gains), --time-budget 10",
-             [("paired/herzjesu25_384_fast_2dgs_budget10_3seeds_b4e3dc3.json", ("paired", "fast_time_budget10"))]),
-            ("content-aware", "fast as it ships (+ exposure gains), --time-budget 20",
-             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_2717385.json", ("paired", "fast_time_budget20"))]),
-            ("2dgs", "fast's time", [("trade/herzjesu25_fff5bb3.json", ("trade", "images_4", "2dgs_fast"))]),
-            ("2dgs", "the same 10 min",
-             [("paired/herzjesu25_384_fast_2dgs_budget10_calendar_3seeds_c1f0a0a.json",
-               ("paired", "fast_2dgs_time_budget10"))]),
-            ("2dgs", "the same 20 min",
-             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_e80749d.json", ("paired", "fast_2dgs_time_budget20"))]),
-            ("2dgs", "the same 10 min (beside `fast` as it ships)",
-             [("paired/herzjesu25_384_fast_2dgs_budget10_3seeds_b4e3dc3.json", ("paired", "fast_2dgs_time_budget10"))]),
-            ("2dgs", "the same 20 min (beside `fast` as it ships)",
-             [("paired/herzjesu25_384_fast_2dgs_budget20_3seeds_2717385.json", ("paired", "fast_2dgs_time_budget20"))]),
-            ("2dgs", "length chosen on validation", [(f, ("equal_time", "2dgs")) for f in HERZ_EQUAL_TIME_384]),
-            ("2dgs", "balanced's time",
-             [("paired/herzjesu25_384_balanced_2dgs_time_3seeds_264fb57.json", ("paired", "balanced_2dgs_time_budget43.5"))]),
-        ],
-        "768x512": [
-            ("content-aware", "fast, --time-budget 30",
-             [("paired/herzjesu25_768_fast_2dgs_budget30_3seeds_be1f70a.json", ("paired", "fast_time_budget30"))]),
-            ("2dgs", "the same 30 min",
-             [("paired/herzjesu25_768_fast_2dgs_budget30_3seeds_be1f70a.json", ("paired", "fast_2dgs_time_budget30"))]),
-        ],
-    },
-    "demo": {
-        "192x144": [
-            ("content-aware", "preview (1000 it.)", [("trade/demo_6d9c165.json", ("trade", "192x144", "ca_preview"))]),
-            ("content-aware", "fast (3000 it.)", [("paired/demo192x144_balanced_fast_16b8d40.json", ("paired", "fast"))]),
-            ("content-aware", "balanced (10k it.)",
-             [("paired/demo192x144_balanced_fast_16b8d40.json", ("paired", "balanced"))]),
-            ("content-aware", "paper (30k it.)", [("trade/demo_paper_638e279.json", ("trade", "192x144", "ca_paper"))]),
-            *size_budget_points("trade/demo_3148d9f.json", "192x144"),
-            ("content-aware", "balanced + size budget", [("trade/demo_030852a.json", ("trade", "192x144", "ca_balanced"))]),
-            ("content-aware", "fast + size budget, 3000 it.",
-             [("paired/demo192x144_balanced_budget_fast_4seeds_d3509df.json", ("paired", "fast"))]),
-            ("content-aware", "balanced + size budget, 10k it.",
-             [("paired/demo192x144_balanced_budget_fast_4seeds_d3509df.json", ("paired", "balanced"))]),
-            ("content-aware", "fast as it ships (+ exposure gains), 3000 it.",
-             [("paired/demo192x144_balanced_fast_exposure_4seeds_68389ac.json", ("paired", "fast"))]),
-            ("content-aware", "balanced as it ships (+ opacity resets, exposure gains), 10k it.",
-             [("paired/demo192x144_balanced_fast_exposure_4seeds_68389ac.json", ("paired", "balanced"))]),
-            ("2dgs", "preview's time", [("trade/demo_6d9c165.json", ("trade", "192x144", "2dgs_preview"))]),
-            ("2dgs", "fast's time", [("trade/demo_fff5bb3.json", ("trade", "192x144", "2dgs_fast"))]),
-            ("2dgs", "balanced's time", [("trade/demo_6d9c165.json", ("trade", "192x144", "2dgs_balanced"))]),
-            ("2dgs", "balanced + size budget's time", [("trade/demo_030852a.json", ("trade", "192x144", "2dgs_balanced"))]),
-            ("2dgs", "paper's time", [("trade/demo_paper_638e279.json", ("trade", "192x144", "2dgs_paper"))]),
-        ],
-        "384x288": [
-            ("content-aware", "fast (3000 it.)", [("trade/demo_fff5bb3.json", ("trade", "384x288", "ca_fast"))]),
-            ("2dgs", "fast's time", [("trade/demo_fff5bb3.json", ("trade", "384x288", "2dgs_fast"))]),
-        ],
-    },
-}
+
+
+def _selector(source: dict) -> tuple:
+    """A source of the registry file -> its selector (the record's folder names its kind)."""
+    kind = source["record"].split("/", 1)[0]
+    if kind == "trade":
+        return kind, source["scale"], source["run"]
+    if kind in ("paired", "equal_time", "scene_trade"):
+        return kind, source["run"]
+    raise ValueError(f"{REGISTRY_FILE}: {source['record']}: no tool of that name writes the records read here")
+
+
+def load_registry(path: str = REGISTRY_FILE) -> dict:
+    with open(path, "rb") as fh:
+        data = tomllib.load(fh)
+    return {scene: {size: [(p["method"], p["label"], [(src["record"], _selector(src)) for src in p["sources"]])
+                           for p in points]
+                    for size, points in sizes.items()}
+            for scene, sizes in data.items()}
+
+
+REGISTRY = load_registry()
 COLOURS = {"content-aware": "tab:red", "2dgs": "tab:blue"}
 
 
