@@ -31,7 +31,7 @@ Measured per side: it/s = iterations / train_seconds (train_summary.json: the tr
 routines, excluding evaluation and checkpoints), final test PSNR, peak RSS of the training process
 (os.wait4), and the share of routines in train_seconds estimated from log.jsonl (the step records'
 cumulative seconds around each routine, minus the typical plain-iteration time). Results:
-benchmarks/results/train_speed/train_speed_<tag>.{json,md} with the machine, the load average and the command.
+benchmarks/results/bench_train_speed/train_speed_<tag>.{json,md} with the machine, the load average and the command.
 """
 
 from __future__ import annotations
@@ -353,7 +353,7 @@ def main() -> None:
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--work", default="/tmp/ctgs_speed")
     ap.add_argument("--serial", action="store_true", help="alternate the sides instead of running them together")
-    ap.add_argument("--out", default=os.path.join(REPO, "benchmarks", "results", "train_speed"))
+    ap.add_argument("--out", default=os.path.join(REPO, "benchmarks", "results", "bench_train_speed"))
     args = ap.parse_args()
     tag = args.tag or os.path.basename(os.path.normpath(args.scene))
     os.makedirs(args.work, exist_ok=True)

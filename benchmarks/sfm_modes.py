@@ -12,7 +12,7 @@ similarity, and the focal length's relative error. The reference is either a COL
 PINHOLE / SIMPLE_PINHOLE focal, in pixels of IMAGES_DIR) or Strecha-format ground-truth cameras (--gt-cameras, as
 benchmarks/sfm_accuracy.py reads them; their K is scaled by the input width / the GT width).
 
-Per mode it writes benchmarks/results/sfm/<scene>_<matcher>-<mapper>-<features>_<commit>.json and .md (machine,
+Per mode it writes benchmarks/results/sfm_modes/<scene>_<matcher>-<mapper>-<features>_<commit>.json and .md (machine,
 date, command, load average at start and end, per-step wall and CPU seconds, registered photos, reprojection
 error, camera agreement) and, for the whole invocation, <scene>_modes_<commit>.md: the modes side by side.
 """
@@ -39,7 +39,7 @@ from ctgs.scene.align import align_cameras, camera_poses  # noqa: E402
 from ctgs.scene.sfm import read_report  # noqa: E402
 from sfm_accuracy import machine_info, read_gt_dir, write_atomic  # noqa: E402
 
-RESULTS = os.path.join(REPO, "benchmarks", "results", "sfm")
+RESULTS = os.path.join(REPO, "benchmarks", "results", "sfm_modes")
 
 
 def _commit() -> str:

@@ -61,7 +61,7 @@ def veil_share(inputs, cam, sh_degree: int, backend: str) -> float:
     Blending follows centre depth (docs/reference/renderer.md, Ordering): a surfel far larger than the scene, centred off
     to the side of a camera, is blended in front of the surface it crosses there, a veil over the view. Over the
     training views of 24 herzjesu25 runs (content-aware and 2dgs, 192 and 384 px) no such primitive carried more
-    than 12% of a view (benchmarks/results/oversized/herzjesu25_6f7d403.md)."""
+    than 12% of a view (benchmarks/results/archive/oversized/herzjesu25_6f7d403.md)."""
     err = torch.zeros(cam.height, cam.width, device=inputs.means.device)
     return outside_share(render(inputs, cam, backend=backend, sh_degree=sh_degree, error_image=err).stats.contrib,
                          inputs.means, cam)

@@ -18,7 +18,7 @@ One xz stream codes at about 1-2 MB/s (one core), so a paper-scale model's texel
 take a minute or more. With jobs > 1 (`ctgs compress --jobs N`) a section above XZ_STREAM_BYTES is cut into
 independent xz streams of that size, coded on N threads (lzma releases the GIL) and concatenated: still one valid
 .xz file (a reader that ignores the entry's `streams` decodes it whole), about 2% larger, since each stream starts
-with an empty dictionary and fresh probabilities (benchmarks/results/xz_streams/herzjesu25_images_2d9476d.md).
+with an empty dictionary and fresh probabilities (benchmarks/results/archive/xz_streams/herzjesu25_images_2d9476d.md).
 """
 
 from __future__ import annotations

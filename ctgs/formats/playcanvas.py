@@ -328,7 +328,7 @@ def palette_size(n: int) -> int:
     PlayCanvas's writer uses 1024 entries per 1-2k splats, doubling with the count, to 65,536; keeping the distinct
     rows instead runs no K-means below 65,536 rows. On herzjesu25's 20k surfels (384 px `fast`): 0.6 s against 129 s
     of K-means into 16k entries, a slightly smaller file (428 kB against 430), the same PSNR to 0.01 dB
-    (benchmarks/results/sog_palette/herzjesu25_384_34667a3.md, 2-core VM)."""
+    (benchmarks/results/archive/sog_palette/herzjesu25_384_34667a3.md, 2-core VM)."""
     return min(n, PALETTE_MAX)
 
 

@@ -37,7 +37,7 @@ from ctgs.train.config import TrainConfig
 # `balanced` 2.0 (192 px) and 2.7 (384 px); demo 1.1. A prior only: the cost is re-fitted at every re-plan.
 # An earlier content-aware prior was a growth of 2.5 from the *untextured* calibration step, which
 # left out the jump: the first plans of `--time-budget` runs were 2.6-3.2x the iterations run (384 px
-# `balanced` and 768 px `fast`); see benchmarks/results/budget_first_plan/708b530.md.
+# `balanced` and 768 px `fast`); see benchmarks/results/archive/budget_first_plan/708b530.md.
 GROWTH_PRIOR = {"content_aware": 2.0, "2dgs": 3.0, "fixed_texture": 4.0}
 # The texture start's jump, when the calibration did not measure it (a run resumed from an older checkpoint).
 TEXTURE_JUMP_PRIOR = 2.4

@@ -1,7 +1,7 @@
 """Per-training-image exposure compensation (config `exposure_comp`), off by default (the paper has none).
 
 Photos of one capture need not share an exposure: on herzjesu25 a single gain per view, fitted after training, moves
-the training views by up to +-5% and the validation views by 0.90-1.17 (`benchmarks/results/exposure_gap/herzjesu25_192_balanced_2ef536c.md`). A model
+the training views by up to +-5% and the validation views by 0.90-1.17 (`benchmarks/results/archive/exposure_gap/herzjesu25_192_balanced_2ef536c.md`). A model
 without compensation can only fit those differences with view-dependent colour, textures and extra surfels that
 draw one view brighter than its neighbours. With it, each training image i gets a per-channel gain
 g_i = exp(l_i - mean_j l_j) (log-parameterised; centred over the images, so the gains cannot trade brightness with

@@ -8,7 +8,7 @@ it runs, which rescales every period; its planner then moves `shift` so that the
 continuous across the re-plan (ctgs.train.budget.BudgetPlanner.shift). Without it (as before the shift existed) a re-plan
 moved the calendar's grid under the current iteration: on a `make demo` run 7 of 29 gaps between full routines
 were under half a period (10-95 iterations) and 7 over 1.5 periods (up to 3); after, 0.96-1.03
-(benchmarks/results/routine_spacing/80dacd2.md).
+(benchmarks/results/archive/routine_spacing/80dacd2.md).
 """
 
 from __future__ import annotations

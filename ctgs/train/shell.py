@@ -2,7 +2,7 @@
 
 SfM leaves no points in the sky, so nothing starts there, and a short run may never grow primitives into it: at
 384x256 on herzjesu25 the content-aware `fast` runs left 4-7% of a validation view and 13-14% of the extrapolated
-test view uncovered (docs/studies.md; benchmarks/results/open_pixels/herzjesu25_384_3c82d75.md). `init_shell`
+test view uncovered (docs/studies.md; benchmarks/results/archive/open_pixels/herzjesu25_384_3c82d75.md). `init_shell`
 > 0 adds that many points on a sphere around the scene, in directions some training camera sees, each coloured by
 the mean of the training pixels it projects to. They train like the other primitives with two differences: the split
 and upscale routines leave them out (`far_mask`), so the top-E share the routines refine stays with the scene's own

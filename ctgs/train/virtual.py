@@ -2,7 +2,7 @@
 
 Surfels that only one or two training views constrain can tile those views and still part from a viewpoint
 half a camera step away: on herzjesu25 at 384x256 that is where the content-aware model loses to 2dgs
-(benchmarks/results/seen_pixels/herzjesu25_384_4f6edb4.md). This term asks for coverage there without asking for
+(benchmarks/results/archive/seen_pixels/herzjesu25_384_4f6edb4.md). This term asks for coverage there without asking for
 any colour: for each training camera, two virtual cameras with its orientation and intrinsics, moved half the way
 to its nearest training camera and as far the other way; in each, the pixels whose ray lies inside some training
 image at every sampled depth (ctgs.scene.coverage: classes seen and few; with `virtual_pixels = "few"` only those

@@ -5,7 +5,8 @@ Before the near plane became a fraction of the scene extent (ctgs.scene.loader.n
 0.01-unit near plane culled every surfel of the 1e-3 scene (depths 0.001-0.005): nothing rendered, the
 primitives went, and training stopped with a NaN loss at iteration 41. Before far scenes were recentred
 (ctgs.scene.loader.world_origin), float32 positions 1.2e5 units out (steps of 0.008, half a pixel's footprint on
-the 192 px demo) cost the moved demo 0.8 dB in 600 iterations (benchmarks/results/scene_scale/before_cf3b97f.md).
+the 192 px demo) cost the moved demo 0.8 dB in 600 iterations
+(benchmarks/results/archive/scene_scale/before_cf3b97f.md).
 """
 
 from __future__ import annotations

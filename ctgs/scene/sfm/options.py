@@ -14,8 +14,8 @@ MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 MAPPERS = ("auto", "incremental", "global")
 
 # --matcher auto: every pair up to this many photos, retrieval above. Measured on the 2-core VM
-# (benchmarks/results/sfm/): retrieval pairs each photo with ~13 others (bonsai252: 3,344 pairs for 252 photos; its
-# every-4th 63: 761), exhaustive with n - 1, and a pair costs about the same either way (0.08-0.09 CPU s at ~5,000
+# (benchmarks/results/sfm_modes/): retrieval pairs each photo with ~13 others (bonsai252: 3,344 pairs for 252
+# photos; its every-4th 63: 761), exhaustive with n - 1, and a pair costs about the same either way (0.08-0.09 CPU s at ~5,000
 # features, 0.22 at 8,192); at 50 photos exhaustive matching costs ~1.8x retrieval's, at 63 2.4x (181 vs 75 CPU s)
 # with no better cameras. herzjesu25 (25 photos) stays exhaustive: as accurate as before, no slower.
 EXHAUSTIVE_MAX_IMAGES = 50
