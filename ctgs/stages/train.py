@@ -10,7 +10,8 @@ import sys
 import click
 
 from ctgs.errors import Terminated, UserError
-from ctgs.io import atomic, lock, owner
+from ctgs.io import lock, owner
+from ctgs.io.signals import signals_deferred
 
 
 def _load_scene(cfg):
@@ -125,7 +126,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
                 print(f"ctgs train: {'views: ' if note == 'split' else ''}{scene.meta[note]}", file=sys.stderr)
         # the folder appears only now: a TERM while the scene loads (pycolmap's import, where glog's handler ends the
         # process at once) leaves nothing behind
-        with atomic.signals_deferred():  # a stop while the lock is taken lands once it is held (and is cleaned up)
+        with signals_deferred():  # a stop while the lock is taken lands once it is held (and is cleaned up)
             held = lock.RunLock(run_dir, "ctgs train")  # one writer: a second training or --resume here is refused
         owner.mark(run_dir, RUN_KIND)
         trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
