@@ -58,8 +58,8 @@ RUNS ?= runs
 COMPRESS_TARGET ?= balanced
 DEMO_DIR ?= out/demo
 # The demo scene of benchmarks/claims.py (same size, views, points), trained with DEMO_PRESET for a fixed
-# DEMO_ITERATIONS: every machine gets the same model whatever its load (about 5 minutes on an idle 2-core VM;
-# `ctgs train` prints its estimate first). ITERATIONS overrides it.
+# DEMO_ITERATIONS: every machine gets the same model whatever its load (about 10 minutes of training on a quiet
+# 2-core machine; `ctgs train` prints its estimate first). ITERATIONS overrides it.
 DEMO_SCENE_OPTS ?= --width 192 --height 144 --views 24 --points 3000
 DEMO_PRESET ?= fast
 DEMO_ITERATIONS ?= 10000
