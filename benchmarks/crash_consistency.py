@@ -62,9 +62,9 @@ def checkpoint_iteration(run: str) -> int | None:
 
 def killed_run(scene: str, run: str, opts: argparse.Namespace, rng: random.Random, start_s: float,
                step_s: float) -> dict:
-    """Start, kill at a random moment, resume, --kills times, then to the end. Each wait before a kill is drawn from
-    0.1 s to a start's time (start_s) and the left training's share of the kills left (step_s a step), so that the
-    kills spread over the whole run rather than the first ones ending it."""
+    """Start, kill at a random moment, resume, --kills times, then to the end. A quarter of the kills land while a
+    start loads (up to start_s), the others in its training, up to twice the left training's share of the kills left
+    (step_s a step): they spread over the whole run rather than the first ones ending it."""
     kills = []
     starts = 0
     while not os.path.isfile(os.path.join(run, "model.pt")):
@@ -74,7 +74,8 @@ def killed_run(scene: str, run: str, opts: argparse.Namespace, rng: random.Rando
         starts += 1
         if len(kills) < opts.kills:
             left = opts.iterations - (checkpoint_iteration(run) or 0)
-            delay = rng.uniform(0.1, start_s + step_s * left / (opts.kills - len(kills) + 1))
+            share = step_s * left / (opts.kills - len(kills) + 1)
+            delay = rng.uniform(0.1, start_s) if rng.random() < 0.25 else start_s + rng.uniform(0.0, 2.0 * share)
             try:
                 proc.wait(timeout=delay)
             except subprocess.TimeoutExpired:

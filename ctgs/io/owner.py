@@ -93,9 +93,9 @@ def check_ours(out_dir: str, kind: str, what: str, *, legacy: NamesTest | None =
 
 
 @contextmanager
-def owned_dir(out_dir: str, kind: str, *, replace: bool = True) -> Iterator[str]:
+def owned_dir(out_dir: str, kind: str) -> Iterator[str]:
     """atomic.atomic_dir that marks the folder, once built, as a `kind` folder holding what was written in it."""
-    with atomic.atomic_dir(out_dir, replace=replace) as tmp:
+    with atomic.atomic_dir(out_dir) as tmp:
         yield tmp
         mark_written(tmp, kind)
 
