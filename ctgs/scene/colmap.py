@@ -298,8 +298,15 @@ def check_text_model(model_dir: str) -> None:
         except _Corrupt as exc:
             raise UserError(f"{path}: corrupt COLMAP {name} file ({exc}); restore it from a backup or run "
                             f"`ctgs sfm` again") from None
-    # COLMAP 3.12+ text models: every image belongs to a frame of a rig; none at all is a cut or emptied file
+    # COLMAP 3.12+ text models: every image belongs to a frame of a rig; none at all is a cut or emptied file. COLMAP
+    # writes its header comments into points3D.txt even without points: a file of no bytes was emptied (a model
+    # without points, written whole, starts training from random points: ctgs.scene.loader)
     if _has_records(os.path.join(model_dir, "images.txt")):
+        points = os.path.join(model_dir, "points3D.txt")
+        if not os.path.isfile(os.path.join(model_dir, "points3D.bin")) and os.path.isfile(points) \
+                and os.path.getsize(points) == 0:
+            raise UserError(f"{points}: corrupt COLMAP points3D file (empty, but images.txt holds images); restore "
+                            "it from a backup or run `ctgs sfm` again")
         for name in ("rigs", "frames"):
             path = os.path.join(model_dir, f"{name}.txt")
             if not os.path.isfile(os.path.join(model_dir, f"{name}.bin")) and os.path.isfile(path) \
