@@ -11,6 +11,7 @@ from click.testing import CliRunner
 import ctgs.io.images
 from fixture_run import make_run
 from ctgs.cli import STAGES, main
+from ctgs.io.owner import MARKER
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +40,8 @@ def _fail_on_write(monkeypatch, after: int):
 def test_render_writes_the_test_views_like_eval(run_dir, tmp_path):
     res = _invoke("render", run_dir, "-o", str(tmp_path / "r"), "--backend", "reference")
     assert res.exit_code == 0, res.output
-    assert sorted(os.listdir(tmp_path / "r")) == ["000.png", "008.png"]  # 9 views, every 8th is a test view
+    # 9 views, every 8th is a test view; the marker that makes the folder render's to replace later
+    assert sorted(os.listdir(tmp_path / "r")) == [MARKER, "000.png", "008.png"]
     res = _invoke("eval", run_dir, "-o", str(tmp_path / "e"), "--backend", "reference", "--no-lpips")
     assert res.exit_code == 0, res.output
     for name in ("000.png", "008.png"):  # same model, cameras and backend: the same 8-bit images
@@ -47,7 +49,7 @@ def test_render_writes_the_test_views_like_eval(run_dir, tmp_path):
     img = ctgs.io.images.read_image(str(tmp_path / "r" / "000.png"))
     assert img.shape == (32, 40, 3) and img.std() > 0.01  # drawn, not a blank frame
     res = _invoke("render", run_dir, "-o", str(tmp_path / "r"), "--views", "all", "--backend", "reference")
-    assert res.exit_code == 0 and len(os.listdir(tmp_path / "r")) == 9  # an earlier render folder is replaced
+    assert res.exit_code == 0 and len(os.listdir(tmp_path / "r")) == 9 + 1  # an earlier render folder is replaced
 
 
 def test_render_maps_normal_and_depth(run_dir, tmp_path):
@@ -62,7 +64,7 @@ def test_render_maps_normal_and_depth(run_dir, tmp_path):
 
     res = _invoke("render", run_dir, "-o", str(tmp_path / "m"), "--backend", "cpu", "--maps", "rgb,normal,depth")
     assert res.exit_code == 0, res.output
-    assert sorted(os.listdir(tmp_path / "m")) == ["000.depth.exr", "000.normal.png", "000.png", "008.depth.exr",
+    assert sorted(os.listdir(tmp_path / "m")) == [MARKER, "000.depth.exr", "000.normal.png", "000.png", "008.depth.exr",
                                                   "008.normal.png", "008.png"]
     assert _invoke("render", run_dir, "-o", str(tmp_path / "c"), "--backend", "cpu").exit_code == 0
     assert (tmp_path / "m" / "000.png").read_bytes() == (tmp_path / "c" / "000.png").read_bytes()
@@ -116,7 +118,7 @@ def test_output_that_is_not_an_earlier_output_is_refused(run_dir, tmp_path, stag
     # -o pointing at the run folder itself must not replace (delete) it.
     before = sorted(os.listdir(run_dir))
     res = _invoke(stage, run_dir, "-o", run_dir, "--backend", "reference", *(["--no-lpips"] if stage == "eval" else []))
-    assert res.exit_code == 2 and "is not an earlier" in res.output
+    assert res.exit_code == 2 and f"not an earlier `ctgs {stage}` folder" in res.output
     assert sorted(os.listdir(run_dir)) == before
 
 

@@ -280,7 +280,7 @@ def test_write_packed_refuses_foreign_folder(tmp_path):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "model.pt").write_bytes(b"x")
     packed = compress_model(_model(seed=3), TARGETS["balanced"])
-    with pytest.raises(UserError, match="not a ctgs model folder"):
+    with pytest.raises(UserError, match="not an earlier ctgs model folder"):
         write_packed_model(packed, str(tmp_path / "run"))
     assert (tmp_path / "run" / "model.pt").read_bytes() == b"x"
 

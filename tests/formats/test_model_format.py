@@ -156,7 +156,7 @@ def test_failed_write_leaves_nothing(tmp_path):
 def test_refuses_to_replace_a_folder_that_is_not_a_model(tmp_path):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "model.pt").write_bytes(b"precious")
-    with pytest.raises(UserError, match="not a ctgs model folder"):
+    with pytest.raises(UserError, match="not an earlier ctgs model folder"):
         write_model(random_model(n=3), str(tmp_path / "run"))
     assert (tmp_path / "run" / "model.pt").read_bytes() == b"precious"
     write_model(random_model(n=3), str(tmp_path / "m"))

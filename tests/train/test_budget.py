@@ -497,11 +497,11 @@ def test_a_real_run_with_a_slow_texture_start_still_uses_its_budget(tmp_path, mo
     real = trainer_mod.Trainer._training_render
     slow = {"left": 6}
 
-    def training_render(self, inputs, view, bg):
+    def training_render(self, inputs, view, bg, *stats):
         if self.strategy.textures_started and slow["left"] > 0 and self.it > 0:
             slow["left"] -= 1
             time_mod.sleep(0.5)
-        return real(self, inputs, view, bg)
+        return real(self, inputs, view, bg, *stats)
 
     monkeypatch.setattr(trainer_mod.Trainer, "_training_render", training_render)
     summary = train_main(scene_dir, str(tmp_path / "run"), preset="fast", time_budget=0.5, quiet=True,

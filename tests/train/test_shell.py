@@ -185,9 +185,9 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     seen = []
     real_full = routines.full_routine
 
-    def watched(model, opt, cfg_, it, views, render_fn, cameras, background=None, lean=True, gains=None):
+    def watched(model, opt, cfg_, it, views, render_fn, cameras, background=None, **kw):
         before = int(background(model).sum())
-        stats = real_full(model, opt, cfg_, it, views, render_fn, cameras, background, lean=lean, gains=gains)
+        stats = real_full(model, opt, cfg_, it, views, render_fn, cameras, background, **kw)
         seen.append((before, int(background(model).sum()), stats))
         return stats
 

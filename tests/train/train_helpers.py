@@ -15,7 +15,7 @@ from ctgs.train.adam import SurfelAdam
 
 W, H, F = 64, 48, 60.0
 BACKEND = "cpu"
-CLOCK_FIELDS = ("seconds", "wall")  # time readings in log.jsonl: the only fields a resumed run may change
+CLOCK_FIELDS = ("seconds", "wall", "step_routines_s")  # time readings in log.jsonl: the only fields a resumed run may change
 
 
 def camera(z_shift: float = 0.0) -> Camera:
