@@ -22,12 +22,10 @@ import torch
 from ctgs.errors import UserError
 from ctgs.fusion.domain import Domain, camera_sphere
 from ctgs.fusion.extract import Mesh, keep_largest, marching_cubes_blocks
-from ctgs.fusion.volume import BLOCK_VOXELS, BYTES_PER_BLOCK, TSDFVolume, allocate_blocks
+from ctgs.fusion.volume import BLOCK_VOXELS, BYTES_PER_BLOCK, TSDFVolume, coarser_blocks, depth_blocks, grown_blocks
 from ctgs.render import render
 
 MIN_ALPHA = 0.5  # pixels less covered than this give no depth (what lies there is mostly transparent)
-# Surfels more transparent than this allocate no voxels (they still render, so still shape the depth).
-MIN_OPACITY = 0.02
 DEFAULT_RESOLUTION = 1024  # voxels across the scene extent (2DGS's mesh_res)
 TRUNC_VOXELS = 5.0  # the default truncation distance, voxels (2DGS's sdf_trunc = 5 x voxel_size)
 DEPTH_TRUNC_RADII = 2.0  # the default depth truncation in cameras' radii (2DGS's depth_trunc)
@@ -37,6 +35,10 @@ MESH_BYTES_PER_BLOCK = 12 * 1024
 # A plan needing more than this fraction of the free memory does not fit (the renders and Python need the rest).
 MEMORY_FRACTION = 0.8
 FIT_TRIES = 8  # voxel sizes tried when looking for one that fits
+# The views' depth and colour maps (10 bytes a pixel) are kept from the survey for the fusion when they take at most
+# this fraction of the memory allowed; else every view is rendered again.
+MAPS_FRACTION = 0.25
+MERGE_VIEWS = 16  # the survey merges its views' block keys every this many views
 
 
 @dataclass
@@ -56,8 +58,9 @@ class MeshPlan:
     blocks: torch.Tensor  # [B, 3] int64
     trunc: float  # world units
     depth_trunc: float  # world units (inf: none)
-    bytes: int  # the volume and mesh's estimated memory
+    bytes: int  # the volume, mesh and kept maps' estimated memory
     limit: int  # bytes allowed
+    maps: list | None  # (depth, colour) of every view, when kept from the survey
 
     @property
     def voxels(self) -> int:
@@ -94,16 +97,8 @@ def _camera_arrays(cameras) -> tuple[np.ndarray, np.ndarray]:
     return centres, forwards
 
 
-def _surfels(model, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    with torch.no_grad():
-        keep = model.opacities.detach() >= MIN_OPACITY
-        return (model.means.detach()[keep].float().to(device), model.quats.detach()[keep].float().to(device),
-                model.scales.detach()[keep].float().to(device))
-
-
-def plan_volume(model, cameras, points: np.ndarray | None, opts: MeshOptions, device: torch.device,
-                what: str = "the model") -> MeshPlan:
-    """The domain and the blocks to fuse; UserError naming the voxel size that fits when these would not fit in memory."""
+def make_domain(cameras, points: np.ndarray | None, opts: MeshOptions) -> tuple[Domain, float]:
+    """(the domain, the depth truncation) the options ask for, around the cameras' sphere."""
     centres, forwards = _camera_arrays(cameras)
     centre, radius = camera_sphere(centres, forwards, points)
     contract = opts.bound == "contract"
@@ -112,42 +107,9 @@ def plan_volume(model, cameras, points: np.ndarray | None, opts: MeshOptions, de
     else:
         depth_trunc = math.inf if contract else DEPTH_TRUNC_RADII * radius
     voxel = float(opts.voxel_size) if opts.voxel_size else 2.0 * radius / opts.resolution
-    if not contract and not math.isfinite(depth_trunc):
-        raise UserError("--bound cameras needs a finite --depth-trunc (the box around the cameras reaches that far); "
-                        "pass one, or --bound contract for all of space")
     half = float(np.abs(centres - centre).max() + depth_trunc) if not contract else 0.0
-    means, quats, scales = _surfels(model, device)
-    limit = int(opts.max_memory) if opts.max_memory is not None else int(MEMORY_FRACTION * free_memory(device))
-
-    def blocks_at(v: float) -> tuple[Domain, torch.Tensor]:
-        dom = Domain(centre=tuple(float(x) for x in centre), radius=radius, voxel=v, contract=contract, half=half)
-        return dom, allocate_blocks(dom, means, quats, scales)
-
-    domain, blocks = blocks_at(voxel)
-    need = estimate_bytes(len(blocks))
-    if need > limit:
-        fit, fit_bytes = voxel, need
-        for _ in range(FIT_TRIES):
-            # A surface's blocks go as 1 / voxel^2: aim a little past the limit's size, then check.
-            fit = _round_up(fit * math.sqrt(fit_bytes / limit) * 1.05)
-            fit_bytes = estimate_bytes(len(blocks_at(fit)[1]))
-            if fit_bytes <= limit:
-                break
-        hint = (f"pass --voxel-size {fit:.3g} (about {fit_bytes / 1e9:.3g} GB)" if fit_bytes <= limit
-                else "pass a larger --voxel-size")
-        room = (f"--max-memory allows {limit / 1e9:.3g} GB" if opts.max_memory is not None
-                else f"{limit / 1e9:.3g} GB are free")
-        raise UserError(f"{what}: the TSDF volume at voxel size {voxel:.3g} ({len(blocks) * BLOCK_VOXELS / 1e6:.3g}M "
-                        f"voxels) needs about {need / 1e9:.3g} GB but {room}; {hint}, or --max-memory GB to allow "
-                        "more")
-    trunc = float(opts.sdf_trunc) if opts.sdf_trunc else TRUNC_VOXELS * voxel
-    return MeshPlan(domain=domain, blocks=blocks, trunc=trunc, depth_trunc=depth_trunc, bytes=need, limit=limit)
-
-
-def _round_up(x: float) -> float:
-    """x rounded up to 2 significant digits (a voxel size to type)."""
-    scale = 10 ** (math.floor(math.log10(x)) - 1)
-    return math.ceil(x / scale - 1e-9) * scale
+    return Domain(centre=tuple(float(x) for x in centre), radius=radius, voxel=voxel, contract=contract,
+                  half=half), depth_trunc
 
 
 def view_maps(inputs, camera, backend: str, sh_degree: int, depth_trunc: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -162,18 +124,78 @@ def view_maps(inputs, camera, backend: str, sh_degree: int, depth_trunc: float) 
     return depth, colour
 
 
-def fuse(model, cameras, plan: MeshPlan, backend: str, progress: Callable[[int, int], None] | None = None) -> TSDFVolume:
-    """Render every camera and fuse its depth and colour into the plan's volume."""
-    volume = TSDFVolume(plan.domain, plan.blocks, plan.trunc)
+def _views(model, cameras, backend: str, depth_trunc: float):
+    """(camera, depth, colour) of every camera, rendered."""
     device = model.means.device
     with torch.no_grad():
         inputs = model.render_inputs()
-        for i, cam in enumerate(cameras):
+        for cam in cameras:
             cam = cam.to(device, inputs.means.dtype)
-            depth, colour = view_maps(inputs, cam, backend, model.sh_degree, plan.depth_trunc)
-            volume.integrate(depth.to(plan.blocks.device), colour.to(plan.blocks.device), cam)
-            if progress is not None:
-                progress(i + 1, len(cameras))
+            yield (cam, *view_maps(inputs, cam, backend, model.sh_degree, depth_trunc))
+
+
+def plan_volume(model, cameras, points: np.ndarray | None, opts: MeshOptions, backend: str = "auto",
+                what: str = "the model", progress: Callable[[int, int], None] | None = None) -> MeshPlan:
+    """Render every view once (the survey): the blocks where its depth puts a surface, and its maps when they fit.
+    UserError naming the voxel size that fits when the volume would not fit in memory."""
+    domain, depth_trunc = make_domain(cameras, points, opts)
+    if not domain.contract and not math.isfinite(depth_trunc):
+        raise UserError("--bound cameras needs a finite --depth-trunc (the box around the cameras reaches that far); "
+                        "pass one, or --bound contract for all of space")
+    device = model.means.device
+    limit = int(opts.max_memory) if opts.max_memory is not None else int(MEMORY_FRACTION * free_memory(device))
+    keys, maps, kept = [], [], 0
+    for i, (cam, depth, colour) in enumerate(_views(model, cameras, backend, depth_trunc)):
+        keys.append(depth_blocks(domain, depth, cam))
+        if len(keys) >= MERGE_VIEWS:
+            keys = [torch.unique(torch.cat(keys))]
+        kept += depth.numel() * 10
+        if maps is not None and kept <= MAPS_FRACTION * limit:
+            maps.append((depth, colour.half()))
+        else:
+            maps = None
+        if progress is not None:
+            progress(i + 1, len(cameras))
+    blocks = grown_blocks(torch.cat(keys), domain)
+    need = estimate_bytes(len(blocks)) + (kept if maps is not None else 0)
+    if need > limit:
+        raise too_big(domain, blocks, need, limit, opts.max_memory is not None, what)
+    trunc = float(opts.sdf_trunc) if opts.sdf_trunc else TRUNC_VOXELS * domain.voxel
+    return MeshPlan(domain=domain, blocks=blocks, trunc=trunc, depth_trunc=depth_trunc, bytes=need, limit=limit,
+                    maps=maps)
+
+
+def too_big(domain: Domain, blocks: torch.Tensor, need: int, limit: int, limit_given: bool, what: str) -> UserError:
+    """The error for a volume of `blocks` needing `need` bytes of `limit`: it names the voxel size that fits."""
+    fit, fit_bytes = domain.voxel, need
+    for _ in range(FIT_TRIES):
+        # A surface's blocks go as 1 / voxel^2: aim a little past the limit's size, then check.
+        fit = _round_up(fit * math.sqrt(fit_bytes / limit) * 1.05)
+        fit_bytes = estimate_bytes(len(coarser_blocks(blocks, domain, fit)))
+        if fit_bytes <= limit:
+            break
+    hint = (f"pass --voxel-size {fit:.3g} (about {fit_bytes / 1e9:.3g} GB)" if fit_bytes <= limit
+            else "pass a larger --voxel-size")
+    room = f"--max-memory allows {limit / 1e9:.3g} GB" if limit_given else f"{limit / 1e9:.3g} GB are free"
+    return UserError(f"{what}: the TSDF volume at voxel size {domain.voxel:.3g} ({len(blocks) * BLOCK_VOXELS / 1e6:.3g}M "
+                     f"voxels) needs about {need / 1e9:.3g} GB but {room}; {hint}, or --max-memory GB to allow more")
+
+
+def _round_up(x: float) -> float:
+    """x rounded up to 2 significant digits (a voxel size to type)."""
+    scale = 10 ** (math.floor(math.log10(x)) - 1)
+    return math.ceil(x / scale - 1e-9) * scale
+
+
+def fuse(model, cameras, plan: MeshPlan, backend: str, progress: Callable[[int, int], None] | None = None) -> TSDFVolume:
+    """Fuse every view's depth and colour (kept from the survey, or rendered again) into the plan's volume."""
+    volume = TSDFVolume(plan.domain, plan.blocks, plan.trunc)
+    views = (((cam, d, c.float()) for cam, (d, c) in zip(cameras, plan.maps)) if plan.maps is not None
+             else _views(model, cameras, backend, plan.depth_trunc))
+    for i, (cam, depth, colour) in enumerate(views):
+        volume.integrate(depth, colour, cam)
+        if progress is not None:
+            progress(i + 1, len(cameras))
     return volume
 
 

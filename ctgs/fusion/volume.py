@@ -1,8 +1,8 @@
-"""A block-sparse TSDF: blocks of 8^3 voxels near the model's surfels, fused from depth maps in torch.
+"""A block-sparse TSDF: blocks of 8^3 voxels where the depth maps put a surface, fused from depth maps in torch.
 
-Only blocks near a surfel are stored (the surfels are where surfaces can be; Open3D's scalable volume allocates them
-from the depth maps instead, which needs a pass over every view first). Each voxel keeps a truncated signed
-distance in [-1, 1] (float32), its weight (the views that updated it, float32) and a colour (3 x float16): 14 bytes.
+Only the blocks holding a depth map's point, and the blocks around them, are stored (as Open3D's scalable volume
+does): a surface's neighbourhood, not the space between surfaces. Each voxel keeps a truncated signed distance in
+[-1, 1] (float32), its weight (the views that updated it, float32) and a colour (3 x float16): 14 bytes.
 
 Fusion is Open3D's and 2DGS's (Curless and Levoy's running average): for each view, every voxel in its frustum whose
 pixel has a depth d, with sdf = d - z (z: the voxel's depth in that camera, so positive in front of the surface) and
@@ -18,7 +18,6 @@ import math
 import torch
 
 from ctgs.fusion.domain import Domain
-from ctgs.render.geometry import quat_to_rotmat
 
 BLOCK = 8  # voxels per block side
 BLOCK_VOXELS = BLOCK**3
@@ -26,13 +25,7 @@ BYTES_PER_VOXEL = 4 + 4 + 6  # tsdf float32, weight float32, colour 3 x float16
 # Per block besides its voxels: coordinates (3 x int64), bounding sphere (4 x float32).
 BYTES_PER_BLOCK = BLOCK_VOXELS * BYTES_PER_VOXEL + 3 * 8 + 4 * 4
 # Fusion works on this many blocks of one view at a time (its temporaries: ~60 bytes a voxel, ~60 MB).
-FUSE_BLOCKS = 2048
-# Surfels are sampled at most this many points per tangent axis (a surfel far larger than the voxels, a floater
-# across the scene, is allocated along a coarser grid of its points).
-MAX_SAMPLES_PER_AXIS = 256
-# Points sampled at once while allocating (bounds the temporaries to ~200 MB).
-SAMPLE_BATCH = 1 << 22
-SURFEL_SIGMAS = 3.0  # a surfel reaches 3 standard deviations (the renderer's cutoff, rho <= 9)
+FUSE_BLOCKS = 256
 
 
 def local_offsets(device) -> torch.Tensor:
@@ -56,53 +49,41 @@ def _unpack(keys: torch.Tensor, limit: int) -> torch.Tensor:
     return torch.stack([x, y, z], -1) - limit
 
 
-def surfel_points(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, spacing: torch.Tensor):
-    """Yield [M, 3] world points covering every surfel's 3-sigma ellipse on a grid no coarser than spacing [N] (each
-    surfel's own, world units; a surfel narrower than it is its centre alone), SAMPLE_BATCH points at most at a time."""
-    extent = 2 * SURFEL_SIGMAS * scales  # [N, 2] the ellipse's box, world units
-    counts = torch.where(extent < spacing[:, None], torch.ones_like(extent),
-                         torch.ceil(extent / spacing[:, None]) + 1).clamp_max(MAX_SAMPLES_PER_AXIS).long()
-    per = counts[:, 0] * counts[:, 1]
-    ends = torch.cumsum(per, 0)
-    start = 0
-    while start < len(per):
-        # surfels [start, stop) hold at most SAMPLE_BATCH points (at least one surfel)
-        base = int(ends[start - 1]) if start else 0
-        stop = max(start + 1, int(torch.searchsorted(ends, base + SAMPLE_BATCH, right=True)))
-        sl = slice(start, stop)
-        n = per[sl]
-        owner = torch.repeat_interleave(torch.arange(stop - start, device=means.device), n)
-        k = torch.arange(int(n.sum()), device=means.device) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
-        cu, cv = counts[sl, 0][owner], counts[sl, 1][owner]
-        a = torch.where(cu > 1, (k % cu).to(means.dtype) / (cu - 1).clamp_min(1) - 0.5, torch.zeros_like(k, dtype=means.dtype))
-        b = torch.where(cv > 1, (k // cu).to(means.dtype) / (cv - 1).clamp_min(1) - 0.5, torch.zeros_like(k, dtype=means.dtype))
-        rot = quat_to_rotmat(quats[sl])  # [n, 3, 3]
-        ext = extent[sl][owner]
-        yield (means[sl][owner] + rot[owner, :, 0] * (a * ext[:, 0])[:, None]
-               + rot[owner, :, 1] * (b * ext[:, 1])[:, None])
-        start = stop
+def depth_blocks(domain: Domain, depth: torch.Tensor, camera) -> torch.Tensor:
+    """[K] int64 keys (`block_keys`) of the blocks holding the surface points of a depth map [H, W] (camera-space z at
+    the pixel centres, 0 where none), those inside the domain."""
+    h, w = depth.shape
+    v, u = torch.nonzero(depth > 0, as_tuple=True)
+    z = depth[v, u].float()
+    vm = camera.viewmat.to(depth.device, torch.float32)
+    pc = torch.stack([(u.float() + 0.5 - camera.cx) / camera.fx * z, (v.float() + 0.5 - camera.cy) / camera.fy * z, z], 1)
+    g = domain.to_grid((pc - vm[:3, 3]) @ vm[:3, :3])
+    ok = (g.abs() <= domain.limit).all(1) & torch.isfinite(g).all(1)
+    return torch.unique(block_keys(torch.floor(g[ok] / BLOCK).long(), domain))
 
 
-def allocate_blocks(domain: Domain, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """[B, 3] int64 sorted block coordinates of the blocks within one block of any surfel's 3-sigma ellipse (the
-    surfels given: the caller drops the transparent ones), inside the domain."""
-    with torch.no_grad():
-        g_centre = domain.to_grid(means)
-        # Sample at half a block in the grid: world spacing = 4 voxels stretched as little as a voxel does there.
-        spacing = 0.5 * BLOCK * domain.tangential_stretch(g_centre)
-        limit = math.ceil(domain.limit / BLOCK) + 1
-        keys = []
-        for pts in surfel_points(means, quats, scales, spacing):
-            g = domain.to_grid(pts)
-            ok = (g.abs() <= domain.limit).all(-1) & torch.isfinite(g).all(-1)
-            keys.append(torch.unique(_pack(torch.floor(g[ok] / BLOCK).long(), limit)))
-        if not keys:
-            return torch.zeros(0, 3, dtype=torch.long, device=means.device)
-        core = _unpack(torch.unique(torch.cat(keys)), limit)
-        ring = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=means.device)] * 3, indexing="ij"), -1)
-        grown = (core[:, None, :] + ring.reshape(1, -1, 3)).reshape(-1, 3)
-        inside = (grown.abs() < limit).all(-1)
-        return _unpack(torch.unique(_pack(grown[inside], limit)), limit)
+def block_keys(blocks: torch.Tensor, domain: Domain) -> torch.Tensor:
+    return _pack(blocks, math.ceil(domain.limit / BLOCK) + 1)
+
+
+def grown_blocks(keys: torch.Tensor, domain: Domain) -> torch.Tensor:
+    """[B, 3] sorted block coordinates of the blocks `keys` name and their 26 neighbours (the truncation band on both
+    sides of a surface: up to a block away from its points)."""
+    limit = math.ceil(domain.limit / BLOCK) + 1
+    core = _unpack(torch.unique(keys), limit)
+    ring = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=keys.device)] * 3, indexing="ij"), -1)
+    grown = (core[:, None, :] + ring.reshape(1, -1, 3)).reshape(-1, 3)
+    return _unpack(torch.unique(_pack(grown[(grown.abs() < limit).all(-1)], limit)), limit)
+
+
+def coarser_blocks(blocks: torch.Tensor, domain: Domain, voxel: float) -> torch.Tensor:
+    """[B', 3] the blocks at voxel size `voxel` (coarser than the domain's) that cover `blocks` [B, 3] (each block's
+    eight corner voxels mapped: grid coordinates scale with the voxel size in both kinds of domain)."""
+    corners = torch.tensor([[i, j, k] for i in (0, BLOCK - 1) for j in (0, BLOCK - 1) for k in (0, BLOCK - 1)],
+                           device=blocks.device)
+    g = (blocks[:, None, :] * BLOCK + corners[None]).double() * (domain.voxel / voxel)
+    limit = math.ceil(domain.limit * domain.voxel / voxel / BLOCK) + 2
+    return _unpack(torch.unique(_pack(torch.floor(g / BLOCK).long().reshape(-1, 3), limit)), limit)
 
 
 class TSDFVolume:
@@ -187,14 +168,23 @@ class TSDFVolume:
             u = pc[:, 0] / zs * camera.fx + camera.cx  # continuous image coordinates
             v = pc[:, 1] / zs * camera.fy + camera.cy
             sel = torch.nonzero((z > camera.near) & (u >= 0) & (u < w) & (v >= 0) & (v < h)).squeeze(1)
+            u, v, z = u[sel], v[sel], z[sel]
             if self.domain.contract:  # the truncation stretches with the voxels
                 g = (self.blocks[idx[sel // BLOCK_VOXELS]] * BLOCK + self.local[sel % BLOCK_VOXELS]).float()
                 trunc = self.trunc / self.domain.voxel * self.domain.stretch(g)
             else:
-                trunc = torch.full_like(z[sel], self.trunc)
-            d, rgb_at = _sample(flat_depth, flat_rgb, w, h, u[sel], v[sel], trunc)
-            sdf = d - z[sel]
-            keep = (d > 0) & (sdf > -trunc)
+                trunc = torch.full_like(z, self.trunc)
+            pix = torch.floor(v).long().clamp_(0, h - 1) * w + torch.floor(u).long().clamp_(0, w - 1)
+            d = flat_depth[pix]
+            rgb_at = flat_rgb[pix]
+            # Near the surface the depth between pixel centres matters: there it is interpolated (_refine). Farther
+            # off it cannot change the update (sdf clamps to 1 in front, and is skipped behind), so the pixel's serves.
+            band = torch.nonzero((d > 0) & ((d - z).abs() < 2 * trunc)).squeeze(1)
+            if len(band):
+                d[band], rgb_at[band] = _refine(flat_depth, flat_rgb, w, h, u[band], v[band], trunc[band],
+                                                d[band], rgb_at[band])
+            sdf = d - z
+            keep = torch.nonzero((d > 0) & (sdf > -trunc)).squeeze(1)
             sel, rgb_at, sdf, trunc = sel[keep], rgb_at[keep], sdf[keep], trunc[keep]
             if not len(sel):
                 continue
@@ -208,13 +198,12 @@ class TSDFVolume:
         return updated
 
 
-def _sample(depth: torch.Tensor, rgb: torch.Tensor, w: int, h: int, u: torch.Tensor, v: torch.Tensor,
-            agree: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _refine(depth: torch.Tensor, rgb: torch.Tensor, w: int, h: int, u: torch.Tensor, v: torch.Tensor,
+            agree: torch.Tensor, d: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(depth [M], colour [M, 3]) of a flat depth [H*W] and colour [H*W, 3] image at continuous image coordinates
     (u, v) [M] (on the image): bilinear between the four nearest pixel centres where all four have a depth and
-    agree within `agree` [M] (a surface seen across them), else the pixel (u, v) falls in (a depth edge: never a
-    depth between two surfaces)."""
-    near = torch.floor(v).long().clamp(0, h - 1) * w + torch.floor(u).long().clamp(0, w - 1)
+    agree within `agree` [M] (a surface seen across them), else d and c, the pixel's (u, v) falls in (a depth edge:
+    never a depth between two surfaces)."""
     x, y = (u - 0.5).clamp(0, w - 1), (v - 0.5).clamp(0, h - 1)
     x0, y0 = torch.floor(x).long().clamp(0, max(w - 2, 0)), torch.floor(y).long().clamp(0, max(h - 2, 0))
     fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
@@ -222,7 +211,7 @@ def _sample(depth: torch.Tensor, rgb: torch.Tensor, w: int, h: int, u: torch.Ten
     taps = torch.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1], 1)  # [M, 4]
     wts = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
     dt = depth[taps]
-    smooth = (dt.amin(1) > 0) & (dt.amax(1) - dt.amin(1) < agree)
-    d = torch.where(smooth, (dt * wts).sum(1), depth[near])
-    c = torch.where(smooth[:, None], (rgb[taps] * wts[..., None]).sum(1), rgb[near])
-    return d, c
+    lo, hi = dt.aminmax(dim=1)
+    smooth = (lo > 0) & (hi - lo < agree)
+    return (torch.where(smooth, (dt * wts).sum(1), d),
+            torch.where(smooth[:, None], (rgb[taps] * wts[..., None]).sum(1), c))

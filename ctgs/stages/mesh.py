@@ -90,12 +90,14 @@ def command(run_dir: str, out: str, bound: str, resolution: int, voxel_size: flo
                        sdf_trunc=sdf_trunc, pieces=pieces,
                        max_memory=None if max_memory is None else max_memory * 1e9)
     start = time.perf_counter()
-    plan = plan_volume(run.model, cameras, scene.points, opts, device, what=run_dir)
-    d = plan.domain
-    reach = "all of space, contracted" if d.contract else f"depth <= {plan.depth_trunc:.3g}"
-    click.echo(f"volume: {plan.voxels / 1e6:.1f}M voxels of {d.voxel:.3g} around the cameras' sphere (radius "
-               f"{d.radius:.3g}), {reach}, about {plan.bytes / 1e9:.2f} GB", err=True)
     with _Bars() as bars:
+        plan = plan_volume(run.model, cameras, scene.points, opts, backend, what=run_dir,
+                           progress=bars.step(f"rendering {len(cameras)} views"))
+        d = plan.domain
+        reach = "all of space, contracted" if d.contract else f"depth <= {plan.depth_trunc:.3g}"
+        bars.progress.console.print(f"volume: {plan.voxels / 1e6:.1f}M voxels of {d.voxel:.3g} around the cameras' "
+                                    f"sphere (radius {d.radius:.3g}), {reach}, about {plan.bytes / 1e9:.2f} GB",
+                                    soft_wrap=True, markup=False, highlight=False)
         volume = fuse(run.model, cameras, plan, backend, bars.step(f"fusing {len(cameras)} views"))
         mesh, dropped = extract(volume, pieces, bars.step("marching cubes"))
     del volume

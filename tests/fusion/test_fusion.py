@@ -13,8 +13,8 @@ from scipy.sparse.csgraph import connected_components
 from ctgs.errors import UserError
 from ctgs.fusion.domain import Domain, camera_sphere, contract, uncontract
 from ctgs.fusion.extract import Mesh, keep_largest, marching_cubes_blocks
-from ctgs.fusion.pipeline import MeshOptions, plan_volume
-from ctgs.fusion.volume import BLOCK, TSDFVolume, allocate_blocks
+from ctgs.fusion.pipeline import estimate_bytes, too_big
+from ctgs.fusion.volume import BLOCK, TSDFVolume, coarser_blocks, depth_blocks, grown_blocks
 from ctgs.render.camera import Camera
 
 RADIUS = 1.0
@@ -56,21 +56,22 @@ def _sphere_maps(cam: Camera, offset=(0.0, 0.0, 0.0)) -> tuple[torch.Tensor, tor
     return torch.where(hit, s, torch.zeros_like(s)), colour.clamp(0, 1)
 
 
-def _surfels_on_sphere(n: int = 3000, offset=(0.0, 0.0, 0.0)):
-    p = torch.randn(n, 3, generator=torch.Generator().manual_seed(0))
-    p = p / p.norm(dim=-1, keepdim=True) * RADIUS + torch.tensor(offset)
-    return p, torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4), torch.full((n, 2), 1e-4)
+def _volume(dom: Domain, cams: list[Camera], trunc: float) -> TSDFVolume:
+    """The sphere fused from `cams` into the blocks its depth maps name."""
+    maps = [_sphere_maps(cam) for cam in cams]
+    vol = TSDFVolume(dom, grown_blocks(torch.cat([depth_blocks(dom, d, cam) for (d, _), cam in zip(maps, cams)]), dom),
+                     trunc)
+    for (depth, colour), cam in zip(maps, cams):
+        vol.integrate(depth, colour, cam)
+    return vol
 
 
 CHUNK = 2  # blocks per marching-cubes region: 16 voxels, so the sphere crosses several regions' seams
 
 
 def _fused(contracted: bool, voxel: float = 0.06) -> tuple[Mesh, TSDFVolume]:
-    cams = _cameras()
     dom = Domain(centre=(0.0, 0.0, 0.0), radius=CAM_DISTANCE, voxel=voxel, contract=contracted, half=2 * CAM_DISTANCE)
-    vol = TSDFVolume(dom, allocate_blocks(dom, *_surfels_on_sphere()), 5 * voxel)
-    for cam in cams:
-        vol.integrate(*_sphere_maps(cam), cam)
+    vol = _volume(dom, _cameras(), 5 * voxel)
     return marching_cubes_blocks(vol, chunk=CHUNK), vol
 
 
@@ -108,10 +109,7 @@ def test_unobserved_voxels_make_no_surface():
     the far side was never seen (weight 0) and stays open rather than closed by guesses."""
     cams = [c for c in _cameras() if float(c.center[0]) > 1.0]
     dom = Domain(centre=(0.0, 0.0, 0.0), radius=CAM_DISTANCE, voxel=0.05, contract=False, half=6.0)
-    vol = TSDFVolume(dom, allocate_blocks(dom, *_surfels_on_sphere()), 0.25)
-    for cam in cams:
-        vol.integrate(*_sphere_maps(cam), cam)
-    mesh = marching_cubes_blocks(vol, chunk=CHUNK)
+    mesh = marching_cubes_blocks(_volume(dom, cams, 0.25), chunk=CHUNK)
     assert len(mesh.faces) and mesh.vertices[:, 0].max() > 0.99 and mesh.vertices[:, 0].min() > -0.9
 
 
@@ -163,21 +161,32 @@ def test_keep_largest_drops_small_pieces_and_degenerate_triangles():
     assert keep_largest(lone, 50)[0].num_faces == 8  # the largest piece stays whatever its size
 
 
-class _Model:
-    """What plan_volume reads of a model: surfels on the sphere."""
-
-    def __init__(self):
-        self.means, self.quats, self.scales = _surfels_on_sphere()
-        self.opacities = torch.ones(len(self.means))
+def test_blocks_hold_the_surface_and_its_band_only():
+    """The blocks are those of the depth maps' points and their neighbours: a shell around the sphere, no more."""
+    voxel = 0.02
+    dom = Domain(centre=(0.0, 0.0, 0.0), radius=CAM_DISTANCE, voxel=voxel, contract=False, half=6.0)
+    blocks = grown_blocks(torch.cat([depth_blocks(dom, _sphere_maps(c)[0], c) for c in _cameras()]), dom)
+    side = BLOCK * voxel
+    r = ((blocks.double() + 0.5) * side).norm(dim=-1)
+    assert (r > RADIUS - 2.6 * side).all() and (r < RADIUS + 2.6 * side).all()  # within the band
+    shell = 4 * math.pi * RADIUS**2 * 3 * side / side**3  # a 3-block thick shell's blocks
+    assert shell < len(blocks) < 2 * shell
+    # at a twice coarser voxel the same surface takes about a quarter of the blocks
+    assert 0.15 * len(blocks) < len(coarser_blocks(blocks, dom, 2 * voxel)) < 0.4 * len(blocks)
 
 
 def test_a_volume_that_does_not_fit_names_the_voxel_size_that_does():
-    cams, model = _cameras(), _Model()
-    opts = MeshOptions(resolution=512, max_memory=20e6)
-    with pytest.raises(UserError) as err:
-        plan_volume(model, cams, None, opts, torch.device("cpu"), what="RUN")
-    msg = str(err.value)
-    assert msg.startswith("RUN: the TSDF volume at voxel size") and "--max-memory allows 0.02 GB; pass --voxel-size" in msg
-    fit = float(msg.split("--voxel-size ")[1].split()[0])
-    plan = plan_volume(model, cams, None, MeshOptions(voxel_size=fit, max_memory=20e6), torch.device("cpu"))
-    assert plan.bytes <= 20e6 and plan.domain.voxel == fit
+    dom = Domain(centre=(0.0, 0.0, 0.0), radius=CAM_DISTANCE, voxel=0.02, contract=False, half=6.0)
+    cams = _cameras()
+    blocks = grown_blocks(torch.cat([depth_blocks(dom, _sphere_maps(c)[0], c) for c in cams]), dom)
+    need = estimate_bytes(len(blocks))
+    limit = need // 10
+    msg = str(too_big(dom, blocks, need, limit, True, "RUN"))
+    assert msg.startswith("RUN: the TSDF volume at voxel size 0.02 (") and f"--max-memory allows {limit / 1e9:.3g} GB" in msg
+    fit = float(msg.split("pass --voxel-size ")[1].split()[0])
+    assert 0.02 < fit < 0.1
+    # that voxel size fits: the sphere's blocks surveyed afresh at it take no more than the limit
+    dom_fit = Domain(centre=(0.0, 0.0, 0.0), radius=CAM_DISTANCE, voxel=fit, contract=False, half=6.0)
+    fitted = grown_blocks(torch.cat([depth_blocks(dom_fit, _sphere_maps(c)[0], c) for c in cams]), dom_fit)
+    assert estimate_bytes(len(fitted)) <= limit
+    assert "GB are free" in str(too_big(dom, blocks, need, limit, False, "RUN"))
