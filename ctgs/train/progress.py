@@ -8,7 +8,7 @@ import time
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from ctgs.train.budget import estimate_line, short_plan_warning
+from ctgs.train.budget import estimate_line, few_passes_note, short_plan_warning
 from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
 
 
@@ -19,8 +19,9 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
         for ev in trainer.run():
             if isinstance(ev, Done):
                 summary = ev.summary
-            elif isinstance(ev, Planned) and ev.it == 0 and (line := _short_plan(trainer, ev)):
-                print(line, file=sys.stderr)
+            elif isinstance(ev, Planned) and ev.it == 0:
+                for line in _plan_notes(trainer, ev):
+                    print(line, file=sys.stderr)
         return summary
     console = Console(stderr=True)
     # Time left: the cost model's (budget.py) where the run has one, which counts the growth of the step cost
@@ -58,14 +59,17 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
                     planned_once = True
                     progress.console.log(f"time budget {ev.budget_s / 60:.1f} min: planned {ev.iterations} iterations "
                                          f"(re-planned as the model grows)")
-                    if ev.it == 0 and (line := _short_plan(trainer, ev)):
-                        progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
+                    if ev.it == 0:
+                        for line in _plan_notes(trainer, ev):
+                            progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
             elif isinstance(ev, Estimated):
                 end_at = trainer.time.estimator.start + ev.wall_s
                 if estimates_shown < 2:  # the calibration's and the first from measured steps; later ones: the ETA
                     estimates_shown += 1
                     progress.console.print("ctgs train: " + estimate_line(ev.it, ev.iterations, ev.wall_s),
                                            markup=False, highlight=False, soft_wrap=True)
+                    if ev.it == 0 and (line := _passes_note(trainer, ev.iterations)):
+                        progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
             elif isinstance(ev, Checkpoint):
                 pass
             elif isinstance(ev, Done):
@@ -73,9 +77,16 @@ def run_with_progress(trainer, quiet: bool = False) -> dict:
     return summary
 
 
-def _short_plan(trainer, ev: Planned) -> str | None:
-    """The warning for a fresh run whose first plan is shorter than any measured run (shown quiet or not)."""
-    return short_plan_warning(ev.iterations, ev.budget_s, trainer.time.planner.plan.calib_step_s, trainer.pixels)
+def _plan_notes(trainer, ev: Planned) -> list[str]:
+    """What a fresh budgeted run is told of its first plan (shown quiet or not): a plan shorter than any measured
+    run, and a content-aware plan of few passes over the training views."""
+    lines = [short_plan_warning(ev.iterations, ev.budget_s, trainer.time.planner.plan.calib_step_s, trainer.pixels),
+             _passes_note(trainer, ev.iterations)]
+    return [line for line in lines if line]
+
+
+def _passes_note(trainer, iterations: int) -> str | None:
+    return few_passes_note(trainer.cfg.method, iterations, len(trainer.train_views))
 
 
 def _clock(seconds: float) -> str:

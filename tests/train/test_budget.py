@@ -211,6 +211,17 @@ def test_short_plan_warning_names_the_budget_and_the_fixes():
     assert "3 s buys about 1 iteration here" in short_plan_warning(1, 3.0, 0.03, 49152)
 
 
+def test_few_passes_note_only_for_a_content_aware_plan_of_few_passes():
+    from ctgs.train.budget import FEW_PASSES, few_passes_note
+
+    line = few_passes_note("content_aware", 6000, 220)
+    assert "6000 iterations are 27 passes over the 220 training views" in line and "--config 2dgs" in line
+    assert "\n" not in line
+    assert few_passes_note("content_aware", FEW_PASSES * 21, 21) is None  # enough passes
+    assert few_passes_note("2dgs", 100, 220) is None and few_passes_note("fixed_texture", 100, 220) is None
+    assert few_passes_note("content_aware", 100, 0) is None
+
+
 @pytest.mark.parametrize("quiet", [True, False])
 def test_a_budget_that_buys_a_short_run_warns_once_on_stderr(tmp_path, capsys, quiet):
     """End to end, with and without the progress display: a budget far too small for the scene still trains (the
@@ -223,6 +234,8 @@ def test_a_budget_that_buys_a_short_run_warns_once_on_stderr(tmp_path, capsys, q
                          sets=("threads=1",))
     err = capsys.readouterr().err
     assert err.count("ctgs train: warning:") == 1 and "shortest run measured" in err
+    # the content-aware plan of few passes over the 4 training views is told where its textures had not paid
+    assert err.count("ctgs train: note:") == 1 and "passes over the 4 training views" in err
     assert summary["iterations"] < 1000 and summary["planned_iterations_initial"] < 1000
 
 
