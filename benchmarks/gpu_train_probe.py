@@ -103,7 +103,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--ab", action="append", default=[], metavar="KEY=VALUE",
                     help="side by side in one run: from the texture start + 100 on, blocks of --ab-block iterations "
                          "rotate between the plain run and each of these environment settings (read by the CUDA "
-                         "backend at every launch; CTGS_LEAN_ROUTINE at every full routine), and the phase table "
+                         "backend at every launch), and the phase table "
                          "splits the textured steps, and those with a routine, by variant (routines alternate between two "
                          "variants when their spacing / --ab-block is odd: 250 / 50 at the paper's scale)")
     ap.add_argument("--ab-block", type=int, default=50)
@@ -119,7 +119,7 @@ def main(argv=None) -> dict:
 
     os.makedirs(args.out, exist_ok=True)
     env_at_start = {k: v for k, v in os.environ.items()  # (--ab changes it later)
-                    if k.startswith("CTGS_CUDA") or k == "CTGS_LEAN_ROUTINE"}
+                    if k.startswith("CTGS_CUDA")}
     run_dir = tempfile.mkdtemp(prefix="ctgs_probe_")
     cfg = resolve_config(args.scene, run_dir, args.config, args.iterations, args.sets, args.images, False,
                          args.backend, None, args.preset)

@@ -2,14 +2,13 @@
 
 Run with a Python and torch matching the device's (KINDS.md of the device tool: Python 3.12, torch
 2.11.0+cu130), e.g. a venv made for the purpose; nvcc 13.0 compiles for sm_90 (no GPU needed). The builds
-land in CTGS_CACHE_DIR/torch_extensions/<name>-<key>, where the device hook (sitecustomize.py) finds them
-when the key (sources, flags, torch, Python) matches.
+land in CTGS_CACHE_DIR/torch_extensions/<name>-<key>, each with its prebuilt.json, where ctgs finds them on the
+device under CTGS_PREBUILT=1 when the manifest (sources, flags, torch, Python) matches (ctgs.ops.ext.load_prebuilt).
 
     CTGS_CACHE_DIR=.gpu/ctgs_cache TORCH_CUDA_ARCH_LIST=9.0 CUDA_HOME=/usr/local/cuda \
         venv312/bin/python benchmarks/device/build_extensions.py
 """
 
-import json
 import os
 import sys
 import time
@@ -25,15 +24,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from ctgs.ops import ext as _ext, ext_cuda as _ext_cuda  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sitecustomize import prebuilt_manifest  # noqa: E402
-
 for name, sources, flags in (
         ("ctgs_cpu", _ext.CPU_SOURCES, dict(extra_cflags=_ext.CPU_CFLAGS, extra_ldflags=_ext.CPU_LDFLAGS)),
         ("ctgs_cuda", _ext_cuda.CUDA_SOURCES, dict(extra_cflags=_ext_cuda.CUDA_CFLAGS,
                                                    extra_cuda_cflags=_ext_cuda.CUDA_NVCC_FLAGS))):
     t = time.time()
-    manifest = prebuilt_manifest(name, flags)
     m = _ext.jit_build(name, sources, what=name, fallback="cpu", verbose=False, first_use="minutes", **flags)
-    (Path(m.__file__).parent / "prebuilt.json").write_text(json.dumps(manifest) + "\n")
-    print(f"{name}: {m.__file__} ({time.time() - t:.0f} s) {manifest}", flush=True)
+    manifest = _ext.write_prebuilt_manifest(m, name, flags)
+    print(f"{name}: {m.__file__} ({time.time() - t:.0f} s) {manifest.read_text().strip()}", flush=True)

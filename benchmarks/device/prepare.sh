@@ -28,7 +28,7 @@ if [ ! -x "$WORK/venv312/bin/python" ]; then
   "$WORK/venv312/bin/pip" install -q "$WORK"/wheels/torch-2.11.0-*.whl numpy ninja packaging rich jaxtyping typing_extensions
 fi
 export CUDA_HOME=${CUDA_HOME:-/usr/local/cuda} TORCH_CUDA_ARCH_LIST=9.0
-# 2. ctgs's extensions, into the cache folder the device hook reads.
+# 2. ctgs's extensions, into the cache folder ctgs reads under CTGS_PREBUILT=1 (ctgs.ops.ext.load_prebuilt).
 CTGS_CACHE_DIR="$G/ctgs_cache" MAX_JOBS=2 "$WORK/venv312/bin/python" "$ROOT/benchmarks/device/build_extensions.py"
 # ... and ctgs_cuda again with FMA contraction (CTGS_CUDA_FMAD=1 selects it there; a build key of its own)
 CTGS_CUDA_FMAD=1 CTGS_CACHE_DIR="$G/ctgs_cache" MAX_JOBS=2 "$WORK/venv312/bin/python" \

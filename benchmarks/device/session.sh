@@ -12,8 +12,7 @@
 #   benchmarks/device/session.sh [PHASES]   PHASES: any of tests,bench,fmad,ncu,train,probe,pipeline,pair
 #                                           (default: tests,bench,ncu,train)
 #   env: TRAIN_A_S, TRAIN_B_S (seconds of each training), BENCH_S, TESTS_S, TRAIN_PRESET, TRAIN_ITERS,
-#        PROBE_S, PROBE_IT, PROBE_ARGS (more gpu_train_probe.py options), PROBE_BEFORE (1: also the probe
-#        with CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0),
+#        PROBE_S, PROBE_IT, PROBE_ARGS (more gpu_train_probe.py options),
 #        PIPE_ITERS, PIPE_IMAGES, PIPE_S (seconds of each pipeline training), PIPE_METHODS (paper,2dgs: which
 #        pipelines), PIPE_ARGS (more `ctgs train` options for each)
 #        fmad: the CUDA tests and bench_cuda again with the kernels built with FMA contraction (CTGS_CUDA_FMAD=1;
@@ -89,7 +88,6 @@ if [[ $PHASES == *tests* ]]; then
     -k "not compile_with_nvcc" 2>&1 | tee "$R/pytest_cuda_mb1.log" | tail -3
   # A new kernel that failed its agreement test stays off for the rest of the call (its switch).
   if grep -q "FAILED.*aggregated" "$R/pytest_cuda.log"; then export CTGS_CUDA_TEX_AGG=0; echo "CTGS_CUDA_TEX_AGG=0 from here"; fi
-  if grep -q "FAILED.*jagged" "$R/pytest_cuda.log"; then export CTGS_CUDA_REMAP=0; echo "CTGS_CUDA_REMAP=0 from here"; fi
 pack
 fi
 
@@ -151,12 +149,8 @@ probe() {  # label seconds extra-env...
   echo "rc=${PIPESTATUS[0]}"
 }
 if [[ $PHASES == *probe* ]]; then
-  probe new "${PROBE_S:-110}" CTGS_CUDA_REMAP=1
+  probe new "${PROBE_S:-110}"
   pack
-  if [[ ${PROBE_BEFORE:-1} == 1 ]]; then
-    probe before "${PROBE_S:-110}" CTGS_CUDA_REMAP=0 CTGS_CUDA_FUSED_ADAM=0
-    pack
-  fi
 fi
 
 pipeline() {  # name extra-args...: train, export, compress, eval (PSNR/SSIM: the LPIPS weights do not travel)

@@ -6,8 +6,6 @@ Adam moments), so resizing a texture moves its optimiser state with it.
 
 from __future__ import annotations
 
-import os
-
 import torch
 
 from ctgs.model.surfels import jagged_offsets
@@ -41,6 +39,11 @@ def remap(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: torch.Ten
     fast = _compiled_remap(buffers, old_res, old_off, src, shift, new_res, new_off)
     if fast is not None:
         return fast, new_off
+    return _torch_remap(buffers, old_res, old_off, src, shift, new_res, new_off), new_off
+
+
+def _torch_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor]:
+    """remap's copies in PyTorch index arithmetic, on any device (the definition the compiled passes match)."""
     pid, iu, iv = texel_coords(new_res)
     s = src.long()[pid]
     ro = old_res.long()[s]  # [T', 2]
@@ -56,7 +59,7 @@ def remap(buffers: list[torch.Tensor], old_res: torch.Tensor, old_off: torch.Ten
         else:
             vals = buf[idx.clamp(max=buf.shape[0] - 1)] * valid[:, None].to(buf.dtype)
         out.append(vals)
-    return out, new_off
+    return out
 
 
 def _compiled_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
@@ -67,9 +70,8 @@ def _compiled_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> 
 
 def _cuda_remap(buffers, old_res, old_off, src, shift, new_res, new_off) -> list[torch.Tensor] | None:
     """remap on CUDA tensors in one kernel (kernels/cuda/dense.cu jagged_remap_kernel): the PyTorch index
-    arithmetic below makes ~15 [T']-sized int64 temporaries, GBs at the paper's texel counts. CTGS_CUDA_REMAP=0
-    turns it off (to compare)."""
-    if (not buffers or len(buffers) > 4 or not buffers[0].is_cuda or os.environ.get("CTGS_CUDA_REMAP") == "0"
+    arithmetic below makes ~15 [T']-sized int64 temporaries, GBs at the paper's texel counts."""
+    if (not buffers or len(buffers) > 4 or not buffers[0].is_cuda
             or any(b.dtype != buffers[0].dtype or b.shape[1] != buffers[0].shape[1] for b in buffers)):
         return None
     if not cuda_fusable(*buffers):

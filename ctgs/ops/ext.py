@@ -17,12 +17,21 @@ folder shared by two of them was rebuilt (a minute) at every switch between them
 A one-line message on stderr says when a build starts; when torch recompiles a folder that was built before (it
 finds the build out of date, e.g. the sources' timestamps changed in a git checkout), a line says so once the load
 has taken BUILD_NOTE_S.
+
+Prebuilt extensions, for a machine that should not spend its time building (a GPU machine used for minutes): with
+CTGS_PREBUILT=1, a build folder under the cache's torch_extensions/ holding a `prebuilt.json`
+(write_prebuilt_manifest: the kernel sources' hash, the flags, torch and its CUDA, Python's minor version) that
+matches this machine's is imported as it is (load_prebuilt), through importlib as torch imports what it builds;
+none matching, the extension is built as usual. torch's loader itself would rebuild a folder made elsewhere: its
+build.ninja names the other machine's paths.
 """
 
 from __future__ import annotations
 
 import fcntl
 import hashlib
+import importlib.util
+import json
 import os
 import platform
 import shutil
@@ -58,6 +67,8 @@ TORCH_BATON = "lock"  # torch.utils.cpp_extension's FileBaton in the build folde
 # Loading an up-to-date build takes about a second (torch runs ninja, which finds nothing to do); longer, and it is
 # compiling: say so rather than sit silent for a minute.
 BUILD_NOTE_S = 5.0
+PREBUILT_ENV = "CTGS_PREBUILT"  # "1": a matching prebuilt extension is imported instead of built (load_prebuilt)
+PREBUILT_MANIFEST = "prebuilt.json"
 
 _lock = threading.Lock()
 _cpu_module: ModuleType | None = None
@@ -197,11 +208,54 @@ def build_dir(name: str, key: str) -> Path:
     return cache_dir() / "torch_extensions" / f"{name}-{key}"
 
 
+def prebuilt_manifest(name: str, flags: dict) -> dict:
+    """What a prebuilt extension must share with this machine to be used: the kernel sources, the flags, torch
+    (version and CUDA) and Python's minor version. (The build key also hashes the compiler and the install's paths,
+    which differ between the machine that builds and the one that loads.)"""
+    h = hash_kernel_sources(hashlib.sha256())
+    return {"name": name, "sources": h.hexdigest()[:16], "flags": repr(sorted((k, list(v)) for k, v in flags.items())),
+            "torch": torch.__version__, "cuda": torch.version.cuda, "python": list(sys.version_info[:2])}
+
+
+def write_prebuilt_manifest(module: ModuleType, name: str, flags: dict) -> Path:
+    """Mark the extension `module` (just built by jit_build with `flags`) as prebuilt: its folder's prebuilt.json."""
+    path = Path(module.__file__).parent / PREBUILT_MANIFEST
+    path.write_text(json.dumps(prebuilt_manifest(name, flags)) + "\n")
+    return path
+
+
+def load_prebuilt(name: str, flags: dict) -> ModuleType | None:
+    """The prebuilt extension `name` whose prebuilt.json matches this machine (prebuilt_manifest), imported; None
+    when there is none (each folder that differs is named on stderr, with what differs)."""
+    want = prebuilt_manifest(name, flags)
+    for manifest in sorted((cache_dir() / "torch_extensions").glob(f"{name}-*/{PREBUILT_MANIFEST}")):
+        try:
+            have = json.loads(manifest.read_text())
+        except (OSError, ValueError) as exc:
+            print(f"ctgs: {manifest}: unreadable ({exc}); not used", file=sys.stderr, flush=True)
+            continue
+        so = manifest.parent / f"{name}.so"
+        if have == want and so.is_file():
+            schemas.declare()  # the ops the kernels register for, declared before the library loads (as jit_build)
+            spec = importlib.util.spec_from_file_location(name, so)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            print(f"ctgs: prebuilt {so} loaded", file=sys.stderr, flush=True)
+            return module
+        diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
+        print(f"ctgs: prebuilt {manifest.parent.name} differs: {diff}", file=sys.stderr, flush=True)
+    print(f"ctgs: no prebuilt {name} matches; building", file=sys.stderr, flush=True)
+    return None
+
+
 def jit_build(name: str, sources: list[str], *, what: str, fallback: str, verbose: bool, first_use: str,
               **flags) -> ModuleType:
     """Build (or reuse) extension `name` from the shipped kernels/`sources`; every failure is one UserError
     that says what to do (`fallback`: the backend to pass instead; `first_use`: the build time to announce).
-    `flags` go to torch.utils.cpp_extension.load."""
+    `flags` go to torch.utils.cpp_extension.load. With CTGS_PREBUILT=1 a matching prebuilt extension is imported
+    instead (load_prebuilt)."""
+    if os.environ.get(PREBUILT_ENV) == "1" and (module := load_prebuilt(name, flags)) is not None:
+        return module
     kernels = kernels_dir()
     missing = [s for s in sources if not (kernels / s).is_file()]
     if missing:

@@ -8,7 +8,6 @@ forward/backward, whose gradients w.r.t. mu_c, Rc, colors... autograd carries ba
 from __future__ import annotations
 
 import math
-import os
 
 import torch
 
@@ -22,8 +21,8 @@ from ctgs.render.reference import render_reference
 from ctgs.render.types import BackwardStats, RenderOutput, SurfelInputs
 
 BACKENDS = ("auto", "cpu", "cuda", "reference")
-# Debug aid: fresh output buffers start as NaN so a pixel the kernel never wrote shows up (tests set it).
-POISON_OUTPUTS = os.environ.get("CTGS_POISON_OUTPUTS", "") == "1"
+# Debug aid: fresh output buffers start as NaN so a pixel the kernel never wrote shows up (tests set it to True).
+POISON_OUTPUTS = False
 
 
 # ---- validation ------------------------------------------------------------------------------------------

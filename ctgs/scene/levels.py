@@ -18,12 +18,9 @@ import tempfile
 from ctgs.errors import UserError
 from ctgs.io import atomic
 from ctgs.io.images import image_info, list_images, read_image, resize_image, write_image
+from ctgs.resources import cache_dir
 
 LEVEL = re.compile(r"^images_([1-9][0-9]*)$")
-
-
-def _cache_root() -> str:
-    return os.environ.get("CTGS_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "ctgs")
 
 
 def _cached_dir(scene_dir: str, names: list[str], src: str) -> str:
@@ -32,7 +29,7 @@ def _cached_dir(scene_dir: str, names: list[str], src: str) -> str:
     for name in names:
         st = os.stat(os.path.join(src, name))
         h.update(f"{name}\0{st.st_size}\0{int(st.st_mtime)}\n".encode())
-    return os.path.join(_cache_root(), "levels", f"{os.path.basename(os.path.abspath(scene_dir))}-{h.hexdigest()[:16]}")
+    return os.path.join(cache_dir(), "levels", f"{os.path.basename(os.path.abspath(scene_dir))}-{h.hexdigest()[:16]}")
 
 
 def _writable(folder: str) -> bool:

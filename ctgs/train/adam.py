@@ -7,8 +7,6 @@ out exactly like the parameters, so the editing code (ctgs/train/edit.py) moves 
 
 from __future__ import annotations
 
-import os
-
 import torch
 
 from ctgs.ops import fused
@@ -94,9 +92,8 @@ def torch_fused_step(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch
     over p, g, m, v), if it applies: a float lr, one dtype, contiguous. The same update as SurfelAdam's PyTorch
     lines up to rounding (sqrt(v) / sqrt(1 - b2^t) for sqrt(v / (1 - b2^t))); those lines make ~10 passes and 3
     temporaries the size of p (on a GPU at the paper's 29M texels: ~1 GB and ~2 ms per step). Returns False
-    (nothing done) where it does not apply, or when CTGS_CUDA_FUSED_ADAM=0 (to compare)."""
-    if (torch.is_tensor(lr) or os.environ.get("CTGS_CUDA_FUSED_ADAM") == "0"
-            or not all(x.is_contiguous() and x.dtype == p.dtype for x in (g, m, v))
+    (nothing done) where it does not apply."""
+    if (torch.is_tensor(lr) or not all(x.is_contiguous() and x.dtype == p.dtype for x in (g, m, v))
             or p.dtype not in (torch.float32, torch.float64) or not hasattr(torch, "_fused_adam_")):
         return False
     step = torch.full((), float(t), dtype=torch.float32, device=p.device)

@@ -370,11 +370,11 @@ def test_jagged_remap_kernel_matches_cpu(dtype, monkeypatch):
     assert torch.equal(off.cpu(), off_cpu)
     for a, b in zip(got, want):
         assert a.shape == b.shape and a.dtype == b.dtype and a.device.type == dev.type and torch.equal(a.cpu(), b)
-    monkeypatch.setenv("CTGS_CUDA_REMAP", "0")  # the PyTorch index arithmetic on the same device
-    plain, _ = jagged.remap([b.to(dev) for b in bufs], *moved)
+    # the PyTorch index arithmetic on the same device
+    plain = jagged._torch_remap([b.to(dev) for b in bufs], *moved[:-1], moved[-1].to(torch.int32),
+                                off.to(dev))
     for a, b in zip(plain, want):
         assert torch.equal(a.cpu(), b)
-    monkeypatch.delenv("CTGS_CUDA_REMAP")
     # replace_blocks: primitives 1 and 5 get new 4x2 blocks, the rest keep theirs.
     res2 = old_res.clone()
     prims = torch.tensor([1, 5])

@@ -62,21 +62,17 @@ def test_prune_opacity_zero_resets_to_3dgs_value_and_stays_finite(scene, tmp_pat
     assert len(reset) == 1 and reset[0][4]["value"] == 0.01 and reset[0][2] <= 0.01 * (1 + 1e-5)
 
 
-@pytest.mark.parametrize("env, lean", [(None, True), ("0", False)])
-def test_full_routines_run_lean_unless_switched_off(scene, tmp_path, monkeypatch, env, lean):
-    """CTGS_LEAN_ROUTINE=0 gives the trainer's full routines the paper's order (lean=False; the same final state,
-    tests/train/test_routines_image.py); unset, the lean order."""
+def test_full_routines_run_lean(scene, tmp_path, monkeypatch):
+    """The trainer's full routines run in the lean order (the paper's order, lean=False, ends in the same state with
+    more texels in between: tests/train/test_routines_image.py)."""
     from ctgs.train.strategies import content_aware
 
     calls = []
     real = content_aware.full_routine
-    monkeypatch.setattr(content_aware, "full_routine", lambda *a, **k: (calls.append(k.get("lean")), real(*a, **k))[1])
-    if env is None:
-        monkeypatch.delenv("CTGS_LEAN_ROUTINE", raising=False)
-    else:
-        monkeypatch.setenv("CTGS_LEAN_ROUTINE", env)
+    monkeypatch.setattr(content_aware, "full_routine", lambda *a, **k: (calls.append(k.get("lean", True)),
+                                                                        real(*a, **k))[1])
     _run(scene, str(tmp_path / "run"), ())
-    assert calls == [lean, lean]
+    assert calls == [True, True]
 
 
 def test_periodic_tests_score_the_model_before_the_routines_and_the_reset(scene, tmp_path):

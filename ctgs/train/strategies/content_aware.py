@@ -5,8 +5,6 @@ after the last iteration the texture trim."""
 
 from __future__ import annotations
 
-import os
-
 from ctgs.render import BackwardStats
 from ctgs.train import schedule, size_budget, texels
 from ctgs.train.components import Shell
@@ -98,13 +96,10 @@ class ContentAware(Strategy):
 
     def full_routine(self, tr, it: int) -> dict:
         cfg = tr.cfg
-        # CTGS_LEAN_ROUTINE=0: the paper's order (the same final state; more transient texels, fewer ops;
-        # on a GPU about the lean order's time, 1.5x its peak memory: docs/guide/gpu.md)
-        lean = os.environ.get("CTGS_LEAN_ROUTINE", "1") != "0"
         gains = tr.exposure.view_gains() if tr.exposure is not None and cfg.exposure_in_E else None
         shell = tr.part(Shell)  # init_shell: the far primitives the split/upscale ranking leaves out
         stats = full_routine(tr.model, tr.opt, cfg, it, tr.train_views, tr.render_fn, tr.cameras,
-                             None if shell is None else shell.far, lean=lean, gains=gains,
+                             None if shell is None else shell.far, gains=gains,
                              step_errors=self.errors if cfg.error_from_steps else None)
         self.errors.reset()  # the primitives changed: the next routine's E starts from its own steps
         return stats
