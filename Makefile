@@ -81,7 +81,7 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	scene=$(or $(SCENE_DIR_$*),$(DATA_ROOT)/$$dataset/$*); \
 	if [ -n "$(SCENE_DIR_$*)" ]; then test -d $$scene || { echo "SCENE_DIR_$*=$$scene: no such folder" >&2; exit 2; }; \
 	else test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; fi; \
-	resume=$$($(PY) -m ctgs.train.checkpoint $(RUNS)/$*); \
+	resume=$$($(PY) -m ctgs.runs.checkpoint $(RUNS)/$*); \
 	$(CTGS) train $$scene -o $(RUNS)/$* --images $(or $(IMAGES),$$images) --set holdout=$$holdout $(TRAIN_OPTS) $$resume
 
 # Any run folder (benchmark scenes and the demo alike): export, then compress the export.
@@ -158,7 +158,7 @@ $(DEMO_DIR)/scene/sparse: | $(STAMP)
 
 $(DEMO_DIR)/run/model.pt: | $(DEMO_DIR)/scene/sparse
 	$(CTGS) train $(DEMO_DIR)/scene -o $(DEMO_DIR)/run --preset $(DEMO_PRESET) --backend $(BACKEND) \
-		--iterations $(or $(ITERATIONS),$(DEMO_ITERATIONS)) $$($(PY) -m ctgs.train.checkpoint $(DEMO_DIR)/run)
+		--iterations $(or $(ITERATIONS),$(DEMO_ITERATIONS)) $$($(PY) -m ctgs.runs.checkpoint $(DEMO_DIR)/run)
 
 $(DEMO_DIR)/run/eval/metrics.json: $(DEMO_DIR)/run/model/manifest.json | $(LPIPS_WEIGHTS)
 	$(CTGS) eval $(DEMO_DIR)/run --model $(DEMO_DIR)/run/model -o $(DEMO_DIR)/run/eval --dataset demo --backend $(BACKEND)

@@ -76,7 +76,7 @@ def main() -> int:
 
 def table_rows(work: str, scene: str) -> dict:
     from ctgs.train.allocation import allocation_measures
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
 
     meta = json.load(open(os.path.join(scene, "demo_meta.json")))
     rows = {}

@@ -37,7 +37,7 @@ import torch  # noqa: E402
 from ctgs.io import atomic  # noqa: E402
 from ctgs.formats.compress import DEFAULT_TARGET, TARGETS, Spec, compress_model  # noqa: E402
 from ctgs.formats.model_format import read_model, write_model, write_packed_model  # noqa: E402
-from ctgs.train.run_model import load_run  # noqa: E402
+from ctgs.runs import load_run  # noqa: E402
 from ctgs.evaluation.evaluate import EvalOptions, evaluate  # noqa: E402
 
 RAW = Spec(texels="f32")  # every value float32: what sorting + xz alone gain

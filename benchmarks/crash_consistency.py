@@ -6,7 +6,7 @@ Usage:
 
 On a demo scene, one `ctgs train` runs to the end untouched (the reference). Another, with the same options, is
 started, SIGKILLed at a random moment, and started again as the Makefile's train rule starts it (`--resume` when
-ctgs.train.checkpoint finds a readable checkpoint, a fresh start otherwise), --kills times; the last
+ctgs.runs.checkpoint finds a readable checkpoint, a fresh start otherwise), --kills times; the last
 start runs to the end. A kill lands anywhere: while Python and the extension load, before the first checkpoint,
 inside a step, a checkpoint, a log line or the final writes. On a CPU a resume replays the steps since its checkpoint
 exactly, so the two model.pt files must hold the same tensors, bit for bit, and the logs the same step records.
@@ -49,12 +49,12 @@ def train_args(scene: str, run: str, opts: argparse.Namespace) -> list[str]:
 
 
 def resume_flag(run: str) -> list[str]:
-    """What the Makefile's train rule asks before each start (`python -m ctgs.train.checkpoint RUN`, here in-process)."""
+    """What the Makefile's train rule asks before each start (`python -m ctgs.runs.checkpoint RUN`, here in-process)."""
     return ["--resume"] if checkpoint_iteration(run) is not None else []
 
 
 def checkpoint_iteration(run: str) -> int | None:
-    from ctgs.train.checkpoint import readable_checkpoint
+    from ctgs.runs.checkpoint import readable_checkpoint
 
     found = readable_checkpoint(run)
     return None if found is None else found[1]

@@ -40,7 +40,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tests", "io"))
 
 from ctgs.formats.model_format import read_model  # noqa: E402
-from ctgs.train.run_model import load_run  # noqa: E402
+from ctgs.runs import load_run  # noqa: E402
 import record  # noqa: E402 (benchmarks/record.py)
 from record import write_record  # noqa: E402
 from ctgs.metrics.psnr import psnr  # noqa: E402

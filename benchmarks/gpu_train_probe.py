@@ -112,7 +112,8 @@ def main(argv=None) -> dict:
 
     import torch
 
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train import schedule
     from ctgs.train.events import Eval, Step
     from ctgs.train.trainer import Trainer
@@ -123,7 +124,7 @@ def main(argv=None) -> dict:
     run_dir = tempfile.mkdtemp(prefix="ctgs_probe_")
     cfg = resolve_config(args.scene, run_dir, args.config, args.iterations, args.sets, args.images, False,
                          args.backend, None, args.preset)
-    scene = _load_scene(cfg)
+    scene = training_scene(cfg)
     trainer = Trainer(cfg, scene, run_dir)
     dev = trainer.device
     cuda = dev.type == "cuda"

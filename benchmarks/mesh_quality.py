@@ -88,7 +88,7 @@ def pictures(runs: dict[str, str], meshes: dict[str, str], view_index: int, path
     from ctgs.io.images import read_rgb
     from ctgs.render import render
     from ctgs.scene.loader import load_scene
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
     from ctgs.viewer.server import ViewerServer
     from headless import Browser
     from viewer_page import ViewerPage
@@ -158,7 +158,7 @@ def main() -> None:
     ap.add_argument("--work", default=None, help="folder for the meshes (default: a temporary folder)")
     args = ap.parse_args()
     runs = dict(item.split("=", 1) for item in args.run)
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
 
     path_stem = stem("mesh_quality", args.tag)
     work = args.work or tempfile.mkdtemp(prefix="mesh-quality-")

@@ -155,14 +155,15 @@ def install(timers: Timers, ext) -> None:
 
 def make_snapshot(args) -> None:
     """Train to --state-at and write the checkpoint (run in its own process)."""
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.trainer import Trainer
 
     run = os.path.join(args.work, f"snap_{args.tag}")
     shutil.rmtree(run, ignore_errors=True)
     cfg = resolve_config(args.scene, run, args.config, None, [f"threads={args.threads}", *args.set], args.images,
                          False, "cpu", args.seed, preset=args.preset)
-    tr = Trainer(cfg, _load_scene(cfg), run)
+    tr = Trainer(cfg, training_scene(cfg), run)
     for _ in tr.run():
         if tr.it >= args.state_at:
             break
@@ -176,7 +177,8 @@ def profile(args) -> dict:
     import torch
 
     from ctgs.ops.ext import load_cpu
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.trainer import Trainer
 
     snap = os.path.join(args.work, f"snap_{args.tag}")
@@ -186,7 +188,7 @@ def profile(args) -> dict:
     cfg = resolve_config(args.scene, run, args.config, None, [f"threads={args.threads}", *args.set], args.images,
                          True, "cpu", args.seed, preset=args.preset)
     ext = load_cpu()
-    tr = Trainer(cfg, _load_scene(cfg), run, resume=True)
+    tr = Trainer(cfg, training_scene(cfg), run, resume=True)
     # --clock cpu: process CPU time (user + system), robust to other jobs on a shared machine with one
     # training thread; wall (default): what a user waits, the only clock that shows thread scaling.
     timers = Timers(time.process_time if args.clock == "cpu" else time.perf_counter)

@@ -73,7 +73,7 @@ def texel_content(run: str, max_views: int) -> dict | None:
     import torch
     import torch.nn.functional as F
 
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
     from ctgs.render import render
     from ctgs.scene.loader import load_scene, validation_split
     from ctgs.train.texels import texel_size

@@ -34,7 +34,7 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from ctgs.train.run_model import load_run  # noqa: E402
+from ctgs.runs import load_run  # noqa: E402
 import record  # noqa: E402 (benchmarks/record.py)
 from record import write_record  # noqa: E402
 from ctgs.formats.readers import read_gaussian_file  # noqa: E402

@@ -39,7 +39,8 @@ def measure(args) -> dict:
 
     import torch
 
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train import schedule
     from ctgs.train.adam import ALL_PARAMS
     from ctgs.train.loss import training_loss
@@ -51,7 +52,7 @@ def measure(args) -> dict:
     shutil.copytree(snap, run)
     cfg = resolve_config(args.scene, run, args.config, None, [f"threads={args.threads}", *args.set], args.images,
                          True, "cpu", args.seed, preset=args.preset)
-    tr = Trainer(cfg, _load_scene(cfg), run, resume=True)
+    tr = Trainer(cfg, training_scene(cfg), run, resume=True)
     it = tr.it
     model, opt = tr.model, tr.opt
     lrs = schedule.learning_rates(tr.cfg, it, tr.extent, model.sh.shape[1], tr.device)

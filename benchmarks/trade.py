@@ -124,7 +124,7 @@ def per_view(metrics: dict) -> dict:
 
 def allocation(run: str, scene_dir: str) -> dict:
     from ctgs.train.allocation import allocation_measures
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
 
     model = load_run(run).model
     meta = json.load(open(os.path.join(scene_dir, "demo_meta.json")))

@@ -35,12 +35,11 @@ from types import SimpleNamespace
 
 import torch
 
-from ctgs.train.run_model import load_run
+from ctgs.runs import load_run, training_scene
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim as ssim_of
 from ctgs.evaluation.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
-from ctgs.stages.train import _load_scene
 from ctgs.train.shell import far_mask, scene_sphere
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -93,8 +92,9 @@ def load_validation_run(run_dir: str):
         raise SystemExit(f"{run_dir}: not a validation run (validation_holdout = 0); train with "
                          "--set validation_holdout=8")
     run = load_run(run_dir)
-    scene = _load_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images, holdout=run.holdout,
-                                        validation_holdout=holdout))
+    background = [float(c) for c in run.config.get("background") or (0.0, 0.0, 0.0)]  # the run's (ctgs train)
+    scene = training_scene(SimpleNamespace(scene_dir=run.scene_dir, images=run.images, holdout=run.holdout,
+                                           background=background, validation_holdout=holdout))
     return run, scene
 
 

@@ -30,7 +30,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from ctgs.io.images import read_rgb, write_image  # noqa: E402
-from ctgs.train.run_model import load_run  # noqa: E402
+from ctgs.runs import load_run  # noqa: E402
 from ctgs.formats.web_bundle import read_web_bundle, scene_cameras, write_web_bundle  # noqa: E402
 from ctgs.model.surfels import SurfelModel, jagged_offsets  # noqa: E402
 from ctgs.render import render  # noqa: E402

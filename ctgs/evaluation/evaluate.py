@@ -27,9 +27,8 @@ from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.psnr import gain_matched_psnr, masked_psnr, psnr
 from ctgs.metrics.ssim import masked_ssim, ssim
 from ctgs.render import render
-from ctgs.scene import load_scene
+from ctgs.runs import load_run, run_scene, with_scene
 from ctgs.scene.loader import check_same_frame, validation_split
-from ctgs.train.run_model import load_run, with_scene
 
 LPIPS_CONVENTION = "LPIPS VGG v0.1, inputs in [0, 1] fed without rescaling to [-1, 1] (3DGS/2DGS convention)"
 NUM_STRIPS = 2  # worst and best views (by PSNR) that get a gt | render | error strip each
@@ -99,7 +98,7 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     scored = _scored_model(run, opts, device)
     backend = _backend(run, opts, device)
     background = [float(c) for c in run.config.get("background") or (0.0, 0.0, 0.0)]  # the run's (ctgs train)
-    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, background=background)
+    scene = run_scene(run, background=background)
     if scored.manifest is None:
         check_same_frame(run.world_origin, scene, run.run_dir)
     else:

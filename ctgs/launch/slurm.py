@@ -409,7 +409,7 @@ def wait(runs: str, scenes: list[str], jobs: dict, poll: float = 2.0) -> int:
 def resumed(run_dir: str) -> int:
     """The job script's line on a restart: the iteration of the checkpoint the training resumes from."""
     # Imported here: a checkpoint needs torch, which `make status` and submitting on a login node do not.
-    from ctgs.train.checkpoint import readable_checkpoint
+    from ctgs.runs.checkpoint import readable_checkpoint
 
     found = readable_checkpoint(run_dir)
     if found is None:

@@ -14,7 +14,7 @@ from ctgs.formats import BAKED_FORMATS, FORMATS, Export, spz
 from ctgs.formats.bake import bake_bound, bake_texels, plan_levels
 from ctgs.formats.model_format import MANIFEST, read_model
 from ctgs.io import lock
-from ctgs.train.run_model import load_run
+from ctgs.runs import load_run
 
 
 def load_source(path: str):

@@ -74,13 +74,13 @@ def command(run_dir: str, out: str, bound: str, resolution: int, voxel_size: flo
     from ctgs.errors import UserError
     from ctgs.formats.mesh import mesh_suffix, write_mesh
     from ctgs.fusion.pipeline import MeshOptions, extract, fuse, plan_volume
-    from ctgs.scene.loader import check_same_frame, load_scene
-    from ctgs.train.run_model import load_run, with_scene
+    from ctgs.runs import load_run, run_scene, with_scene
+    from ctgs.scene.loader import check_same_frame
 
     mesh_suffix(out)
     device = torch.device("cuda" if backend == "cuda" or (backend == "auto" and torch.cuda.is_available()) else "cpu")
     run = with_scene(load_run(run_dir, device=device), scene_dir)
-    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
+    scene = run_scene(run, load_images=False)
     check_same_frame(run.world_origin, scene, run.run_dir)
     chosen = scene.train if views == "train" else scene.train + scene.test
     cameras = [v.camera for v in chosen]

@@ -32,9 +32,8 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
 
     from ctgs.io import lock, owner
     from ctgs.io.images import write_image
-    from ctgs.train.run_model import load_run, with_scene
     from ctgs.render import render
-    from ctgs.scene.loader import load_scene
+    from ctgs.runs import load_run, run_scene, with_scene
 
     wanted = [m.strip() for m in maps.split(",") if m.strip()]
     unknown = sorted(set(wanted) - set(MAPS))
@@ -43,7 +42,7 @@ def command(run_dir: str, out_dir: str, backend: str, views: str, model_dir: str
     owner.check_ours(out_dir, "render", "an earlier `ctgs render` folder")
     device = "cuda" if backend == "cuda" or (backend == "auto" and torch.cuda.is_available()) else "cpu"
     run = with_scene(load_run(run_dir, device=device), scene_dir)
-    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False)
+    scene = run_scene(run, load_images=False)
     chosen = {"test": scene.test, "train": scene.train, "all": scene.train + scene.test}[views]
     from ctgs.scene.loader import check_same_frame
 

@@ -14,17 +14,6 @@ from ctgs.io import lock, owner
 from ctgs.io.signals import signals_deferred
 
 
-def _load_scene(cfg):
-    from ctgs.scene.loader import load_scene, validation_split
-
-    holdout = cfg.holdout if cfg.holdout > 0 else None
-    scene = load_scene(cfg.scene_dir, images=cfg.images, holdout=holdout, background=cfg.background)
-    if cfg.validation_holdout > 0:
-        # Tuning mode: the protocol's test views are never seen; validation views come from the training set.
-        scene.train, scene.test = validation_split(scene.train, cfg.validation_holdout)
-    return scene
-
-
 # Without --preset/--config: the authors' recipe where a GPU is present; on a CPU, the preset that measured
 # best for the time (docs/results.md).
 CPU_DEFAULT_PRESET = "fast"
@@ -94,8 +83,8 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     stderr unless quiet). A failure before the first checkpoint leaves no run folder behind."""
     import time
 
+    from ctgs.runs import training_scene, write_config
     from ctgs.train.progress import run_with_progress
-    from ctgs.train.run import write_config
     from ctgs.train.trainer import Trainer
 
     start_time = time.monotonic() if start_time is None else start_time
@@ -120,7 +109,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     created = not os.path.exists(run_dir)
     held = trainer = None
     try:
-        scene = _load_scene(cfg)
+        scene = training_scene(cfg)
         for note in ("points_note", "split"):  # random initial points; a transforms file's own train/test split
             if scene.meta.get(note):
                 print(f"ctgs train: {'views: ' if note == 'split' else ''}{scene.meta[note]}", file=sys.stderr)
@@ -138,7 +127,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     except BaseException as exc:
         # Nothing half-written: a run folder this invocation created goes if no checkpoint made it resumable (only
         # once it holds the folder's lock: before, the folder is not there yet, or is another process's).
-        from ctgs.train.checkpoint import has_checkpoint
+        from ctgs.runs.checkpoint import has_checkpoint
 
         if isinstance(exc, (KeyboardInterrupt, Terminated)) and trainer is not None:
             trainer.checkpoint_on_stop()

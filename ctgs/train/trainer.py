@@ -25,7 +25,7 @@ from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.ops import fused
 from ctgs.render import render
-from ctgs.train import checkpoint as ckpt
+from ctgs.runs import checkpoint as ckpt
 from ctgs.train import rules, schedule
 from ctgs.train.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.components import ExposureCompensation, TimeBudget, make_components
@@ -34,8 +34,8 @@ from ctgs.train.events import Checkpoint, Done, Eval, Step
 from ctgs.train.init import scene_model
 from ctgs.train.kmin import compute_k_min, view_coverage
 from ctgs.train.loss import masked, recomposited, training_loss
-from ctgs.train.run import write_outputs
 from ctgs.train.strategies import make_strategy
+from ctgs.train.summary import write_outputs
 
 
 # What the run's wall time went to besides its steps (train_summary.json "seconds_in"): full and late routines,

@@ -168,7 +168,7 @@ def test_open_pixels_and_psnr_over_the_covered_ones(run_dir, tmp_path):
     """Each view's open share (rendered alpha < OPEN_ALPHA) and PSNR over the other pixels, against a direct render."""
     import torch
 
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
     from ctgs.metrics.psnr import masked_psnr, psnr
     from ctgs.evaluation.report import OPEN_ALPHA
     from ctgs.render import render

@@ -58,7 +58,7 @@ def test_render_maps_normal_and_depth(run_dir, tmp_path):
     import numpy as np
     import torch
 
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
     from ctgs.render import render
     from ctgs.scene.loader import load_scene
 

@@ -16,7 +16,7 @@ import torch
 
 from ctgs.errors import OS_ERROR_EXIT, UserError, describe_os_error
 from ctgs.io import atomic, images
-from ctgs.train import checkpoint as ckpt
+from ctgs.runs import checkpoint as ckpt
 from fault_helpers import can_mount, small_fs
 
 

@@ -19,7 +19,7 @@ from fault_helpers import TRAIN_OPTS, cli, tiny_manifest
 
 from ctgs.errors import Terminated
 from ctgs.train import progress
-from ctgs.train.checkpoint import main as probe, previous_path, readable_checkpoint
+from ctgs.runs.checkpoint import main as probe, previous_path, readable_checkpoint
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))

@@ -246,7 +246,8 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     import torch
 
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.adam import ALL_PARAMS
     from ctgs.train.calibration import calibrate
     from ctgs.train.trainer import Trainer
@@ -254,7 +255,7 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=64, height=48, points=200)
     sets = ["threads=1"] + (["method=2dgs"] if method == "2dgs" else [])
     cfg = resolve_config(scene_dir, str(tmp_path / "run"), None, 50, sets, None, False, None, None, preset="fast")
-    t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
+    t = Trainer(cfg, training_scene(cfg), str(tmp_path / "run"))
     before = {n: getattr(t.model, n).detach().clone() for n in ALL_PARAMS}
     moments = {n: t.opt.exp_avg[n].clone() for n in ALL_PARAMS}
     step_s, render_s, textured_s, _ = calibrate(t)

@@ -9,9 +9,9 @@ import os
 import pytest
 
 from ctgs.scene.demo import make_demo_scene
-from ctgs.stages.train import _load_scene, resolve_config
+from ctgs.runs import training_scene, write_config
+from ctgs.stages.train import resolve_config
 from ctgs.train.events import Routine
-from ctgs.train.run import write_config
 from ctgs.train.trainer import Trainer
 
 # 100 iterations at paper scale x 0.04: textures from 20, full routines every 40 (40 and 80; routine_margin=0),
@@ -28,7 +28,7 @@ def scene(tmp_path_factory):
 
 def _run(scene, run, extra):
     cfg = resolve_config(scene, run, None, None, SETS + extra, None, False, None, None, preset="fast")
-    trainer = Trainer(cfg, _load_scene(cfg), run)
+    trainer = Trainer(cfg, training_scene(cfg), run)
     write_config(run, cfg.to_dict())
     seen = []
     for ev in trainer.run():
@@ -81,7 +81,7 @@ def test_periodic_tests_score_the_model_before_the_routines_and_the_reset(scene,
     run = str(tmp_path / "tests")
     sets = tuple(s for s in SETS if not s.startswith("test_every")) + ("test_every=1000", "content_opacity_reset=true")
     cfg = resolve_config(scene, run, None, None, sets, None, False, None, None, preset="fast")
-    trainer = Trainer(cfg, _load_scene(cfg), run)
+    trainer = Trainer(cfg, training_scene(cfg), run)
     write_config(run, cfg.to_dict())
     for _ in trainer.run():
         pass

@@ -81,17 +81,18 @@ def test_a_run_with_step_errors_renders_no_view_in_its_routines(scene, tmp_path,
 def test_a_resumed_run_with_step_errors_ends_at_the_same_model(scene, tmp_path):
     """The statistics since the last routine are in the checkpoint: stopped after the checkpoint at 30 and before the
     routine at 40 (whose E covers the steps since the start), the resumed run ends at the uninterrupted run's model."""
-    from ctgs.stages.train import _load_scene, resolve_config, train_main
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config, train_main
     from ctgs.train.events import Step
-    from ctgs.train.run import write_config
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import write_config
+    from ctgs.runs import load_run
     from ctgs.train.trainer import Trainer
 
     whole = str(tmp_path / "whole")
     train_main(scene, whole, preset="fast", sets=SETS, quiet=True)
     run = str(tmp_path / "interrupted")
     cfg = resolve_config(scene, run, None, None, SETS, None, False, None, None, preset="fast")
-    trainer = Trainer(cfg, _load_scene(cfg), run)
+    trainer = Trainer(cfg, training_scene(cfg), run)
     write_config(run, cfg.to_dict())
     gen = trainer.run()
     for ev in gen:  # stop without any cleanup (as a kill would)

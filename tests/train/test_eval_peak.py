@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from ctgs.cli import main
-from ctgs.train.run import eval_peak
+from ctgs.runs import eval_peak
 
 
 def _log(path, records):

@@ -63,8 +63,9 @@ def test_exposure_comp_recovers_the_gains_a_capture_was_shot_with(tmp_path):
     that tell the darkened photos from the others, and ends with a checkpoint that holds them."""
     from ctgs.io.images import read_image, write_image
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
-    from ctgs.train import checkpoint as ckpt
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
+    from ctgs.runs import checkpoint as ckpt
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=9, width=64, height=48, points=300)
@@ -77,7 +78,7 @@ def test_exposure_comp_recovers_the_gains_a_capture_was_shot_with(tmp_path):
     run = str(tmp_path / "run")
     cfg = resolve_config(scene_dir, run, None, 400, ["threads=1", "seed=1", "exposure_comp=true", "lr_exposure=0.01"],
                          None, False, None, None, preset="fast")
-    t = Trainer(cfg, _load_scene(cfg), run)
+    t = Trainer(cfg, training_scene(cfg), run)
     for _ in t.run():
         pass
     g = t.exposure.gains().detach().mean(1)  # [V] mean over channels

@@ -78,7 +78,8 @@ def test_no_fill_where_the_points_cover_the_view_or_a_view_has_too_few_points():
 
 def test_init_fill_adds_primitives_at_initialisation(tmp_path):
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=96, height=72, points=60)
@@ -87,7 +88,7 @@ def test_init_fill_adds_primitives_at_initialisation(tmp_path):
         run = str(tmp_path / f"run_{fill}")
         cfg = resolve_config(scene_dir, run, None, 1, [f"init_fill={fill}", "threads=1"], None, False, None, None,
                              preset="fast")
-        scene = _load_scene(cfg)
+        scene = training_scene(cfg)
         counts[fill] = Trainer(cfg, scene, run).model.num_primitives
     expected = len(fill_points(scene.points, scene.train)[0])
     assert expected > 0 and counts["true"] == counts["false"] + expected

@@ -136,7 +136,8 @@ def test_lambda_normal_trains_and_brings_normals_to_the_depth(tmp_path):
     import numpy as np
 
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=64, height=48, points=300)
@@ -144,7 +145,7 @@ def test_lambda_normal_trains_and_brings_normals_to_the_depth(tmp_path):
     def train(run: str, sets: list[str]) -> Trainer:
         cfg = resolve_config(scene_dir, run, None, 80, sets + ["threads=1", "seed=3"], None, False, None, None,
                              preset="fast")
-        t = Trainer(cfg, _load_scene(cfg), run)
+        t = Trainer(cfg, training_scene(cfg), run)
         for _ in t.run():
             pass
         return t

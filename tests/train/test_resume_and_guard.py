@@ -14,9 +14,9 @@ import torch
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.train.events import Step
-from ctgs.train.run_model import load_run
+from ctgs.runs import load_run, training_scene
 from ctgs.train.trainer import Trainer, TrainingDiverged
-from ctgs.stages.train import resolve_config, _load_scene
+from ctgs.stages.train import resolve_config
 from ctgs.errors import Terminated, UserError
 from train_helpers import run_log
 
@@ -58,8 +58,8 @@ def _same_models(a, b):
 def test_resume_across_a_full_routine_is_bit_identical(scene, reference_run, tmp_path):
     run = str(tmp_path / "interrupted")
     cfg = resolve_config(scene, run, None, None, SETS, None, False, None, None, preset="fast")
-    trainer = Trainer(cfg, _load_scene(cfg), run)
-    from ctgs.train.run import write_config
+    trainer = Trainer(cfg, training_scene(cfg), run)
+    from ctgs.runs import write_config
 
     write_config(run, cfg.to_dict())
     gen = trainer.run()
@@ -201,8 +201,9 @@ def test_sigterm_mid_run_checkpoints_the_last_whole_step(scene, tmp_path):
     state = torch.load(os.path.join(run, "checkpoints", "last.pt"), map_location="cpu", weights_only=False)
     assert state["iteration"] >= 8, state["iteration"]  # no periodic checkpoint was due: this is the stop's
     assert state["iteration"] >= _logged_steps(run)  # the step under way finished before it was written
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.trainer import Trainer
 
     cfg = resolve_config(scene, run, None, None, (), None, True, None, None)  # the run's own config, as --resume
-    assert Trainer(cfg, _load_scene(cfg), run, resume=True).it == state["iteration"]
+    assert Trainer(cfg, training_scene(cfg), run, resume=True).it == state["iteration"]

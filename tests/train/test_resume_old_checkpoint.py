@@ -13,10 +13,9 @@ import shutil
 import pytest
 import torch
 
-from ctgs.train.run_model import load_run
+from ctgs.runs import load_run, write_config
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import resolve_config, train_main
-from ctgs.train.run import write_config
 from train_helpers import run_log
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

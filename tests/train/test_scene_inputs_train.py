@@ -17,7 +17,7 @@ from ctgs.io.images import read_image, write_image
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.train.loss import recomposited
-from ctgs.train.run_model import load_run
+from ctgs.runs import load_run
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scene"))
 from scene_layouts import write_blender, write_instant_ngp, write_nerfstudio  # noqa: E402

@@ -57,14 +57,15 @@ def test_no_shell_when_off():
 def test_init_shell_trains(tmp_path):
     """A short run with init_shell starts with the shell's primitives on top of the SfM ones."""
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=40)
 
     def first_count(run: str, sets: list[str]) -> int:
         cfg = resolve_config(scene_dir, run, None, 1, sets + ["threads=1"], None, False, None, None, preset="fast")
-        return Trainer(cfg, _load_scene(cfg), run).model.num_primitives
+        return Trainer(cfg, training_scene(cfg), run).model.num_primitives
 
     base = first_count(str(tmp_path / "a"), [])
     shell = first_count(str(tmp_path / "b"), ["init_shell=30"])
@@ -167,7 +168,8 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     """Through whole routines: every training render goes through shell.composite, and no split reaches a far
     (shell) primitive, so their number never grows in a routine (upscales: the unit test above)."""
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train import components, routines, shell
     from ctgs.train.strategies import content_aware
     from ctgs.train.trainer import Trainer
@@ -192,7 +194,7 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
         return stats
 
     monkeypatch.setattr(content_aware, "full_routine", watched)
-    t = Trainer(cfg, _load_scene(cfg), str(tmp_path / "run"))
+    t = Trainer(cfg, training_scene(cfg), str(tmp_path / "run"))
     t.time.estimator = None  # its calibration renders a copy (covered below, with --time-budget); count the run's only
     far0 = int(shell.far_mask(t.model.means, *t.part(components.Shell).sphere).sum())
     assert far0 > 0
@@ -208,7 +210,8 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
     """With init_shell a training step renders twice (shell.composite); --time-budget's calibration must time that
     step, not a single render, or the plan undercounts every step."""
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train import components, shell
     from ctgs.train.calibration import calibrate
     from ctgs.train.trainer import Trainer
@@ -225,7 +228,7 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
         calls["composite"] = 0
         cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,
                              preset="fast")
-        t = Trainer(cfg, _load_scene(cfg), str(tmp_path / f"run{expected}"))
+        t = Trainer(cfg, training_scene(cfg), str(tmp_path / f"run{expected}"))
         step_s, render_s, textured_s, _ = calibrate(t)
         assert step_s > 0 and render_s > 0 and textured_s > 0
         # three timed steps before and three after the texture start, each through composite with a shell

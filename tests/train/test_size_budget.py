@@ -10,7 +10,7 @@ import torch
 
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
-from ctgs.train.run_model import load_run
+from ctgs.runs import load_run
 from ctgs.train import rules, size_budget, texels
 from ctgs.train.config import TrainConfig
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 from ctgs.scene.demo import make_demo_scene
-from ctgs.stages.train import _load_scene, resolve_config
+from ctgs.runs import training_scene
+from ctgs.stages.train import resolve_config
 from ctgs.train import components
 from ctgs.train.config import METHODS
 from ctgs.train.events import Step
@@ -24,7 +25,7 @@ def scene(tmp_path_factory):
 def _trainer(scene, run, sets=()):
     cfg = resolve_config(scene, run, None, 20, ("threads=1", "backend='cpu'", *sets), None, False, None, None,
                          preset="fast")
-    return Trainer(cfg, _load_scene(cfg), run)
+    return Trainer(cfg, training_scene(cfg), run)
 
 
 def test_every_method_has_its_strategy_and_texture_mode():

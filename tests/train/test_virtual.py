@@ -83,7 +83,8 @@ def test_virtual_coverage_trains_and_raises_alpha_between_cameras(tmp_path):
     """A short run with the term trains, and leaves the virtual views less open than the same run without it."""
     from ctgs.render import render
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import _load_scene, resolve_config
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.components import VirtualCoverage
     from ctgs.train.trainer import Trainer
 
@@ -92,7 +93,7 @@ def test_virtual_coverage_trains_and_raises_alpha_between_cameras(tmp_path):
     def train(run: str, sets: list[str]) -> Trainer:
         cfg = resolve_config(scene_dir, run, None, 60, sets + ["threads=1", "seed=3"], None, False, None, None,
                              preset="fast")
-        t = Trainer(cfg, _load_scene(cfg), run)
+        t = Trainer(cfg, training_scene(cfg), run)
         for _ in t.run():
             pass
         return t

@@ -47,7 +47,7 @@ def _cli(*args: str) -> None:
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory) -> dict:
     """Tiny trained demo: run folder, web bundle, `ctgs render` PNGs (textures on) and textures-off PNGs."""
-    from ctgs.train.run_model import load_run
+    from ctgs.runs import load_run
     from ctgs.render import render
     from ctgs.scene.loader import load_scene
 

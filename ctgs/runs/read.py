@@ -1,7 +1,9 @@
-"""Read a finished training run folder (written by `ctgs train RUN_DIR`).
+"""Reading a finished run folder (written by `ctgs train RUN_DIR`): load_run, and with_scene for the scene folder its
+views are read from on this machine.
 
-RUN_DIR/model.pt = torch.save({"model": SurfelModel.state_dict(), "scene_dir", "images", "holdout",
-"iteration", "config", "world_origin"}); RUN_DIR/train_summary.json (optional here: only the training time comes from it).
+RUN_DIR/model.pt = torch.save({"model": SurfelModel.state_dict(), "scene_dir", "images", "holdout", "iteration",
+"config", "world_origin", "model_id"}); RUN_DIR/train_summary.json (optional here: only the training time comes from
+it, and the model_id that pairs it with model.pt).
 """
 
 from __future__ import annotations
@@ -17,9 +19,7 @@ import torch
 from ctgs.errors import UserError, machine_fault
 from ctgs.io import atomic
 from ctgs.model.surfels import SurfelModel
-
-MODEL_FILE = "model.pt"
-SUMMARY_FILE = "train_summary.json"
+from ctgs.runs.folder import MODEL_FILE, SUMMARY_FILE
 
 
 @dataclass

@@ -20,6 +20,7 @@ import torch
 
 from ctgs.errors import UserError, machine_fault
 from ctgs.io import atomic
+from ctgs.runs.folder import CHECKPOINTS
 
 CKPT_NAME = "last.pt"
 PREV_NAME = "prev.pt"
@@ -44,11 +45,11 @@ def restore_rng(state: dict, gen: torch.Generator) -> None:
 
 
 def checkpoint_path(run_dir: str) -> str:
-    return os.path.join(run_dir, "checkpoints", CKPT_NAME)
+    return os.path.join(run_dir, CHECKPOINTS, CKPT_NAME)
 
 
 def previous_path(run_dir: str) -> str:
-    return os.path.join(run_dir, "checkpoints", PREV_NAME)
+    return os.path.join(run_dir, CHECKPOINTS, PREV_NAME)
 
 
 def has_checkpoint(run_dir: str) -> bool:
@@ -164,11 +165,11 @@ def rerun_hint(run_dir: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m ctgs.train.checkpoint RUN_DIR`: prints `--resume` when RUN_DIR holds a checkpoint a training can
+    """`python -m ctgs.runs.checkpoint RUN_DIR`: prints `--resume` when RUN_DIR holds a checkpoint a training can
     resume from, nothing otherwise (the Makefile's train rules ask it, not whether checkpoints/ exists)."""
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1:
-        print("usage: python -m ctgs.train.checkpoint RUN_DIR", file=sys.stderr)
+        print("usage: python -m ctgs.runs.checkpoint RUN_DIR", file=sys.stderr)
         return 2
     if readable_checkpoint(args[0]) is not None:
         print("--resume")
