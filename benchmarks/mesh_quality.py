@@ -7,8 +7,10 @@ the exact surfaces on the demo scene, and a picture of each mesh beside a photo.
 Each run is meshed once per --resolution by `ctgs mesh` in its own process (its wall time, user + system CPU seconds
 and peak resident memory from wait4). On a demo scene (demo_meta.json) every mesh is scored by
 ctgs.fusion.accuracy (Chamfer distance, normal consistency, F-score against the true rectangles, seen from the
-training cameras). --pictures N: the scene's N-th test view, as photographed, as the model renders it, and each mesh
-(at the first resolution) shaded and in its colours, drawn by the viewer (`ctgs view --mesh`) in headless Chromium.
+training cameras), and so is what the meshes are fused from: the points of each run's rendered depth maps (every
+training view, as `ctgs mesh` renders them), by their distance to the true surfaces. --pictures N: the scene's N-th
+test view, as photographed, as the model renders it, and each mesh (at the first resolution) shaded and in its
+colours, drawn by the viewer (`ctgs view --mesh`) in headless Chromium.
 Record: benchmarks/results/mesh_quality/<tag>_<commit>.{json,md} (and .png).
 """
 
@@ -78,6 +80,35 @@ def accuracy(mesh_path: str, scene_dir: str) -> dict:
     return mesh_accuracy(v, f, load_demo_meta(scene_dir), cams)
 
 
+def depth_accuracy(run_dir: str) -> dict:
+    """The run's rendered depth (expected depth where alpha >= 0.5, as `ctgs mesh` fuses it) of every training view,
+    unprojected: distances of its points to the demo scene's true surfaces (world units)."""
+    import torch
+
+    from ctgs.fusion.accuracy import distance_to_surfaces
+    from ctgs.fusion.pipeline import view_maps
+    from ctgs.runs import load_run
+    from ctgs.scene.demo import load_demo_meta
+    from ctgs.scene.loader import load_scene
+
+    run = load_run(run_dir)
+    views = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False).train
+    points = []
+    with torch.no_grad():
+        inputs = run.model.render_inputs()
+        for view in views:
+            cam = view.camera
+            depth, _ = view_maps(inputs, cam, "auto", run.model.sh_degree, float("inf"))
+            v, u = torch.nonzero(depth > 0, as_tuple=True)
+            z = depth[v, u].double()
+            pc = torch.stack([(u + 0.5 - cam.cx) / cam.fx * z, (v + 0.5 - cam.cy) / cam.fy * z, z], 1)
+            vm = cam.viewmat.double()
+            points.append(((pc - vm[:3, 3]) @ vm[:3, :3]).numpy())
+    d, _ = distance_to_surfaces(np.concatenate(points), load_demo_meta(run.scene_dir))
+    return {"views": len(views), "points": int(len(d)), "mean": float(d.mean()), "median": float(np.median(d)),
+            "p90": float(np.percentile(d, 90)), "within": {str(t): float((d < t).mean()) for t in (0.01, 0.02, 0.05)}}
+
+
 def pictures(runs: dict[str, str], meshes: dict[str, str], view_index: int, path: str, width: int) -> dict:
     """photo | render | mesh shaded | mesh colours, one row per run, at the scene's test view `view_index`."""
     import cv2
@@ -142,6 +173,15 @@ def markdown(r: dict) -> str:
     if demo:
         lines += ["Accuracy: ctgs/fusion/accuracy.py (world units ~ metres; the true surfaces seen from the training "
                   "cameras; completeness to mesh samples spaced as `mesh_sample_spacing` in the JSON)."]
+    if r.get("depth"):
+        lines += ["", "What the meshes are fused from: each run's rendered depth over its training views, the distance "
+                  "of its points to the true surfaces:", "",
+                  "| run | points | mean (cm) | median (cm) | 90th percentile (cm) | within 1 / 2 / 5 cm |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for label, d in r["depth"].items():
+            lines.append(f"| {label} | {d['points']:,} | {100 * d['mean']:.2f} | {100 * d['median']:.2f} | "
+                         f"{100 * d['p90']:.2f} | "
+                         + " / ".join(f"{d['within'][t]:.3f}" for t in ("0.01", "0.02", "0.05")) + " |")
     if r.get("pictures"):
         lines += ["", f"Picture: `{r['pictures']['file']}` ({r['pictures']['layout']})."]
     return "\n".join(lines) + "\n"
@@ -177,6 +217,8 @@ def main() -> None:
                      voxel=m["plan"].split(" voxels of ")[1].split()[0] if " voxels of " in m["plan"] else "")
             if os.path.isfile(os.path.join(scene_dir, "demo_meta.json")):
                 m["accuracy"] = accuracy(out, scene_dir)
+                if res == args.resolution[0]:
+                    result.setdefault("depth", {})[label] = depth_accuracy(run_dir)
             result["meshes"].append(m)
             first.setdefault(label, out)
             print(m["line"], flush=True)
