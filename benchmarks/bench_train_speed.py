@@ -151,7 +151,7 @@ _RESOLVE = """
 import json, sys
 from dataclasses import asdict
 from ctgs.train.config import TrainConfig
-from ctgs.train import rules
+from ctgs.train.config import rules
 d, pixels = json.loads(sys.argv[1]), float(sys.argv[2])
 cfg = TrainConfig(**d)
 out = asdict(rules.resolve(cfg, pixels))

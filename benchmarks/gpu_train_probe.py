@@ -114,9 +114,9 @@ def main(argv=None) -> dict:
 
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train import schedule
+    from ctgs.train.config import schedule
     from ctgs.train.events import Eval, Step
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     os.makedirs(args.out, exist_ok=True)
     env_at_start = {k: v for k, v in os.environ.items()  # (--ab changes it later)

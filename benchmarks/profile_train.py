@@ -92,12 +92,12 @@ def install(timers: Timers, ext) -> None:
 
     import ctgs.render.api as api
     import ctgs.render.rasterize as rz
-    import ctgs.train.loss as loss_mod
-    import ctgs.train.routines as routines
-    import ctgs.train.texels as texels
-    import ctgs.train.trainer as trainer
+    import ctgs.train.step.loss as loss_mod
+    import ctgs.train.routines.passes as routines
+    import ctgs.train.routines.texels as texels
+    import ctgs.train.loop.trainer as trainer
     from ctgs.model.surfels import SurfelModel
-    from ctgs.train.adam import SurfelAdam
+    from ctgs.train.step.adam import SurfelAdam
 
     timers.wrap(SurfelModel, "render_inputs", "render_inputs")
     timers.wrap(api, "validate_inputs", "validate")
@@ -157,7 +157,7 @@ def make_snapshot(args) -> None:
     """Train to --state-at and write the checkpoint (run in its own process)."""
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     run = os.path.join(args.work, f"snap_{args.tag}")
     shutil.rmtree(run, ignore_errors=True)
@@ -179,7 +179,7 @@ def profile(args) -> dict:
     from ctgs.ops.ext import load_cpu
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     snap = os.path.join(args.work, f"snap_{args.tag}")
     run = os.path.join(args.work, f"prof_{args.tag}_{args.label}")

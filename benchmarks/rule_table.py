@@ -1,4 +1,4 @@
-"""Write results/rule_table/rules_<commit>.md: every scene-relative rule (ctgs/train/rules.py, ctgs/train/schedule.py) with
+"""Write results/rule_table/rules_<commit>.md: every scene-relative rule (ctgs/train/config/rules.py, ctgs/train/config/schedule.py) with
 its value at the paper's scale and at 200 px wide images, for the paper's recipe and the fast preset.
 
 Usage: .venv/bin/python benchmarks/rule_table.py
@@ -15,7 +15,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.train.config import TrainConfig, load_config  # noqa: E402
-from ctgs.train.rules import rule_table  # noqa: E402
+from ctgs.train.config.rules import rule_table  # noqa: E402
 
 SIZES = {"paper scale (1000x1000)": (1000, 1000), "200x150": (200, 150)}
 
@@ -33,7 +33,7 @@ def main() -> None:
 
     argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     lines = ["# Scene-relative settings: rule -> value", "",
-             "Written by `benchmarks/rule_table.py` from ctgs/train/rules.py and ctgs/train/schedule.py (no "
+             "Written by `benchmarks/rule_table.py` from ctgs/train/config/rules.py and ctgs/train/config/schedule.py (no "
              "measurement: the rules themselves). Iteration counts are fractions of the run; pixel and texel "
              "settings follow the training image size H x W. At the paper's scale every rule is the identity.", ""]
     for title, cfg, its in (("The paper's recipe (`--config default`; `--preset paper` turns the pixel rules off)",

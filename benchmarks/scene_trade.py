@@ -76,7 +76,7 @@ def texel_content(run: str, max_views: int) -> dict | None:
     from ctgs.runs import load_run
     from ctgs.render import render
     from ctgs.scene.loader import load_scene, validation_split
-    from ctgs.train.texels import texel_size
+    from ctgs.train.routines.texels import texel_size
 
     r = load_run(run)
     m = r.model

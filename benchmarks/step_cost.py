@@ -41,10 +41,10 @@ def measure(args) -> dict:
 
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train import schedule
-    from ctgs.train.adam import ALL_PARAMS
-    from ctgs.train.loss import training_loss
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.config import schedule
+    from ctgs.train.step.adam import ALL_PARAMS
+    from ctgs.train.step.loss import training_loss
+    from ctgs.train.loop.trainer import Trainer
 
     snap = os.path.join(args.work, f"snap_{args.tag}")
     run = os.path.join(args.work, f"cost_{args.tag}")

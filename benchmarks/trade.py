@@ -123,7 +123,7 @@ def per_view(metrics: dict) -> dict:
 
 
 def allocation(run: str, scene_dir: str) -> dict:
-    from ctgs.train.allocation import allocation_measures
+    from ctgs.train.routines.allocation import allocation_measures
     from ctgs.runs import load_run
 
     model = load_run(run).model

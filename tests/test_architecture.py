@@ -34,8 +34,8 @@ def test_the_floors_hold():
 
 
 @pytest.mark.parametrize("lower, upper", [("ctgs/io/atomic.py", "ctgs.formats.spz"),
-                                          ("ctgs/model/jagged.py", "ctgs.train.texels"),
-                                          ("ctgs/runs/read.py", "ctgs.train.trainer"),
+                                          ("ctgs/model/jagged.py", "ctgs.train.routines.texels"),
+                                          ("ctgs/runs/read.py", "ctgs.train.loop.trainer"),
                                           ("ctgs/render/sh.py", "ctgs.model.surfels")])
 def test_an_upward_import_breaks_them(tmp_path, lower, upper):
     shutil.copytree(os.path.join(ROOT, "ctgs"), tmp_path / "ctgs", ignore=shutil.ignore_patterns("__pycache__"))

@@ -162,7 +162,7 @@ class _TexelL1(torch.autograd.Function):
 def texel_l1(model, weight: torch.Tensor, textures: torch.Tensor | None = None) -> torch.Tensor:
     """sum_i weight[i] * (sum over primitive i's texels and channels of |activated texel| (model.textures)):
     a scalar, differentiable w.r.t. model.textures_raw, not w.r.t. weight. weight: [N] per-primitive
-    factors (ctgs.train.loss.texture_weights: the rasterized mask, times 1 - transmittance on option);
+    factors (ctgs.train.step.loss.texture_weights: the rasterized mask, times 1 - transmittance on option);
     a bool mask is taken as 0/1. textures: the activated offsets this step's render used (its
     SurfelInputs.textures), if the caller has them: the term is then taken on them (no second activation;
     when they are texel_activation's own output, the term's gradient is added inside the activation's
@@ -209,7 +209,7 @@ def photometric_loss(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float,
     """(1 - lambda_ssim) mean |render - gt| + lambda_ssim (1 - mean SSIM) of two [H, W, C] images in one compiled
     pass on the CPU: (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached), and with want_error the
     error image of the same pass, e [H, W] = (1 - l) mean_c |render - gt| + l mean_c (1 - SSIM map) (detached).
-    None where the extension does not apply (the caller computes it with PyTorch: ctgs.train.loss.photometric_loss).
+    None where the extension does not apply (the caller computes it with PyTorch: ctgs.train.step.loss.photometric_loss).
 
     The pass computes the value and, if render needs it, the gradient (kernels/cpu/ssim.cpp; 5 blurred moment
     images, their adjoint for the gradient); it matches the PyTorch expression to float rounding

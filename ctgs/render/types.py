@@ -55,5 +55,5 @@ class RenderOutput:
     depth: torch.Tensor  # [H, W] alpha-weighted sum of hit depths (divide by alpha for expected depth)
     stats: ErrorStats | None = None  # only when an error image was passed
     # [N] bool: the primitives the compiled backends' binning put in a tile list for this view (what they
-    # rasterize; the training loss's texture term regularises these, ctgs.train.loss). None elsewhere.
+    # rasterize; the training loss's texture term regularises these, ctgs.train.step.loss). None elsewhere.
     rasterized: torch.Tensor | None = None

@@ -3,7 +3,7 @@ a smaller level made in memory, and the mask of the pixels left out of the loss 
 
 Transparent photos (RGBA, such as NeRF's Blender scenes) are composited over the background the run renders over
 (`background` of the config, `ctgs train --background`); their alpha is kept, so that a run that renders over a random
-colour each step composites its photo over the same colour (ctgs.train.trainer).
+colour each step composites its photo over the same colour (ctgs.train.loop.trainer).
 
 Masks: white (>= 0.5) pixels are used, black ones are left out, as nerfstudio reads them. A mask is found beside the
 image folder (`masks/` for `images/`, `masks_4/` for `images_4/`, else `masks/` shrunk to the image's size) under the

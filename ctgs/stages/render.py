@@ -80,10 +80,10 @@ MAPS = ("rgb", "normal", "depth")
 def geometry_maps(inputs, camera, backend: str):
     """(normal [H, W, 3] unit camera-space blended surfel normal facing the camera, 0 where nothing is drawn;
     alpha [H, W]; expected depth [H, W] = depth / alpha, 0 where alpha <= 1e-6): one render with the surfels'
-    normals as colour (ctgs.train.normal, the maps 2DGS's normal term compares)."""
+    normals as colour (ctgs.train.components.normal, the maps 2DGS's normal term compares)."""
     import torch
 
-    from ctgs.train.normal import blended_normal, expected_depth, render_normals
+    from ctgs.train.components.normal import blended_normal, expected_depth, render_normals
 
     out = render_normals(inputs, camera, backend)
     n = blended_normal(out)

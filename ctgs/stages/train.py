@@ -84,8 +84,8 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     import time
 
     from ctgs.runs import training_scene, write_config
-    from ctgs.train.progress import run_with_progress
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.progress import run_with_progress
+    from ctgs.train.loop.trainer import Trainer
 
     start_time = time.monotonic() if start_time is None else start_time
     if not os.path.isdir(scene_dir):

@@ -1,4 +1,4 @@
-"""The one interface through which the training loop (ctgs.train.trainer.Trainer) calls what a run is made of.
+"""The one interface through which the training loop (ctgs.train.loop.trainer.Trainer) calls what a run is made of.
 
 A run is a *strategy* (how its primitives and textures change: ctgs.train.strategies, chosen by config `method`) and a
 list of *components* (a feature the config turns on: the far shell, virtual views, the depth-normal term, the size
@@ -21,7 +21,7 @@ periodic evaluation or checkpoint; after_step(tr, it) -> [event] at the end of e
 after the last iteration, before the final evaluation.
 State: initialize(tr) once the model of a fresh run exists; restore(tr, state) instead on --resume (state: the whole
 checkpoint; a key an older checkpoint lacks takes its default); checkpoint() -> dict: the keys it adds to one.
-Calibration (ctgs.train.calibration): step_seconds(tr, view) -> its own seconds per training step (extra renders).
+Calibration (ctgs.train.loop.calibration): step_seconds(tr, view) -> its own seconds per training step (extra renders).
 """
 
 from __future__ import annotations

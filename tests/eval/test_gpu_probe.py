@@ -12,7 +12,7 @@ import gpu_train_probe  # noqa: E402
 MB = 2**20
 
 
-def _ev(action, addr, mb, where="/x/ctgs/train/texels.py", line=10, name="upscale"):
+def _ev(action, addr, mb, where="/x/ctgs/train/routines/texels.py", line=10, name="upscale"):
     frames = [{"filename": "/usr/lib/torch/functional.py", "line": 1, "name": "interp"},
               {"filename": where, "line": line, "name": name}]
     return {"action": action, "addr": addr, "size": int(mb * MB), "frames": frames}
@@ -33,7 +33,7 @@ def test_peak_live_set_finds_the_peak_and_groups_sites():
     out = gpu_train_probe.peak_live_set(trace)
     assert out["peak_rise_mb"] == 700.0 and out["peak_index"] == 2 and out["events"] == len(trace)
     assert out["sites"][0] == {"site": "ctgs/model/jagged.py:40 remap", "mb": 600.0, "count": 2}
-    assert out["sites"][1] == {"site": "ctgs/train/texels.py:10 upscale", "mb": 100.0, "count": 1}
+    assert out["sites"][1] == {"site": "ctgs/train/routines/texels.py:10 upscale", "mb": 100.0, "count": 1}
     assert len(out["sites"]) == 2
 
 

@@ -18,7 +18,7 @@ import torch
 from fault_helpers import TRAIN_OPTS, cli, tiny_manifest
 
 from ctgs.errors import Terminated
-from ctgs.train import progress
+from ctgs.train.loop import progress
 from ctgs.runs.checkpoint import main as probe, previous_path, readable_checkpoint
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

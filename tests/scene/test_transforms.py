@@ -20,7 +20,7 @@ from ctgs.io.images import read_image, write_image
 from ctgs.render import render
 from ctgs.scene import conventions, load_scene
 from ctgs.scene.transforms import read_transforms
-from ctgs.train.init import init_model
+from ctgs.train.start.init import init_model
 
 from scene_layouts import write_blender, write_instant_ngp, write_nerfstudio
 

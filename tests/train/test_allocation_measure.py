@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ctgs.train.allocation import allocation_measures, texel_density_by_kind, texel_position_density_by_kind
+from ctgs.train.routines.allocation import allocation_measures, texel_density_by_kind, texel_position_density_by_kind
 from train_helpers import model
 
 # Two unit squares in the plane z = 2 (normal z, facing the helpers' identity-rotation surfels):

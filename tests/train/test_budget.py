@@ -9,9 +9,9 @@ import types
 
 import pytest
 
-from ctgs.train import budget as budget_mod
-from ctgs.train import schedule
-from ctgs.train.budget import BudgetPlanner
+from ctgs.train.components import budget as budget_mod
+from ctgs.train.config import schedule
+from ctgs.train.components.budget import BudgetPlanner
 from ctgs.train.components import TimeBudget
 from ctgs.train.config import load_config
 
@@ -202,7 +202,7 @@ def test_noisy_step_times_do_not_swing_the_plan(monkeypatch):
 
 
 def test_short_plan_warning_names_the_budget_and_the_fixes():
-    from ctgs.train.budget import SHORTEST_MEASURED, short_plan_warning
+    from ctgs.train.components.budget import SHORTEST_MEASURED, short_plan_warning
 
     assert short_plan_warning(SHORTEST_MEASURED, 60.0, 0.05, 98304) is None
     line = short_plan_warning(85, 120.0, 1.3, 393216)
@@ -212,7 +212,7 @@ def test_short_plan_warning_names_the_budget_and_the_fixes():
 
 
 def test_few_passes_note_only_for_a_content_aware_plan_of_few_passes():
-    from ctgs.train.budget import FEW_PASSES, few_passes_note
+    from ctgs.train.components.budget import FEW_PASSES, few_passes_note
 
     line = few_passes_note("content_aware", 6000, 220)
     assert "6000 iterations are 27 passes over the 220 training views" in line and "--config 2dgs" in line
@@ -248,9 +248,9 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.adam import ALL_PARAMS
-    from ctgs.train.calibration import calibrate
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.step.adam import ALL_PARAMS
+    from ctgs.train.loop.calibration import calibrate
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=64, height=48, points=200)
     sets = ["threads=1"] + (["method=2dgs"] if method == "2dgs" else [])
@@ -330,7 +330,7 @@ def test_a_fixed_run_says_its_wall_time_and_trains_as_it_would_without(tmp_path,
 
     from ctgs.cli import main
     from ctgs.scene.demo import make_demo_scene
-    from ctgs.train import calibration
+    from ctgs.train.loop import calibration
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=48, height=36, points=150)
     args = ["--preset", "fast", "--iterations", "90", "--set", "threads=1"]
@@ -411,7 +411,7 @@ def test_calibration_timings_wait_for_queued_cuda_kernels(monkeypatch):
     them before and after each repetition (checked without a GPU: torch.cuda.synchronize replaced by a counter)."""
     import torch
 
-    from ctgs.train.calibration import median_seconds
+    from ctgs.train.loop.calibration import median_seconds
 
     calls = []
     monkeypatch.setattr(torch.cuda, "synchronize", lambda device=None: calls.append(device))
@@ -425,7 +425,7 @@ def test_calibration_timings_wait_for_queued_cuda_kernels(monkeypatch):
 def _routine_gaps(plans: dict[int, int], shifted: bool) -> list[float]:
     """Full-routine spacing, in periods of the plan in force, of a run whose length is re-planned at the
     iterations in `plans` (it -> new length), the way the trainer asks the calendar."""
-    from ctgs.train import schedule
+    from ctgs.train.config import schedule
     from ctgs.train.config import TrainConfig
 
     cfg = TrainConfig(iterations=plans[0], routine_every=1000, routine_until=29000, method="content_aware")
@@ -505,7 +505,7 @@ def test_a_real_run_with_a_slow_texture_start_still_uses_its_budget(tmp_path, mo
 
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import train_main
-    from ctgs.train import trainer as trainer_mod
+    from ctgs.train.loop import trainer as trainer_mod
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=48, height=36, points=200)
     real = trainer_mod.Trainer._training_render
@@ -567,7 +567,7 @@ def test_a_real_run_on_a_slowed_machine_keeps_routines_to_their_share_and_ends_o
     import sys
     import time as time_mod
 
-    import ctgs.train.routines as routines_mod
+    import ctgs.train.routines.passes as routines_mod
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import train_main
 

@@ -1,5 +1,5 @@
 """content_opacity_reset: a content-aware run clamps opacities after the full routine its calendar names, and the
-next full routine prunes what the training views did not bring back (ctgs.train.schedule.content_opacity_reset)."""
+next full routine prunes what the training views did not bring back (ctgs.train.config.schedule.content_opacity_reset)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from ctgs.scene.demo import make_demo_scene
 from ctgs.runs import training_scene, write_config
 from ctgs.stages.train import resolve_config
 from ctgs.train.events import Routine
-from ctgs.train.trainer import Trainer
+from ctgs.train.loop.trainer import Trainer
 
 # 100 iterations at paper scale x 0.04: textures from 20, full routines every 40 (40 and 80; routine_margin=0),
 # opacity resets due every 1000 x 0.04 = 40 up to densify_until 1500 x 0.04 = 60: one after the routine at 40.

@@ -16,7 +16,7 @@ import torch
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.runs import load_run
-from ctgs.train import texels
+from ctgs.train.routines import texels
 
 ITERATIONS = 400
 # Measured: 16.19 dB test PSNR at 400 iterations of the fast preset on this 96x72 scene (16.50 before it took mult4

@@ -1,4 +1,4 @@
-"""error_from_steps: E from the training steps' own backward (ctgs.train.error.StepErrors) instead of renders at the
+"""error_from_steps: E from the training steps' own backward (ctgs.train.routines.error.StepErrors) instead of renders at the
 routine. On a model that does not change, the steps' E is the rendered E of the same views with the loss's error image;
 a run with it renders nothing in its routines, resumes exactly, and a CUDA-less fallback renders E as before."""
 
@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from ctgs.render import BackwardStats, render
-from ctgs.train.error import StepErrors, accumulate_error
-from ctgs.train.loss import training_loss
+from ctgs.train.routines.error import StepErrors, accumulate_error
+from ctgs.train.step.loss import training_loss
 from ctgs.train.config import TrainConfig
 
 from train_helpers import camera, model
@@ -62,7 +62,7 @@ def scene(tmp_path_factory):
 
 
 def test_a_run_with_step_errors_renders_no_view_in_its_routines(scene, tmp_path, monkeypatch):
-    import ctgs.train.routines as routines_mod
+    import ctgs.train.routines.passes as routines_mod
     from ctgs.stages.train import train_main
 
     calls = []
@@ -86,7 +86,7 @@ def test_a_resumed_run_with_step_errors_ends_at_the_same_model(scene, tmp_path):
     from ctgs.train.events import Step
     from ctgs.runs import write_config
     from ctgs.runs import load_run
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     whole = str(tmp_path / "whole")
     train_main(scene, whole, preset="fast", sets=SETS, quiet=True)

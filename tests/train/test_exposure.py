@@ -1,4 +1,4 @@
-"""Per-training-image exposure compensation (ctgs.train.exposure, config keys exposure_comp / lr_exposure)."""
+"""Per-training-image exposure compensation (ctgs.train.components.exposure, config keys exposure_comp / lr_exposure)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import os
 import pytest
 import torch
 
-from ctgs.train.exposure import Exposure
+from ctgs.train.components.exposure import Exposure
 
 
 def test_gains_are_centred_and_only_scale_the_render():
@@ -66,7 +66,7 @@ def test_exposure_comp_recovers_the_gains_a_capture_was_shot_with(tmp_path):
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
     from ctgs.runs import checkpoint as ckpt
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=9, width=64, height=48, points=300)
     folder = os.path.join(scene_dir, "images")
@@ -96,7 +96,7 @@ def test_E_with_the_views_gains_holds_what_the_model_does_not_explain():
     from types import SimpleNamespace
 
     from ctgs.render import render
-    from ctgs.train.error import compute_E
+    from ctgs.train.routines.error import compute_E
     from train_helpers import BACKEND, camera, image, model
 
     m = model(means=[[-0.25, 0.0, 3.0], [0.3, 0.1, 3.5]], scales=[[0.2, 0.15], [0.15, 0.2]], opacities=[0.9, 0.8],

@@ -1,4 +1,4 @@
-"""Initial points where the training views see no SfM point (ctgs.train.fill, config key init_fill)."""
+"""Initial points where the training views see no SfM point (ctgs.train.start.fill, config key init_fill)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import torch
 
 from ctgs.render.camera import Camera
-from ctgs.train.fill import FILL_CELL_PX, fill_points
-from ctgs.train.shell import OCCUPANCY_CELL_PX
+from ctgs.train.start.fill import FILL_CELL_PX, fill_points
+from ctgs.train.components.shell import OCCUPANCY_CELL_PX
 
 
 def _view(image, x=0.0):
@@ -80,7 +80,7 @@ def test_init_fill_adds_primitives_at_initialisation(tmp_path):
     from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=96, height=72, points=60)
     counts = {}

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from ctgs.ops import fused
-from ctgs.train.adam import BETA1, BETA2, SurfelAdam
-from ctgs.train.loss import photometric_loss
+from ctgs.train.step.adam import BETA1, BETA2, SurfelAdam
+from ctgs.train.step.loss import photometric_loss
 
 @pytest.fixture(autouse=True, scope="module")
 def _cpu_extension():
@@ -53,9 +53,9 @@ def test_adam_step_matches_pytorch(dtype, per_element_lr):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_torch_fused_adam_step_matches_pytorch(dtype):
-    """The GPU's Adam step (ctgs.train.adam.torch_fused_step: torch's fused kernel, run here on CPU tensors) is
+    """The GPU's Adam step (ctgs.train.step.adam.torch_fused_step: torch's fused kernel, run here on CPU tensors) is
     the same update as the PyTorch lines; a tensor lr (SH bands) is left to them."""
-    from ctgs.train.adam import torch_fused_step
+    from ctgs.train.step.adam import torch_fused_step
 
     gen = torch.Generator().manual_seed(2)
     shape = (2049, 3)

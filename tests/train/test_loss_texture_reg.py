@@ -1,4 +1,4 @@
-"""Texture sparsity term: lambda_texture x sum |texel| of visible primitives (lambda resolved by ctgs/train/rules.py)."""
+"""Texture sparsity term: lambda_texture x sum |texel| of visible primitives (lambda resolved by ctgs/train/config/rules.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import torch
 
 import train_helpers as th
 from ctgs.train.config import TrainConfig
-from ctgs.train.loss import training_loss
+from ctgs.train.step.loss import training_loss
 
 
 def _reg_term(cfg: TrainConfig, m, gt: torch.Tensor) -> float:
@@ -23,7 +23,7 @@ def test_texture_reg_is_lambda_times_visible_abs_texels_and_its_rule_scales_with
     plain = _reg_term(TrainConfig(lambda_texture=1e-3), m, gt)
     assert abs(plain - 1e-3 * visible_abs) < 1e-6 * max(1.0, visible_abs)
     # The paper's weight is for ~1 Mpx images; on images of 1e5 pixels the rule gives 10x the weight.
-    from ctgs.train.rules import resolve
+    from ctgs.train.config.rules import resolve
 
     scaled = _reg_term(resolve(TrainConfig(lambda_texture=1e-3), 1e5), m, gt)
     assert abs(scaled - 10 * plain) < 1e-4 * abs(10 * plain)

@@ -16,7 +16,7 @@ from ctgs.render.camera import Camera
 from ctgs.render.constants import MIN_ALPHA
 from ctgs.render.preprocess import to_camera_space
 from ctgs.train.config import TrainConfig
-from ctgs.train.loss import mean_transmittance, rasterized_mask, texture_weights, training_loss
+from ctgs.train.step.loss import mean_transmittance, rasterized_mask, texture_weights, training_loss
 
 W, H = 40, 30
 

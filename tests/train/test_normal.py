@@ -1,4 +1,4 @@
-"""2DGS's depth-normal consistency term (ctgs.train.normal, config keys lambda_normal / normal_from)."""
+"""2DGS's depth-normal consistency term (ctgs.train.components.normal, config keys lambda_normal / normal_from)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from ctgs.render.geometry import rotmat_to_quat
 from ctgs.render import render
 from ctgs.render.camera import Camera
 from ctgs.render.types import SurfelInputs
-from ctgs.train.normal import consistency, depth_normals, facing_normals, normal_inputs, normal_loss
+from ctgs.train.components.normal import consistency, depth_normals, facing_normals, normal_inputs, normal_loss
 
 W, H, F = 32, 24, 30.0
 
@@ -138,7 +138,7 @@ def test_lambda_normal_trains_and_brings_normals_to_the_depth(tmp_path):
     from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=64, height=48, points=300)
 

@@ -15,7 +15,7 @@ from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.train.events import Step
 from ctgs.runs import load_run, training_scene
-from ctgs.train.trainer import Trainer, TrainingDiverged
+from ctgs.train.loop.trainer import Trainer, TrainingDiverged
 from ctgs.stages.train import resolve_config
 from ctgs.errors import Terminated, UserError
 from train_helpers import run_log
@@ -203,7 +203,7 @@ def test_sigterm_mid_run_checkpoints_the_last_whole_step(scene, tmp_path):
     assert state["iteration"] >= _logged_steps(run)  # the step under way finished before it was written
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     cfg = resolve_config(scene, run, None, None, (), None, True, None, None)  # the run's own config, as --resume
     assert Trainer(cfg, training_scene(cfg), run, resume=True).it == state["iteration"]

@@ -7,8 +7,8 @@ import math
 import torch
 
 from ctgs.model import jagged
-from ctgs.train import edit, texels
-from ctgs.train.split import CHILD_OPACITY_FACTOR, split
+from ctgs.train.routines import edit, texels
+from ctgs.train.routines.split import CHILD_OPACITY_FACTOR, split
 
 from train_helpers import image, model, optimiser, smooth_texture
 
@@ -120,8 +120,8 @@ def test_lean_routine_gives_the_same_result(monkeypatch):
     between."""
     from dataclasses import replace
 
-    from ctgs.train import routines
-    from ctgs.train.adam import SurfelAdam
+    from ctgs.train.routines import passes as routines
+    from ctgs.train.step.adam import SurfelAdam
     from ctgs.train.config import TrainConfig
     from train_helpers import camera
 

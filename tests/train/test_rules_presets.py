@@ -9,9 +9,9 @@ import sys
 import pytest
 
 from ctgs.errors import UserError
-from ctgs.train import schedule
+from ctgs.train.config import schedule
 from ctgs.train.config import PRESETS, TrainConfig, describe_keys, load_config, parse_set
-from ctgs.train.rules import resolve, rule_table
+from ctgs.train.config.rules import resolve, rule_table
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -16,7 +16,7 @@ from ctgs.evaluation.evaluate import EvalOptions, evaluate
 from ctgs.io.images import read_image, write_image
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
-from ctgs.train.loss import recomposited
+from ctgs.train.step.loss import recomposited
 from ctgs.runs import load_run
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scene"))

@@ -93,7 +93,7 @@ def test_a_model_pruned_to_nothing_stops_with_its_reason(scenes, tmp_path, monke
     every view and the routines prune every primitive; training stops there and says why (it used to go on to a
     NaN loss and advise lowering the learning rates)."""
     import ctgs.scene.loader as loader
-    from ctgs.train.trainer import TrainingDiverged
+    from ctgs.train.loop.trainer import TrainingDiverged
 
     monkeypatch.setattr(loader, "near_plane", lambda extent: 0.01)
     # the paper's opacity regulariser (over all primitives) is what lowers primitives no view rasterizes until the

@@ -8,10 +8,10 @@ import torch
 
 from ctgs.metrics.ssim import ssim, ssim_map
 from ctgs.render.camera import Camera
-from ctgs.train import schedule
+from ctgs.train.config import schedule
 from ctgs.train.config import TrainConfig
-from ctgs.train.error import accumulate_error, error_image, top_fraction_mask
-from ctgs.train.kmin import compute_k_min
+from ctgs.train.routines.error import accumulate_error, error_image, top_fraction_mask
+from ctgs.train.routines.kmin import compute_k_min
 
 
 def _cam(tz: float, f: float) -> Camera:

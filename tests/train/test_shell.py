@@ -1,4 +1,4 @@
-"""The far shell of initial points (ctgs.train.shell, config key init_shell)."""
+"""The far shell of initial points (ctgs.train.components.shell, config key init_shell)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ctgs.render.camera import Camera
-from ctgs.train.shell import SHELL_RADIUS_FACTOR, fibonacci_sphere, shell_points
+from ctgs.train.components.shell import SHELL_RADIUS_FACTOR, fibonacci_sphere, shell_points
 
 
 def _view(colour, yaw=0.0, w=40, h=30):
@@ -59,7 +59,7 @@ def test_init_shell_trains(tmp_path):
     from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=40)
 
@@ -73,7 +73,7 @@ def test_init_shell_trains(tmp_path):
 
 
 def test_far_mask_and_scene_sphere():
-    from ctgs.train.shell import FAR_FACTOR, far_mask, scene_sphere
+    from ctgs.train.components.shell import FAR_FACTOR, far_mask, scene_sphere
 
     pts = np.random.default_rng(1).normal(size=(500, 3))
     views = [_view((0.5, 0.5, 0.5))]  # camera at the origin
@@ -90,7 +90,7 @@ def test_full_routine_leaves_background_primitives_out_of_split_and_upscale(monk
     however large their error."""
     from dataclasses import replace
 
-    from ctgs.train import routines
+    from ctgs.train.routines import passes as routines
     from ctgs.train.config import TrainConfig
     from train_helpers import camera, model, optimiser
 
@@ -121,7 +121,7 @@ def test_full_routine_leaves_background_primitives_out_of_split_and_upscale(monk
 
 def test_composite_is_the_single_render_where_open_and_the_background_elsewhere():
     from ctgs.render import render
-    from ctgs.train.shell import composite
+    from ctgs.train.components.shell import composite
     from train_helpers import H, W, camera, model
 
     # Two scene surfels in front (z 3-3.5), two far ones behind (z 40) covering the whole image.
@@ -153,7 +153,7 @@ def test_composite_is_the_single_render_where_open_and_the_background_elsewhere(
 
 
 def test_open_mask_marks_pixels_past_the_sfm_points():
-    from ctgs.train.shell import open_mask
+    from ctgs.train.components.shell import open_mask
 
     rng = np.random.default_rng(0)
     pts = np.stack([rng.uniform(-1.0, -0.1, 400), rng.uniform(-0.7, 0.7, 400), np.full(400, 2.0)], 1)
@@ -170,9 +170,11 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
     from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train import components, routines, shell
+    from ctgs.train import components
+    from ctgs.train.components import parts, shell
+    from ctgs.train.routines import passes as routines
     from ctgs.train.strategies import content_aware
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=300)
     cfg = resolve_config(scene_dir, str(tmp_path / "run"), None, 200, ["init_shell=40", "threads=1"], None, False,
@@ -183,7 +185,7 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
         calls["composite"] += 1
         return shell.composite(*a, **k)
 
-    monkeypatch.setattr(components, "composite", counted)
+    monkeypatch.setattr(parts, "composite", counted)
     seen = []
     real_full = routines.full_routine
 
@@ -212,9 +214,9 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
     from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train import components, shell
-    from ctgs.train.calibration import calibrate
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.components import parts, shell
+    from ctgs.train.loop.calibration import calibrate
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=64, height=48, points=200)
     calls = {"composite": 0}
@@ -223,7 +225,7 @@ def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path
         calls["composite"] += 1
         return shell.composite(*a, **k)
 
-    monkeypatch.setattr(components, "composite", counted)
+    monkeypatch.setattr(parts, "composite", counted)
     for sets, expected in ((["init_shell=20", "threads=1"], 6), (["threads=1"], 0)):
         calls["composite"] = 0
         cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,

@@ -11,7 +11,8 @@ import torch
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.runs import load_run
-from ctgs.train import rules, size_budget, texels
+from ctgs.train.config import rules
+from ctgs.train.routines import size_budget, texels
 from ctgs.train.config import TrainConfig
 
 from train_helpers import model, optimiser, smooth_texture

@@ -13,7 +13,7 @@ from ctgs.train.config import METHODS
 from ctgs.train.events import Step
 from ctgs.train.hooks import Component
 from ctgs.train.strategies import STRATEGIES, ContentAware, Densify, FixedTexture, make_strategy
-from ctgs.train.trainer import Trainer
+from ctgs.train.loop.trainer import Trainer
 
 
 @pytest.fixture(scope="module")

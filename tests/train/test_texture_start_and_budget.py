@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ctgs.train import texels
-from ctgs.train.init import farthest_point_subsample, init_model
-from ctgs.train.split import split
+from ctgs.train.routines import texels
+from ctgs.train.start.init import farthest_point_subsample, init_model
+from ctgs.train.routines.split import split
 
 from train_helpers import image, model, optimiser
 
@@ -91,7 +91,7 @@ def test_rotation_quaternion_round_trip_and_normal_frames():
 
 def test_init_normals_lie_in_the_local_plane():
     from ctgs.render.geometry import quat_to_rotmat
-    from ctgs.train.init import pca_normals
+    from ctgs.train.start.init import pca_normals
 
     rng = np.random.default_rng(1)
     # Two planes: z = 0 (normal z) and x = 3 (normal x), with 1% thickness noise.

@@ -1,4 +1,4 @@
-"""texture_trim: textures cropped to the texels that hold something (ctgs.train.texels.trim)."""
+"""texture_trim: textures cropped to the texels that hold something (ctgs.train.routines.texels.trim)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch
 
 from ctgs.model import jagged
 from ctgs.render import render
-from ctgs.train import texels
+from ctgs.train.routines import texels
 from ctgs.train.config import TrainConfig
 
 from train_helpers import camera, image, model, optimiser

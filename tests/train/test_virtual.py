@@ -1,4 +1,4 @@
-"""Virtual-view coverage (ctgs.train.virtual, config keys virtual_coverage / virtual_every)."""
+"""Virtual-view coverage (ctgs.train.components.virtual, config keys virtual_coverage / virtual_every)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from ctgs.render.camera import Camera
-from ctgs.train.virtual import coverage_loss, virtual_views
+from ctgs.train.components.virtual import coverage_loss, virtual_views
 
 W, H, F = 40, 30, 40.0
 
@@ -86,7 +86,7 @@ def test_virtual_coverage_trains_and_raises_alpha_between_cameras(tmp_path):
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
     from ctgs.train.components import VirtualCoverage
-    from ctgs.train.trainer import Trainer
+    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=64, height=48, points=300)
 

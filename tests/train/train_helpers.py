@@ -11,7 +11,7 @@ import torch
 from ctgs.model.surfels import SurfelModel, jagged_offsets
 from ctgs.render import render
 from ctgs.render.camera import Camera
-from ctgs.train.adam import SurfelAdam
+from ctgs.train.step.adam import SurfelAdam
 
 W, H, F = 64, 48, 60.0
 BACKEND = "cpu"

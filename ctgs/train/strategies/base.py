@@ -6,7 +6,7 @@ from ctgs.train.hooks import Component
 
 
 class Strategy(Component):
-    texture_mode = "content_aware"  # the model's texture mode (ctgs.train.init.init_model)
+    texture_mode = "content_aware"  # the model's texture mode (ctgs.train.start.init.init_model)
     starts_textures = False  # textures allocated partway (at texture_start), not with the model
     # what its pruning removes (said when a routine leaves no primitive)
     prune_rules = "opacity below its threshold"

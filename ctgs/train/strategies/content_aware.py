@@ -1,18 +1,19 @@
 """The content-aware strategy (the paper's method): textures allocated at texture_start; then on the schedule's
 calendar the full routine (error E over the training views, split, texel up/downscaling, prune, reallocation:
-ctgs.train.routines), after the routine window the late downscale-only pass, texture reallocations in between;
+ctgs.train.routines.passes), after the routine window the late downscale-only pass, texture reallocations in between;
 after the last iteration the texture trim."""
 
 from __future__ import annotations
 
 from ctgs.render import BackwardStats
-from ctgs.train import schedule, size_budget, texels
+from ctgs.train.config import schedule
+from ctgs.train.routines import size_budget, texels
 from ctgs.train.components import Shell
-from ctgs.train.densify import RESET_OPACITY, reset_opacity
-from ctgs.train.error import StepErrors
+from ctgs.train.routines.densify import RESET_OPACITY, reset_opacity
+from ctgs.train.routines.error import StepErrors
 from ctgs.train.events import Routine
-from ctgs.train.kmin import compute_k_min
-from ctgs.train.routines import full_routine, late_routine
+from ctgs.train.routines.kmin import compute_k_min
+from ctgs.train.routines.passes import full_routine, late_routine
 from ctgs.train.strategies.base import Strategy
 
 
@@ -79,7 +80,7 @@ class ContentAware(Strategy):
         if kind == "full" and not self.errors_ready(tr):
             kind = None  # error_from_steps: E of fewer steps than E would render views waits for more
         if kind == "full" and not tr.time.admits(tr, "routine", it):
-            kind = None  # --time-budget: a date its routine calendar leaves out (ctgs.train.budget.SHARE)
+            kind = None  # --time-budget: a date its routine calendar leaves out (ctgs.train.components.budget.SHARE)
         if kind == "full":
             yield Routine(it, "full", self.full_routine(tr, it))
             if schedule.content_opacity_reset(cfg, it, shift):

@@ -1,10 +1,10 @@
-"""The baselines' strategy: 3DGS/2DGS adaptive density control (ctgs.train.densify), clone / split by the view-space
+"""The baselines' strategy: 3DGS/2DGS adaptive density control (ctgs.train.routines.densify), clone / split by the view-space
 positional gradient accumulated over the steps, prune, opacity reset."""
 
 from __future__ import annotations
 
-from ctgs.train import schedule
-from ctgs.train.densify import GradAccumulator, densify_and_prune, reset_opacity
+from ctgs.train.config import schedule
+from ctgs.train.routines.densify import GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.events import Routine
 from ctgs.train.strategies.base import Strategy
 

@@ -6,7 +6,7 @@ import torch
 
 from ctgs.ops.fused import error_image as fused_error_image
 from ctgs.metrics.ssim import ssim_map
-from ctgs.train.loss import masked
+from ctgs.train.step.loss import masked
 
 
 def error_image(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from ctgs.model import jagged
-from ctgs.train.adam import PRIM_PARAMS, TEX_PARAM, SurfelAdam
+from ctgs.train.step.adam import PRIM_PARAMS, TEX_PARAM, SurfelAdam
 
 PRIM_BUFFERS = ("k_min", "t2p_exp", "tex_res")
 

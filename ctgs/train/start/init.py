@@ -8,8 +8,8 @@ import torch
 from ctgs.errors import UserError
 from ctgs.model.surfels import SurfelModel
 from ctgs.render.geometry import frames_from_normals, rotmat_to_quat
-from ctgs.train.fill import fill_points
-from ctgs.train.shell import shell_points
+from ctgs.train.start.fill import fill_points
+from ctgs.train.components.shell import shell_points
 
 SH_C0 = 0.28209479177387814
 
@@ -76,7 +76,7 @@ def init_model(points: np.ndarray, colors: np.ndarray, *, max_points: int, opaci
     except the fixed_texture baseline whose fixed_res x fixed_res grids exist from the start.
     normals: orient each surfel in the PCA plane of its 16 nearest points (random angle in the plane);
     else random_rotation (uniform random) or identity.
-    extra_points / extra_colors: appended after the cap (ctgs.train.shell's far shell), never subsampled."""
+    extra_points / extra_colors: appended after the cap (ctgs.train.components.shell's far shell), never subsampled."""
     if points is None or len(points) == 0:
         raise UserError("scene has no SfM points: run `ctgs sfm` first or check sparse/0/points3D.bin")
     if max_points and len(points) > max_points:

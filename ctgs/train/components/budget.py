@@ -1,6 +1,6 @@
 """`--time-budget`: plan the iteration count so the whole `ctgs train` run ends within a wall-clock budget.
 
-A schedule is a fraction of the run (ctgs/train/schedule.py), so the planner only has to choose the run
+A schedule is a fraction of the run (ctgs/train/config/schedule.py), so the planner only has to choose the run
 length N, and may change it while training: every event stays at its fraction of the (new) run.
 
 Cost model (seconds, wall clock):
@@ -26,7 +26,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 
-from ctgs.train import schedule
+from ctgs.train.config import schedule
 from ctgs.train.config import TrainConfig
 
 # Growth of the per-iteration cost, per method: for the baselines from the start to the end of the
@@ -178,7 +178,7 @@ class BudgetPlanner:
         self.t_ckpt = 0.0
         self.t_save = 0.0
         self.last_replan = 0
-        # The periodic calendar's phase shift (ctgs.train.schedule.every): moved at each re-plan that changes the
+        # The periodic calendar's phase shift (ctgs.train.config.schedule.every): moved at each re-plan that changes the
         # length, so routines, evaluations and checkpoints keep their spacing; 0 for a run that is never re-planned.
         self.shift = 0.0
         # Stride of the routine and evaluation calendars (SHARE): 1 keeps every date; set by each plan.

@@ -2,7 +2,7 @@
 then a config file, then `--set key=value` override them.
 
 Values are written at the paper's scale (about 1 Mpx images, 30k iterations) and resolved for the run by
-ctgs/train/rules.py (pixels, texels) and ctgs/train/schedule.py (iterations: a schedule is a fraction of
+ctgs/train/config/rules.py (pixels, texels) and ctgs/train/config/schedule.py (iterations: a schedule is a fraction of
 the run), so no config needs retuning when the image size or the iteration count changes.
 """
 
@@ -43,7 +43,7 @@ class TrainConfig:
     iterations: int = _f(30000, "training iterations")
     schedule_scale: float = _f(0.0, "0: every iteration count below is a fraction of the run (x iterations / 30000); "
                                "> 0: expert override, multiply them by this instead")
-    scale_rules: bool = _f(True, "resolve pixel/texel settings for the training image size (ctgs/train/rules.py); "
+    scale_rules: bool = _f(True, "resolve pixel/texel settings for the training image size (ctgs/train/config/rules.py); "
                            "false: use them as written (the paper preset)")
     time_budget: float = _f(0.0, "> 0: plan (and re-plan) the iteration count so `ctgs train` ends within this "
                             "many minutes on this machine (overrides iterations)")
@@ -63,10 +63,10 @@ class TrainConfig:
     init_shell: int = _f(0, "> 0: add up to this many initial points on a far shell, in directions the training "
                             "views see past the SfM points (sky), coloured by those pixels; never split or upscaled, "
                             "and shown in training renders only where the view sees past the SfM points "
-                            "(ctgs.train.shell; off: -0.14..-0.19 dB on herzjesu25 384 px validation views)")
+                            "(ctgs.train.components.shell; off: -0.14..-0.19 dB on herzjesu25 384 px validation views)")
     init_fill: bool = _f(False, "add initial points in the 16-px cells of the training views that no SfM point "
                          "reaches, at the median depth of the 16 SfM points projecting nearest, coloured by the cell "
-                         "(ctgs.train.fill; off: -0.21 dB on herzjesu25 384 px validation views)")
+                         "(ctgs.train.start.fill; off: -0.21 dB on herzjesu25 384 px validation views)")
     init_normals: bool = _f(False, "orient initial surfels in the PCA plane of their 16 nearest SfM points "
                             "(overrides random_rotation; the paper starts from random rotations)")
     max_sh_degree: int = _f(3, "highest SH degree")
@@ -101,16 +101,16 @@ class TrainConfig:
                                         "the view (the authors' README variant; the paper and their code use plain L1)")
     virtual_coverage: float = _f(0.0, "> 0: weight of a coverage term on virtual views half a camera step from each "
                                  "training camera: mean (1 - alpha) over the pixels the training cameras hold at every "
-                                 "depth (ctgs.train.virtual; 0 = off, the paper)")
+                                 "depth (ctgs.train.components.virtual; 0 = off, the paper)")
     virtual_every: int = _f(4, "steps between virtual-view coverage terms (each one more render and backward)")
     virtual_pixels: str = _f("held", "pixels of a virtual view the coverage term covers: held (some training image "
                              "holds them at every sampled depth) | few (of those, the ones some depth of which only "
                              "one or two training images hold)")
-    lambda_normal: float = _f(0.0, "> 0: weight of 2DGS's depth-normal consistency term (ctgs.train.normal: one more "
+    lambda_normal: float = _f(0.0, "> 0: weight of 2DGS's depth-normal consistency term (ctgs.train.components.normal: one more "
                               "render per step; 2DGS uses 0.05; 0 = off, the paper)")
     normal_from: int = _f(7000, "first iteration of the depth-normal term (paper scale; 2DGS's)")
     exposure_comp: bool = _f(False, "learn a per-channel gain per training image, applied to its training renders "
-                             "before the loss (ctgs.train.exposure; evaluation and exports use none; false = the paper)")
+                             "before the loss (ctgs.train.components.exposure; evaluation and exports use none; false = the paper)")
     lr_exposure: float = _f(5e-3, "lr of the exposure log-gains (Adam)")
     exposure_in_E: bool = _f(False, "scale each training view's render by its gain in the routines' error E too (as "
                              "in its loss), so that E does not hold the photos' exposures")

@@ -11,8 +11,8 @@ import torch.nn.functional as F
 from ctgs.model import jagged
 from ctgs.model.extent import CUTOFF_SIGMA, active_half_extent, active_resolution, texel_size
 from ctgs.render.constants import CUTOFF_RHO
-from ctgs.train import edit
-from ctgs.train.kmin import compute_k_min
+from ctgs.train.routines import edit
+from ctgs.train.routines.kmin import compute_k_min
 
 LOGIT_EPS = 1e-4  # activated texels are stored as logits; keep them finite at +-1
 

@@ -9,10 +9,10 @@ import time
 import numpy as np
 import torch
 
-from ctgs.train import schedule
-from ctgs.train.adam import ALL_PARAMS
-from ctgs.train.error import compute_E
-from ctgs.train.loss import training_loss
+from ctgs.train.config import schedule
+from ctgs.train.step.adam import ALL_PARAMS
+from ctgs.train.routines.error import compute_E
+from ctgs.train.step.loss import training_loss
 
 
 def median_seconds(fn, reps: int = 3, device: torch.device | None = None) -> float:

@@ -10,20 +10,22 @@ from dataclasses import replace
 import torch
 
 from ctgs.errors import UserError
-from ctgs.train import calibration, schedule, size_budget
-from ctgs.train.budget import SHARE, BudgetPlanner
+from ctgs.train.config import schedule
+from ctgs.train.loop import calibration
+from ctgs.train.routines import size_budget
+from ctgs.train.components.budget import SHARE, BudgetPlanner
 from ctgs.train.events import Estimated, Planned, Routine
-from ctgs.train.exposure import Exposure
+from ctgs.train.components.exposure import Exposure
 from ctgs.train.hooks import Component
-from ctgs.train.normal import normal_loss
-from ctgs.train.shell import composite, far_mask, open_mask, scene_sphere
-from ctgs.train.virtual import coverage_loss, virtual_views
+from ctgs.train.components.normal import normal_loss
+from ctgs.train.components.shell import composite, far_mask, open_mask, scene_sphere
+from ctgs.train.components.virtual import coverage_loss, virtual_views
 
 
 class Shell(Component):
-    """init_shell: the sphere that tells the far shell's primitives (initial points: ctgs.train.init.scene_model) from
+    """init_shell: the sphere that tells the far shell's primitives (initial points: ctgs.train.start.init.scene_model) from
     the scene's; training renders composite the scene over them where the view sees past the SfM points (two renders:
-    ctgs.train.shell), and the content-aware routines never split or upscale them."""
+    ctgs.train.components.shell), and the content-aware routines never split or upscale them."""
 
     def __init__(self, scene, train_views, device):
         self.sphere = scene_sphere(scene.points, scene.train)
@@ -41,7 +43,7 @@ class Shell(Component):
 
 class VirtualCoverage(Component):
     """virtual_coverage: virtual views half a camera step from each training camera, with the pixels the training
-    cameras hold (ctgs.train.virtual), visited in a fixed shuffled cycle (resume-safe: by iteration)."""
+    cameras hold (ctgs.train.components.virtual), visited in a fixed shuffled cycle (resume-safe: by iteration)."""
 
     def __init__(self, cfg, scene, train_views, device):
         cameras = [v.camera for v in train_views]
@@ -107,7 +109,7 @@ class SizeBudget(Component):
 
 
 class ExposureCompensation(Exposure, Component):
-    """exposure_comp: a per-channel gain per training image on its training renders (ctgs.train.exposure), stepped
+    """exposure_comp: a per-channel gain per training image on its training renders (ctgs.train.components.exposure), stepped
     after the model's optimiser; exposure_check judges them once; the run's log ends with the learned gains."""
 
     def __init__(self, cfg, train_views, device):
@@ -145,7 +147,7 @@ class ExposureCompensation(Exposure, Component):
 
 class TimeBudget(Component):
     """--time-budget: the planner of the run's length (re-planned as it runs, with the periodic calendar's phase
-    shift); a fresh run of fixed length: the same cost model estimating its wall time only (ctgs.train.budget).
+    shift); a fresh run of fixed length: the same cost model estimating its wall time only (ctgs.train.components.budget).
     Either observes the run's step, routine, evaluation and checkpoint times; a resumed fixed-length run has neither."""
 
     def __init__(self):
@@ -164,7 +166,7 @@ class TimeBudget(Component):
 
     def admits(self, tr, kind: str, it: int) -> bool:
         """A date of the `kind` calendar ("routine", "eval") at iteration `it`: kept, unless it would take that kind's
-        wall seconds so far past its share of the run's (ctgs.train.budget.SHARE; the first date of each kind is
+        wall seconds so far past its share of the run's (ctgs.train.components.budget.SHARE; the first date of each kind is
         always kept). A fixed-length run keeps every date."""
         if self.planner is None or kind not in self.last_kept:
             self.last_kept[kind] = it

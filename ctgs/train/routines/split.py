@@ -8,7 +8,7 @@ import torch
 
 from ctgs.model.extent import active_half_extent, active_resolution, texel_size
 from ctgs.render.geometry import quat_to_rotmat
-from ctgs.train import edit
+from ctgs.train.routines import edit
 
 CHILD_OPACITY_FACTOR = math.exp(-0.5)  # each child's opacity: parent's x exp(-1/2) (G at 1 sigma)
 

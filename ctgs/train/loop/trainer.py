@@ -26,16 +26,16 @@ from ctgs.model.surfels import SurfelModel
 from ctgs.ops import fused
 from ctgs.render import render
 from ctgs.runs import checkpoint as ckpt
-from ctgs.train import rules, schedule
-from ctgs.train.adam import ALL_PARAMS, SurfelAdam
+from ctgs.train.config import rules, schedule
+from ctgs.train.step.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.components import ExposureCompensation, TimeBudget, make_components
 from ctgs.train.config import TrainConfig
 from ctgs.train.events import Checkpoint, Done, Eval, Step
-from ctgs.train.init import scene_model
-from ctgs.train.kmin import compute_k_min, view_coverage
-from ctgs.train.loss import masked, recomposited, training_loss
+from ctgs.train.start.init import scene_model
+from ctgs.train.routines.kmin import compute_k_min, view_coverage
+from ctgs.train.step.loss import masked, recomposited, training_loss
 from ctgs.train.strategies import make_strategy
-from ctgs.train.summary import write_outputs
+from ctgs.train.loop.summary import write_outputs
 
 
 # What the run's wall time went to besides its steps (train_summary.json "seconds_in"): full and late routines,
@@ -95,7 +95,7 @@ def device_memory(device: torch.device) -> dict:
 
 class Trainer:
     """cfg: the config as given (saved with the run); self.cfg is its copy resolved for this scene's image size
-    (ctgs/train/rules.py) whose `iterations` is the planned run length (`--time-budget` re-plans it).
+    (ctgs/train/config/rules.py) whose `iterations` is the planned run length (`--time-budget` re-plans it).
     start_time: time.monotonic() when the command started (the time budget counts from there).
     self.parts: the strategy, then the components (ctgs.train.hooks), in the order their hooks are called."""
 
@@ -121,7 +121,7 @@ class Trainer:
         self.pixels = float(np.median([v.camera.width * v.camera.height for v in self.train_views]))
         # max_params_per_value: the size budget from the observed values (an explicit max_params wins)
         budgeted = rules.with_size_budget(cfg, self.observed_values())
-        # views' worth of scene in the capture (the primitive cap is per pixel of a typical view: ctgs.train.rules)
+        # views' worth of scene in the capture (the primitive cap is per pixel of a typical view: ctgs.train.config.rules)
         self.coverage = (view_coverage(torch.from_numpy(np.asarray(scene.points, np.float32)), self.cameras)
                          if cfg.primitives_per_pixel > 0 else 1.0)
         self.cfg = rules.resolve(budgeted, self.pixels, self.coverage)

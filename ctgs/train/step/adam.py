@@ -2,7 +2,7 @@
 
 A hand-written Adam (same update as torch.optim.Adam, eps 1e-15 by default) because primitives are
 added, removed and re-ordered, and textures change size: the moments live here as plain tensors laid
-out exactly like the parameters, so the editing code (ctgs/train/edit.py) moves them the same way.
+out exactly like the parameters, so the editing code (ctgs/train/routines/edit.py) moves them the same way.
 """
 
 from __future__ import annotations

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.train import schedule, size_budget, texels
-from ctgs.train.error import compute_E, top_fraction_mask
-from ctgs.train.kmin import compute_k_min
-from ctgs.train.split import prune, split
+from ctgs.train.config import schedule
+from ctgs.train.routines import size_budget, texels
+from ctgs.train.routines.error import compute_E, top_fraction_mask
+from ctgs.train.routines.kmin import compute_k_min
+from ctgs.train.routines.split import prune, split
 
 
 def error_views(views, cfg, it: int) -> list:
@@ -31,7 +32,7 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     gains: {view name: gain} for E (compute_E; exposure_in_E), or None.
     lean=False: upscale first, to 2x, then downscale, and let realloc crop (the paper's order; the same final state
     with up to ~2x the texels in between: tests/train/test_routines_image.py, benchmarks/results/archive/lean_routine/).
-    step_errors: E (and its support) from the training steps since the last routine (ctgs.train.error.StepErrors),
+    step_errors: E (and its support) from the training steps since the last routine (ctgs.train.routines.error.StepErrors),
     when they cover the model's primitives; otherwise E is rendered over `views`.
     """
     support = None

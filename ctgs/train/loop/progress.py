@@ -8,7 +8,7 @@ import time
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from ctgs.train.budget import estimate_line, few_passes_note, short_plan_warning
+from ctgs.train.components.budget import estimate_line, few_passes_note, short_plan_warning
 from ctgs.train.events import Checkpoint, Done, Estimated, Eval, Planned, Routine, Step
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from ctgs.render.geometry import quat_to_rotmat
-from ctgs.train import edit
+from ctgs.train.routines import edit
 
 SPLIT_CHILDREN = 2
 SPLIT_SCALE_DIV = 0.8 * SPLIT_CHILDREN  # 3DGS: children scale = parent / (0.8 N)

@@ -168,7 +168,7 @@ def training_loss(render: torch.Tensor, gt: torch.Tensor, model, camera, cfg, st
         total = total + cfg.lambda_opacity * opacity
     if cfg.lambda_texture > 0 and model.texture_mode != "none" and model.num_texels > 0:
         weights = texture_weights(model, camera, cfg, stats, rasterized)  # [N]
-        # cfg.lambda_texture is already resolved for the image size (ctgs/train/rules.py: x 1e6 / (H*W)).
+        # cfg.lambda_texture is already resolved for the image size (ctgs/train/config/rules.py: x 1e6 / (H*W)).
         # sum_i weights[i] sum |texel of i|: one fused pass on the CPU, no [T] weight tensor.
         total = total + cfg.lambda_texture * texel_l1(model, weights, textures)
     mse = ((render.detach() - gt) ** 2).mean().clamp_min(1e-12)

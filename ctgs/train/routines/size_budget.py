@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 
 from ctgs.model import surfels
-from ctgs.train import texels
+from ctgs.train.routines import texels
 
 MIN_TEXELS = 4  # 2x2: the smallest texture a content-aware reallocation gives
 

@@ -6,7 +6,7 @@ Deep Blending) and PAPER_ITERATIONS (30k). At that scale every rule below is the
 recipe is reproduced exactly; elsewhere:
 
 - iterations (texture start, routine cadence and window, tau_tr decay, SH bands, reallocation,
-  densification, logging): x iterations / 30000 - a schedule is a fraction of the run (ctgs/train/schedule.py),
+  densification, logging): x iterations / 30000 - a schedule is a fraction of the run (ctgs/train/config/schedule.py),
   which is also what lets `--time-budget` re-plan the run length while it runs;
 - the texture cap (max_texture_res, texels per axis, a memory guard): x sqrt(pixels / 1e6), next power of
   two, at least MIN_TEXTURE_CAP: the widest texture stays the same fraction of the image;
@@ -24,7 +24,7 @@ recipe is reproduced exactly; elsewhere:
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
 - the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a
   typical training view, at initialisation (farthest-point subsample of the SfM points) and through splits
-  (max_primitives): primitives_per_pixel x pixels x coverage, where coverage (ctgs.train.kmin.view_coverage) is
+  (max_primitives): primitives_per_pixel x pixels x coverage, where coverage (ctgs.train.routines.kmin.view_coverage) is
   how many views' worth of scene the capture holds, the SfM points over the median number one view sees. A
   facade photographed from the front is about 1 view's worth (every view sees most of it); a capture all around
   an object is more (Mip-NeRF 360 bonsai: 2.4), and a cap per pixel of one view would leave each view with a
@@ -51,14 +51,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from ctgs.train import schedule
+from ctgs.train.config import schedule
 from ctgs.train.config import TrainConfig
-from ctgs.train.size_budget import primitive_cap
+from ctgs.train.routines.size_budget import primitive_cap
 
 PAPER_PIXELS = 1.0e6  # "about 1 Mpx": M360 images_4 1237x822 (1.02 Mpx), Deep Blending 1332x876 (1.17 Mpx)
 PAPER_ITERATIONS = 30000
 
-# Keys holding an iteration count at the paper's scale (ctgs/train/schedule.py scales them).
+# Keys holding an iteration count at the paper's scale (ctgs/train/config/schedule.py scales them).
 ITERATION_KEYS = ("texture_start", "sh_every", "routine_every", "routine_until", "routine_margin",
                   "late_downscale_every", "realloc_every", "tau_tr_iters", "densify_from", "densify_until",
                   "densify_every", "opacity_reset_every", "test_every", "checkpoint_every")
@@ -89,7 +89,7 @@ def _pow2_at_least(x: float, floor: int) -> int:
 
 def resolve(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> TrainConfig:
     """A copy of `cfg` whose pixel- and texel-based values are resolved for images of `pixels` (H*W) of a capture
-    holding `coverage` views' worth of scene (ctgs.train.kmin.view_coverage; the primitive cap).
+    holding `coverage` views' worth of scene (ctgs.train.routines.kmin.view_coverage; the primitive cap).
 
     Iteration counts stay at the paper's scale: the schedule scales them by the planned run length
     (which `--time-budget` may change while training).
