@@ -23,7 +23,8 @@ FIXTURES = os.path.join(ROOT, "tests", "data", "resume_736cf4e")
 CHECKPOINT_AT = 30
 SETS = ("iterations=60", "schedule_scale=0.04", "checkpoint_every=750", "backend='cpu'", "max_init_points=200",
         "threads=1", "routine_margin=0", "tau_tr_start=2.0", "tau_tr_end=2.0", "min_t2p_exp=0", "start_texels=4.0",
-        "log_every=1")
+        "log_every=1", "error_from_steps=false")
+# error_from_steps: as the checkpoints' writer computed E (rendered at the routine; it kept no step errors to resume).
 # content_aware: texture start at 20, a full routine at 40 after the checkpoint. 2dgs: densification at 20, 40, 60,
 # so the checkpoint holds 10 steps of gradient statistics; opacity reset at 40.
 METHODS = {"content_aware": (), "2dgs": ("method='2dgs'", "densify_every=500", "densify_from=0",
