@@ -75,8 +75,8 @@ def main() -> int:
 
 
 def table_rows(work: str, scene: str) -> dict:
-    from ctgs.train.routines.allocation import allocation_measures
     from ctgs.runs import load_run
+    from ctgs.train.routines.allocation import allocation_measures
 
     meta = json.load(open(os.path.join(scene, "demo_meta.json")))
     rows = {}

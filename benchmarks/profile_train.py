@@ -90,14 +90,14 @@ class Timers:
 def install(timers: Timers, ext) -> None:
     import torch
 
+    from ctgs.model.surfels import SurfelModel
     import ctgs.render.api as api
     import ctgs.render.rasterize as rz
-    import ctgs.train.step.loss as loss_mod
+    import ctgs.train.loop.trainer as trainer
     import ctgs.train.routines.passes as routines
     import ctgs.train.routines.texels as texels
-    import ctgs.train.loop.trainer as trainer
-    from ctgs.model.surfels import SurfelModel
     from ctgs.train.step.adam import SurfelAdam
+    import ctgs.train.step.loss as loss_mod
 
     timers.wrap(SurfelModel, "render_inputs", "render_inputs")
     timers.wrap(api, "validate_inputs", "validate")

@@ -73,8 +73,8 @@ def texel_content(run: str, max_views: int) -> dict | None:
     import torch
     import torch.nn.functional as F
 
-    from ctgs.runs import load_run
     from ctgs.render import render
+    from ctgs.runs import load_run
     from ctgs.scene.loader import load_scene, validation_split
     from ctgs.train.routines.texels import texel_size
 

@@ -42,9 +42,9 @@ def measure(args) -> dict:
     from ctgs.runs import training_scene
     from ctgs.stages.train import resolve_config
     from ctgs.train.config import schedule
+    from ctgs.train.loop.trainer import Trainer
     from ctgs.train.step.adam import ALL_PARAMS
     from ctgs.train.step.loss import training_loss
-    from ctgs.train.loop.trainer import Trainer
 
     snap = os.path.join(args.work, f"snap_{args.tag}")
     run = os.path.join(args.work, f"cost_{args.tag}")
@@ -66,15 +66,15 @@ def measure(args) -> dict:
             getattr(model, name).grad = None
         inputs = model.render_inputs()
         # error_from_steps: the textured step sums E in its backward, as the loop's steps do
-        stats = tr.strategy.step_stats(tr) if textured else None
-        rgb, rasterized = tr._training_render(inputs, view, None, stats)
+        stats = tr.strategy.step_stats(tr.state) if textured else None
+        rgb, rasterized = tr.training_render(inputs, view, None, stats)
         terms = training_loss(rgb, view.image_t, model, view.camera, tr.cfg, rasterized=rasterized,
                               textures=inputs.textures, want_error=stats is not None)
         if stats is not None:
             stats.error_image = terms.error_image
         terms.total.backward()
         if textured:
-            tr.strategy.post_backward(tr, it, view)
+            tr.strategy.post_backward(tr.state, it, view)
         opt.step(model, lrs)
         tr._check_finite(None)
         seconds = time.process_time() - t0
@@ -83,14 +83,14 @@ def measure(args) -> dict:
 
     def routine() -> float:
         """One full routine on a copy of the model and optimiser (with E from the steps so far, if the run sums it)."""
-        tr.model, tr.opt = copy.deepcopy(model), copy.deepcopy(opt)
+        tr.state.model, tr.state.opt = copy.deepcopy(model), copy.deepcopy(opt)
         errors = copy.deepcopy(getattr(tr.strategy, "errors", None))
         try:
             t0 = time.process_time()
-            stats = tr.strategy.full_routine(tr, it)
+            stats = tr.strategy.full_routine(tr.state, it)
             return time.process_time() - t0, stats.get("E_steps", 0)
         finally:
-            tr.model, tr.opt = model, opt
+            tr.state.model, tr.state.opt = model, opt
             if errors is not None:
                 tr.strategy.errors = errors
 

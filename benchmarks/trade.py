@@ -123,8 +123,8 @@ def per_view(metrics: dict) -> dict:
 
 
 def allocation(run: str, scene_dir: str) -> dict:
-    from ctgs.train.routines.allocation import allocation_measures
     from ctgs.runs import load_run
+    from ctgs.train.routines.allocation import allocation_measures
 
     model = load_run(run).model
     meta = json.load(open(os.path.join(scene_dir, "demo_meta.json")))

@@ -35,11 +35,11 @@ from types import SimpleNamespace
 
 import torch
 
-from ctgs.runs import load_run, training_scene
+from ctgs.evaluation.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim as ssim_of
-from ctgs.evaluation.report import OPEN_ALPHA  # rendered alpha below it: the background shows
 from ctgs.render.api import render
+from ctgs.runs import load_run, training_scene
 from ctgs.train.components.shell import far_mask, scene_sphere
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))

@@ -1,6 +1,6 @@
 """Where a surfel reaches and how fine its texels are: the active extent (the renderer's cutoffs applied to
-its opacity and scales) and the texel size, in world units. Training sizes textures by them (ctgs.train.routines.texels),
-export bakes texels by them (ctgs.formats.bake)."""
+its opacity and scales) and the texel size, in world units. Training sizes textures by them
+(ctgs.train.routines.texels), export bakes texels by them (ctgs.formats.bake)."""
 
 from __future__ import annotations
 

@@ -209,7 +209,8 @@ def photometric_loss(render: torch.Tensor, gt: torch.Tensor, lambda_ssim: float,
     """(1 - lambda_ssim) mean |render - gt| + lambda_ssim (1 - mean SSIM) of two [H, W, C] images in one compiled
     pass on the CPU: (total, differentiable w.r.t. render; mean L1 and mean SSIM, detached), and with want_error the
     error image of the same pass, e [H, W] = (1 - l) mean_c |render - gt| + l mean_c (1 - SSIM map) (detached).
-    None where the extension does not apply (the caller computes it with PyTorch: ctgs.train.step.loss.photometric_loss).
+    None where the extension does not apply (the caller computes it with PyTorch:
+    ctgs.train.step.loss.photometric_loss).
 
     The pass computes the value and, if render needs it, the gradient (kernels/cpu/ssim.cpp; 5 blurred moment
     images, their adjoint for the gradient); it matches the PyTorch expression to float rounding

@@ -9,7 +9,8 @@ project into the camera (uniform in inverse depth) and at infinity (its directio
 - UNSEEN: no sample inside any.
 
 Occlusion is ignored, so the classes are upper bounds on what the training images show. Used by
-a study of test pixels (benchmarks/results/archive/seen_pixels/herzjesu25_384_4f6edb4.md) and by the virtual-view coverage term (ctgs.train.components.virtual).
+a study of test pixels (benchmarks/results/archive/seen_pixels/herzjesu25_384_4f6edb4.md) and by the virtual-view
+coverage term (ctgs.train.components.virtual).
 """
 
 from __future__ import annotations

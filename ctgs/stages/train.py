@@ -45,9 +45,13 @@ def scene_background(scene_dir, background, sets):
 
 
 def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset=None,
-                   time_budget=None, max_params=None, backgrounds=()):
+                   time_budget=None, max_params=None, backgrounds=(), background=None, scene_backgrounds=False):
+    """The run's config. backgrounds: BACKGROUNDS names to apply; scene_backgrounds (`ctgs train`): those the scene
+    takes with the --background `background` instead (scene_background)."""
     from ctgs.train.config import load_config, parse_set
 
+    if scene_backgrounds:
+        backgrounds = scene_background(scene_dir, background, sets)
     overrides = parse_set(list(sets))
     for name in backgrounds:
         overrides.update(BACKGROUNDS[name])
@@ -105,7 +109,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
             print(f"ctgs train: preset '{preset}' ({where}; --preset preview|fast|balanced|paper to choose, "
                   f"--time-budget MINUTES to fit a time)", file=sys.stderr)
     cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
-                         time_budget, max_params, scene_background(scene_dir, background, sets))
+                         time_budget, max_params, background=background, scene_backgrounds=True)
     created = not os.path.exists(run_dir)
     held = trainer = None
     try:

@@ -18,8 +18,8 @@ import torch
 from fault_helpers import TRAIN_OPTS, cli, tiny_manifest
 
 from ctgs.errors import Terminated
-from ctgs.train.loop import progress
 from ctgs.runs.checkpoint import main as probe, previous_path, readable_checkpoint
+from ctgs.train.loop import progress
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))

@@ -10,9 +10,9 @@ import types
 import pytest
 
 from ctgs.train.components import budget as budget_mod
-from ctgs.train.config import schedule
-from ctgs.train.components.budget import BudgetPlanner
 from ctgs.train.components import TimeBudget
+from ctgs.train.components.budget import BudgetPlanner
+from ctgs.train.config import schedule
 from ctgs.train.config import load_config
 
 
@@ -245,12 +245,12 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     started: on a copy, so the run starts from the same model and optimiser state, textures not started."""
     import torch
 
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
+    from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.step.adam import ALL_PARAMS
     from ctgs.train.loop.calibration import calibrate
     from ctgs.train.loop.trainer import Trainer
+    from ctgs.train.step.adam import ALL_PARAMS
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=64, height=48, points=200)
     sets = ["threads=1"] + (["method=2dgs"] if method == "2dgs" else [])
@@ -261,7 +261,7 @@ def test_calibration_times_a_copy_and_leaves_the_run_untouched(tmp_path, method)
     step_s, render_s, textured_s, _ = calibrate(t)
     assert step_s > 0 and render_s > 0
     assert (textured_s is not None and textured_s > 0) if method == "content_aware" else textured_s is None
-    assert not t.strategy.textures_started and t.model.num_texels == 0
+    assert not t.state.textures_started and t.model.num_texels == 0
     for n in ALL_PARAMS:
         assert torch.equal(getattr(t.model, n).detach(), before[n]), n
         assert torch.equal(t.opt.exp_avg[n], moments[n]) and all(v == 0 for v in t.opt.steps.values()), n
@@ -411,7 +411,7 @@ def test_calibration_timings_wait_for_queued_cuda_kernels(monkeypatch):
     them before and after each repetition (checked without a GPU: torch.cuda.synchronize replaced by a counter)."""
     import torch
 
-    from ctgs.train.loop.calibration import median_seconds
+    from ctgs.train.components.budget import median_seconds
 
     calls = []
     monkeypatch.setattr(torch.cuda, "synchronize", lambda device=None: calls.append(device))
@@ -508,16 +508,16 @@ def test_a_real_run_with_a_slow_texture_start_still_uses_its_budget(tmp_path, mo
     from ctgs.train.loop import trainer as trainer_mod
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=48, height=36, points=200)
-    real = trainer_mod.Trainer._training_render
+    real = trainer_mod.Trainer.training_render
     slow = {"left": 6}
 
     def training_render(self, inputs, view, bg, *stats):
-        if self.strategy.textures_started and slow["left"] > 0 and self.it > 0:
+        if self.state.textures_started and slow["left"] > 0 and self.it > 0:
             slow["left"] -= 1
             time_mod.sleep(0.5)
         return real(self, inputs, view, bg, *stats)
 
-    monkeypatch.setattr(trainer_mod.Trainer, "_training_render", training_render)
+    monkeypatch.setattr(trainer_mod.Trainer, "training_render", training_render)
     summary = train_main(scene_dir, str(tmp_path / "run"), preset="fast", time_budget=0.5, quiet=True,
                          sets=("threads=1",))
     assert slow["left"] == 0  # the slow steps happened
@@ -567,9 +567,9 @@ def test_a_real_run_on_a_slowed_machine_keeps_routines_to_their_share_and_ends_o
     import sys
     import time as time_mod
 
-    import ctgs.train.routines.passes as routines_mod
     from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import train_main
+    import ctgs.train.routines.passes as routines_mod
 
     real = routines_mod.compute_E
 

@@ -1,5 +1,6 @@
 """content_opacity_reset: a content-aware run clamps opacities after the full routine its calendar names, and the
-next full routine prunes what the training views did not bring back (ctgs.train.config.schedule.content_opacity_reset)."""
+next full routine prunes what the training views did not bring back
+(ctgs.train.config.schedule.content_opacity_reset)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ import os
 
 import pytest
 
-from ctgs.scene.demo import make_demo_scene
 from ctgs.runs import training_scene, write_config
+from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import resolve_config
 from ctgs.train.events import Routine
 from ctgs.train.loop.trainer import Trainer

@@ -13,9 +13,9 @@ import os
 import pytest
 import torch
 
+from ctgs.runs import load_run
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
-from ctgs.runs import load_run
 from ctgs.train.routines import texels
 
 ITERATIONS = 400

@@ -1,5 +1,5 @@
-"""error_from_steps: E from the training steps' own backward (ctgs.train.routines.error.StepErrors) instead of renders at the
-routine. On a model that does not change, the steps' E is the rendered E of the same views with the loss's error image;
+"""error_from_steps: E from the training steps' own backward (ctgs.train.routines.error.StepErrors) instead of renders
+at the routine. On a model that does not change, the steps' E is the rendered E of the same views with the loss's error image;
 a run with it renders nothing in its routines, resumes exactly, and a CUDA-less fallback renders E as before."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from ctgs.render import BackwardStats, render
+from ctgs.train.config import TrainConfig
 from ctgs.train.routines.error import StepErrors, accumulate_error
 from ctgs.train.step.loss import training_loss
-from ctgs.train.config import TrainConfig
 
 from train_helpers import camera, model
 
@@ -62,8 +62,8 @@ def scene(tmp_path_factory):
 
 
 def test_a_run_with_step_errors_renders_no_view_in_its_routines(scene, tmp_path, monkeypatch):
-    import ctgs.train.routines.passes as routines_mod
     from ctgs.stages.train import train_main
+    import ctgs.train.routines.passes as routines_mod
 
     calls = []
     real = routines_mod.compute_E
@@ -82,10 +82,10 @@ def test_a_resumed_run_with_step_errors_ends_at_the_same_model(scene, tmp_path):
     """The statistics since the last routine are in the checkpoint: stopped after the checkpoint at 30 and before the
     routine at 40 (whose E covers the steps since the start), the resumed run ends at the uninterrupted run's model."""
     from ctgs.runs import training_scene
-    from ctgs.stages.train import resolve_config, train_main
-    from ctgs.train.events import Step
     from ctgs.runs import write_config
     from ctgs.runs import load_run
+    from ctgs.stages.train import resolve_config, train_main
+    from ctgs.train.events import Step
     from ctgs.train.loop.trainer import Trainer
 
     whole = str(tmp_path / "whole")

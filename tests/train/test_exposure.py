@@ -1,4 +1,5 @@
-"""Per-training-image exposure compensation (ctgs.train.components.exposure, config keys exposure_comp / lr_exposure)."""
+"""Per-training-image exposure compensation (ctgs.train.components.exposure, config keys
+exposure_comp / lr_exposure)."""
 
 from __future__ import annotations
 
@@ -62,10 +63,10 @@ def test_exposure_comp_recovers_the_gains_a_capture_was_shot_with(tmp_path):
     """The demo scene with every other training photo darkened by 20%: a short run with exposure_comp learns gains
     that tell the darkened photos from the others, and ends with a checkpoint that holds them."""
     from ctgs.io.images import read_image, write_image
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
-    from ctgs.stages.train import resolve_config
     from ctgs.runs import checkpoint as ckpt
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import resolve_config
     from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=9, width=64, height=48, points=300)

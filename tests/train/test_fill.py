@@ -8,8 +8,8 @@ import numpy as np
 import torch
 
 from ctgs.render.camera import Camera
-from ctgs.train.start.fill import FILL_CELL_PX, fill_points
 from ctgs.train.components.shell import OCCUPANCY_CELL_PX
+from ctgs.train.start.fill import FILL_CELL_PX, fill_points
 
 
 def _view(image, x=0.0):
@@ -77,8 +77,8 @@ def test_no_fill_where_the_points_cover_the_view_or_a_view_has_too_few_points():
 
 
 def test_init_fill_adds_primitives_at_initialisation(tmp_path):
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
+    from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import resolve_config
     from ctgs.train.loop.trainer import Trainer
 

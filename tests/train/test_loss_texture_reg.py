@@ -1,4 +1,5 @@
-"""Texture sparsity term: lambda_texture x sum |texel| of visible primitives (lambda resolved by ctgs/train/config/rules.py)."""
+"""Texture sparsity term: lambda_texture x sum |texel| of visible primitives (lambda resolved by
+ctgs/train/config/rules.py)."""
 
 from __future__ import annotations
 

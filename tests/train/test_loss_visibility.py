@@ -10,8 +10,8 @@ import torch
 
 import train_helpers as th
 from ctgs.model.surfels import SurfelModel, jagged_offsets
-from ctgs.render import render
 from ctgs.ops.ext import load_cpu
+from ctgs.render import render
 from ctgs.render.camera import Camera
 from ctgs.render.constants import MIN_ALPHA
 from ctgs.render.preprocess import to_camera_space

@@ -9,12 +9,12 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from ctgs.train.step.adam import SurfelAdam
 from ctgs.train.config import TrainConfig, load_config
-from ctgs.train.start.init import farthest_point_subsample
-from ctgs.train.step.loss import training_loss
-from ctgs.train.routines.passes import error_views
 from ctgs.train.config.rules import resolve
+from ctgs.train.routines.passes import error_views
+from ctgs.train.start.init import farthest_point_subsample
+from ctgs.train.step.adam import SurfelAdam
+from ctgs.train.step.loss import training_loss
 
 from train_helpers import H, W, camera, model
 

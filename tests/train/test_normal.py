@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from ctgs.render.geometry import rotmat_to_quat
 from ctgs.render import render
 from ctgs.render.camera import Camera
+from ctgs.render.geometry import rotmat_to_quat
 from ctgs.render.types import SurfelInputs
 from ctgs.train.components.normal import consistency, depth_normals, facing_normals, normal_inputs, normal_loss
 
@@ -135,8 +135,8 @@ def test_lambda_normal_trains_and_brings_normals_to_the_depth(tmp_path):
     the same run without it."""
     import numpy as np
 
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
+    from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import resolve_config
     from ctgs.train.loop.trainer import Trainer
 

@@ -11,13 +11,13 @@ import time
 import pytest
 import torch
 
+from ctgs.errors import Terminated, UserError
+from ctgs.runs import load_run, training_scene
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
-from ctgs.train.events import Step
-from ctgs.runs import load_run, training_scene
-from ctgs.train.loop.trainer import Trainer, TrainingDiverged
 from ctgs.stages.train import resolve_config
-from ctgs.errors import Terminated, UserError
+from ctgs.train.events import Step
+from ctgs.train.loop.trainer import Trainer, TrainingDiverged
 from train_helpers import run_log
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

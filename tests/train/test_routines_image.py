@@ -120,9 +120,9 @@ def test_lean_routine_gives_the_same_result(monkeypatch):
     between."""
     from dataclasses import replace
 
+    from ctgs.train.config import TrainConfig
     from ctgs.train.routines import passes as routines
     from ctgs.train.step.adam import SurfelAdam
-    from ctgs.train.config import TrainConfig
     from train_helpers import camera
 
     n = 24

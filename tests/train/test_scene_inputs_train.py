@@ -14,10 +14,10 @@ import torch
 
 from ctgs.evaluation.evaluate import EvalOptions, evaluate
 from ctgs.io.images import read_image, write_image
+from ctgs.runs import load_run
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
 from ctgs.train.step.loss import recomposited
-from ctgs.runs import load_run
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scene"))
 from scene_layouts import write_blender, write_instant_ngp, write_nerfstudio  # noqa: E402

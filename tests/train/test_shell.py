@@ -56,8 +56,8 @@ def test_no_shell_when_off():
 
 def test_init_shell_trains(tmp_path):
     """A short run with init_shell starts with the shell's primitives on top of the SfM ones."""
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
+    from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import resolve_config
     from ctgs.train.loop.trainer import Trainer
 
@@ -90,8 +90,8 @@ def test_full_routine_leaves_background_primitives_out_of_split_and_upscale(monk
     however large their error."""
     from dataclasses import replace
 
-    from ctgs.train.routines import passes as routines
     from ctgs.train.config import TrainConfig
+    from ctgs.train.routines import passes as routines
     from train_helpers import camera, model, optimiser
 
     n = 20
@@ -167,25 +167,27 @@ def test_open_mask_marks_pixels_past_the_sfm_points():
 def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_splits_far_primitives(tmp_path, monkeypatch):
     """Through whole routines: every training render goes through shell.composite, and no split reaches a far
     (shell) primitive, so their number never grows in a routine (upscales: the unit test above)."""
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
+    from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import resolve_config
     from ctgs.train import components
-    from ctgs.train.components import parts, shell
+    from ctgs.train.components import shell
+    from ctgs.train.loop.trainer import Trainer
     from ctgs.train.routines import passes as routines
     from ctgs.train.strategies import content_aware
-    from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=96, height=72, points=300)
     cfg = resolve_config(scene_dir, str(tmp_path / "run"), None, 200, ["init_shell=40", "threads=1"], None, False,
                          None, None, preset="fast")
     calls = {"composite": 0}
 
+    real = shell.composite
+
     def counted(*a, **k):
         calls["composite"] += 1
-        return shell.composite(*a, **k)
+        return real(*a, **k)
 
-    monkeypatch.setattr(parts, "composite", counted)
+    monkeypatch.setattr(shell, "composite", counted)
     seen = []
     real_full = routines.full_routine
 
@@ -211,21 +213,23 @@ def test_a_short_run_with_a_shell_composites_its_training_renders_and_never_spli
 def test_time_budget_calibration_times_the_training_render_with_a_shell(tmp_path, monkeypatch):
     """With init_shell a training step renders twice (shell.composite); --time-budget's calibration must time that
     step, not a single render, or the plan undercounts every step."""
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
+    from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import resolve_config
-    from ctgs.train.components import parts, shell
+    from ctgs.train.components import shell
     from ctgs.train.loop.calibration import calibrate
     from ctgs.train.loop.trainer import Trainer
 
     scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=6, width=64, height=48, points=200)
     calls = {"composite": 0}
 
+    real = shell.composite
+
     def counted(*a, **k):
         calls["composite"] += 1
-        return shell.composite(*a, **k)
+        return real(*a, **k)
 
-    monkeypatch.setattr(parts, "composite", counted)
+    monkeypatch.setattr(shell, "composite", counted)
     for sets, expected in ((["init_shell=20", "threads=1"], 6), (["threads=1"], 0)):
         calls["composite"] = 0
         cfg = resolve_config(scene_dir, str(tmp_path / f"run{expected}"), None, 50, sets, None, False, None, None,

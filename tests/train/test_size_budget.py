@@ -8,12 +8,11 @@ import os
 import pytest
 import torch
 
+from ctgs.runs import load_run
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import train_main
-from ctgs.runs import load_run
-from ctgs.train.config import rules
+from ctgs.train.config import TrainConfig, rules
 from ctgs.train.routines import size_budget, texels
-from ctgs.train.config import TrainConfig
 
 from train_helpers import model, optimiser, smooth_texture
 
@@ -82,12 +81,12 @@ def test_fit_counts_what_the_trim_keeps():
 
 def test_primitive_cap_and_rules():
     # fast's SH degree 1: 10 + 12 + 1 = 23 params a primitive, + 12 for a 2x2 texture.
-    assert size_budget.params_per_primitive("content_aware", 1) == 23
-    assert size_budget.params_per_primitive("2dgs", 3) == 58  # 2DGS's own count
-    assert size_budget.primitive_cap("content_aware", 1, 35_000) == 1000
-    assert size_budget.primitive_cap("2dgs", 3, 58_000) == 1000
-    assert size_budget.primitive_cap("fixed_texture", 0, 10_000, fixed_texture_res=4) == 10_000 // (14 + 48)
-    assert size_budget.primitive_cap("content_aware", 1, 0) == 0
+    assert rules.params_per_primitive("content_aware", 1) == 23
+    assert rules.params_per_primitive("2dgs", 3) == 58  # 2DGS's own count
+    assert rules.primitive_cap("content_aware", 1, 35_000) == 1000
+    assert rules.primitive_cap("2dgs", 3, 58_000) == 1000
+    assert rules.primitive_cap("fixed_texture", 0, 10_000, fixed_texture_res=4) == 10_000 // (14 + 48)
+    assert rules.primitive_cap("content_aware", 1, 0) == 0
     cfg = TrainConfig(max_sh_degree=1, max_params=35_000)
     assert rules.resolve(cfg, 200 * 150).max_primitives == 1000
     assert rules.resolve(TrainConfig(max_sh_degree=1, max_params=35_000, max_primitives=10), 200 * 150).max_primitives == 10
@@ -122,7 +121,7 @@ def test_a_budgeted_run_ends_within_its_budget(scene, tmp_path, method, budget):
         assert any(r.get("budget_downscaled", 0) > 0 for r in log if r["type"] == "routine" and r["it"] < 300)
         assert summary["num_texels"] > 0
     else:
-        assert run.model.num_primitives <= size_budget.primitive_cap("2dgs", run.model.max_sh_degree, budget)
+        assert run.model.num_primitives <= rules.primitive_cap("2dgs", run.model.max_sh_degree, budget)
 
 
 def test_the_cli_refuses_a_budget_below_one(tmp_path):

@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import pytest
 
-from ctgs.scene.demo import make_demo_scene
 from ctgs.runs import training_scene
+from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import resolve_config
 from ctgs.train import components
 from ctgs.train.config import METHODS
 from ctgs.train.events import Step
 from ctgs.train.hooks import Component
-from ctgs.train.strategies import STRATEGIES, ContentAware, Densify, FixedTexture, make_strategy
 from ctgs.train.loop.trainer import Trainer
+from ctgs.train.strategies import STRATEGIES, ContentAware, Densify, FixedTexture, make_strategy
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +49,7 @@ def test_a_run_holds_the_parts_its_config_turns_on_in_calling_order(scene, tmp_p
 
 
 class Recorder(Component):
-    """A component that records each hook called on it: (hook, the trainer's iteration then)."""
+    """A component that records each hook called on it: (hook, the state's iteration then)."""
 
     def __init__(self):
         self.calls = []
@@ -75,5 +75,5 @@ def test_the_hooks_are_called_in_their_order_within_each_iteration(scene, tmp_pa
             break
     step = ["render", "train_render", "post_backward", "post_step", "step_end", "timed_step", "log_fields"]
     # iteration 1: its checkpoint (written with each part's state), timed; then after_step
-    assert rec.calls == [("begin", 0), *[(h, 1) for h in step], ("checkpoint", None), ("timed", 1),
+    assert rec.calls == [("begin", 0), *[(h, 1) for h in step], ("checkpoint", 1), ("timed", 1),
                          ("after_step", 1), *[(h, 2) for h in step]]

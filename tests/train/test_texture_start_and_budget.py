@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from ctgs.train.routines import texels
-from ctgs.train.start.init import farthest_point_subsample, init_model
 from ctgs.train.routines.split import split
+from ctgs.train.start.init import farthest_point_subsample, init_model
 
 from train_helpers import image, model, optimiser
 

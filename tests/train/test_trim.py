@@ -9,8 +9,8 @@ import torch
 
 from ctgs.model import jagged
 from ctgs.render import render
-from ctgs.train.routines import texels
 from ctgs.train.config import TrainConfig
+from ctgs.train.routines import texels
 
 from train_helpers import camera, image, model, optimiser
 

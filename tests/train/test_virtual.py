@@ -82,8 +82,8 @@ def test_coverage_loss_counts_only_held_pixels_and_pulls_alpha_up():
 def test_virtual_coverage_trains_and_raises_alpha_between_cameras(tmp_path):
     """A short run with the term trains, and leaves the virtual views less open than the same run without it."""
     from ctgs.render import render
-    from ctgs.scene.demo import make_demo_scene
     from ctgs.runs import training_scene
+    from ctgs.scene.demo import make_demo_scene
     from ctgs.stages.train import resolve_config
     from ctgs.train.components import VirtualCoverage
     from ctgs.train.loop.trainer import Trainer

@@ -26,8 +26,10 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 
-from ctgs.train.config import schedule
-from ctgs.train.config import TrainConfig
+import numpy as np
+import torch
+
+from ctgs.train.config import TrainConfig, schedule
 
 # Growth of the per-iteration cost, per method: for the baselines from the start to the end of the
 # densification window (2dgs: last tenth of a run / first 5% in the 2-core VM's logs, 2.6 demo, 2.1-4.5
@@ -475,3 +477,18 @@ class BudgetPlanner:
         self.last_replan = state["last_replan"]
         self.shift = state.get("shift", 0.0)  # older checkpoints: the calendar had no phase shift
         self.stride = {kind: 1 for kind in SHARE} | state.get("stride", {})  # older checkpoints: every date kept
+
+
+def median_seconds(fn, reps: int = 3, device: torch.device | None = None) -> float:
+    """Median wall seconds of fn(); on a CUDA device the queued kernels are waited for (a launch is not a step)."""
+    cuda = device is not None and device.type == "cuda"
+    times = []
+    for _ in range(reps):
+        if cuda:
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        fn()
+        if cuda:
+            torch.cuda.synchronize(device)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))

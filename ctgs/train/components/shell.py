@@ -7,7 +7,8 @@ test view uncovered (docs/studies.md; benchmarks/results/archive/open_pixels/her
 the mean of the training pixels it projects to. They train like the other primitives with two differences: the split
 and upscale routines leave them out (`far_mask`), so the top-E share the routines refine stays with the scene's own
 primitives; and in training renders they show only where the view sees past the SfM points (`composite`), so they
-cannot stand in for a transparent scene (off in every preset until measured).
+cannot stand in for a transparent scene (off in every preset until measured). `Shell` is the component that does both
+in a run.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+
+from ctgs.train.hooks import Component
 
 # Shell radius: this many times the radius holding 98% of the SfM points and every camera centre (around the SfM
 # points' median), so the shell lies beyond the reconstructed scene.
@@ -139,3 +142,22 @@ def shell_points(points: np.ndarray, views: list, count: int) -> tuple[np.ndarra
     if len(keep) > count:  # thin evenly along the Fibonacci order (which is spatially coherent)
         keep = keep[np.linspace(0, len(keep) - 1, count).round().astype(np.int64)]
     return xyz[keep], colour_sum[keep] / seen[keep, None]
+
+
+class Shell(Component):
+    """init_shell: the sphere that tells the far shell's primitives (initial points: start.init.scene_model) from the
+    scene's; training renders composite the scene over them where the view sees past the SfM points (two renders:
+    composite), and the content-aware routines never split or upscale them."""
+
+    def __init__(self, scene, train_views, device):
+        self.sphere = scene_sphere(scene.points, scene.train)
+        # per training view, the pixels where the shell may show in training renders
+        self.open_px = {v.name: torch.from_numpy(open_mask(scene.points, v.camera)).to(device) for v in train_views}
+
+    def far(self, model) -> torch.Tensor:
+        """[N] bool: model's primitives on the far shell."""
+        return far_mask(model.means, *self.sphere)
+
+    def render(self, st, inputs, view, bg):
+        return composite(st.render_fn, inputs, view.camera, self.far(st.model), self.open_px[view.name],
+                         st.background if bg is None else bg)

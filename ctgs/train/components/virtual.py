@@ -12,7 +12,7 @@ some depth of which only one or two training images hold) must be covered. Every
     virtual_coverage * mean over its held pixels of (1 - alpha)   ("few": sum over them / all pixels)
 
 to the training loss (its own render and backward). No photometric target: what covers a pixel is left to the
-training views.
+training views. `VirtualCoverage` is the component that adds it in a run.
 """
 
 from __future__ import annotations
@@ -22,8 +22,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from ctgs.errors import UserError
 from ctgs.render.camera import Camera
 from ctgs.scene.coverage import FEW_CLASS, seen_classes
+from ctgs.train.components.budget import median_seconds
+from ctgs.train.hooks import Component
 
 STEP = 0.5  # fraction of the distance to the nearest training camera
 MASK_CELL = 4  # the held-pixel mask is classified on cells of this many pixels across
@@ -86,3 +89,31 @@ def virtual_views(names: list[str], cameras: list[Camera], points: np.ndarray, s
 def coverage_loss(alpha: torch.Tensor, view: VirtualView) -> torch.Tensor:
     """Sum of (1 - alpha) over the view's masked pixels / view.norm (the weight is applied by the caller)."""
     return ((1.0 - alpha) * view.mask).sum() / view.norm
+
+
+class VirtualCoverage(Component):
+    """virtual_coverage: virtual views half a camera step from each training camera, with the pixels the training
+    cameras hold (virtual_views), visited in a fixed shuffled cycle (resume-safe: by iteration)."""
+
+    def __init__(self, cfg, scene, train_views, device):
+        cameras = [v.camera for v in train_views]
+        self.views = [replace(vv, camera=vv.camera.to(device), mask=vv.mask.to(device))
+                      for vv in virtual_views([v.name for v in train_views], cameras, scene.points,
+                                              pixels=cfg.virtual_pixels)]
+        if not self.views:
+            raise UserError(f"{scene.root}: virtual_coverage found no virtual view with {cfg.virtual_pixels} pixels "
+                            "(it needs two training cameras with SfM points in view); set virtual_coverage = 0")
+        self.order = torch.randperm(len(self.views), generator=torch.Generator().manual_seed(cfg.seed + 1))
+
+    def post_backward(self, st, it: int, view) -> None:
+        """Every virtual_every-th step, one virtual view's coverage term, rendered and back-propagated on its own."""
+        every = st.cfg.virtual_every
+        if it % every:
+            return
+        vv = self.views[int(self.order[(it // every) % len(self.views)])]
+        alpha = st.render_fn(st.model.render_inputs(), vv.camera).alpha
+        (st.cfg.virtual_coverage * coverage_loss(alpha, vv)).backward()
+
+    def step_seconds(self, st, view) -> float:
+        every = st.cfg.virtual_every
+        return median_seconds(lambda: self.post_backward(st, every, view), device=st.device) / every

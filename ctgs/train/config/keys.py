@@ -43,8 +43,8 @@ class TrainConfig:
     iterations: int = _f(30000, "training iterations")
     schedule_scale: float = _f(0.0, "0: every iteration count below is a fraction of the run (x iterations / 30000); "
                                "> 0: expert override, multiply them by this instead")
-    scale_rules: bool = _f(True, "resolve pixel/texel settings for the training image size (ctgs/train/config/rules.py); "
-                           "false: use them as written (the paper preset)")
+    scale_rules: bool = _f(True, "resolve pixel/texel settings for the training image size "
+                           "(ctgs/train/config/rules.py); false: use them as written (the paper preset)")
     time_budget: float = _f(0.0, "> 0: plan (and re-plan) the iteration count so `ctgs train` ends within this "
                             "many minutes on this machine (overrides iterations)")
     max_params: int = _f(0, "> 0: a size budget: the model never ends with more parameters (SurfelModel.num_params) "
@@ -106,11 +106,12 @@ class TrainConfig:
     virtual_pixels: str = _f("held", "pixels of a virtual view the coverage term covers: held (some training image "
                              "holds them at every sampled depth) | few (of those, the ones some depth of which only "
                              "one or two training images hold)")
-    lambda_normal: float = _f(0.0, "> 0: weight of 2DGS's depth-normal consistency term (ctgs.train.components.normal: one more "
-                              "render per step; 2DGS uses 0.05; 0 = off, the paper)")
+    lambda_normal: float = _f(0.0, "> 0: weight of 2DGS's depth-normal consistency term "
+                              "(ctgs.train.components.normal: one more render per step; 2DGS uses 0.05; 0 = off, the paper)")
     normal_from: int = _f(7000, "first iteration of the depth-normal term (paper scale; 2DGS's)")
     exposure_comp: bool = _f(False, "learn a per-channel gain per training image, applied to its training renders "
-                             "before the loss (ctgs.train.components.exposure; evaluation and exports use none; false = the paper)")
+                             "before the loss (ctgs.train.components.exposure; evaluation and exports use none; "
+                             "false = the paper)")
     lr_exposure: float = _f(5e-3, "lr of the exposure log-gains (Adam)")
     exposure_in_E: bool = _f(False, "scale each training view's render by its gain in the routines' error E too (as "
                              "in its loss), so that E does not hold the photos' exposures")

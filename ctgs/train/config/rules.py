@@ -24,8 +24,8 @@ recipe is reproduced exactly; elsewhere:
   over pixels, so its gradient on one texel shrinks as 1 / pixels while the sparsity term's does not;
 - the primitive count (primitives_per_pixel, off in the paper): at most this many primitives per pixel of a
   typical training view, at initialisation (farthest-point subsample of the SfM points) and through splits
-  (max_primitives): primitives_per_pixel x pixels x coverage, where coverage (ctgs.train.routines.kmin.view_coverage) is
-  how many views' worth of scene the capture holds, the SfM points over the median number one view sees. A
+  (max_primitives): primitives_per_pixel x pixels x coverage, where coverage (routines.kmin.view_coverage) is how
+  many views' worth of scene the capture holds, the SfM points over the median number one view sees. A
   facade photographed from the front is about 1 view's worth (every view sees most of it); a capture all around
   an object is more (Mip-NeRF 360 bonsai: 2.4), and a cap per pixel of one view would leave each view with a
   fraction of the density (bonsai at 200x133: 10.6k primitives for the whole room, open pixels in test views).
@@ -51,9 +51,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from ctgs.train.config import schedule
-from ctgs.train.config import TrainConfig
-from ctgs.train.routines.size_budget import primitive_cap
+from ctgs.model import surfels
+from ctgs.train.config import TrainConfig, schedule
 
 PAPER_PIXELS = 1.0e6  # "about 1 Mpx": M360 images_4 1237x822 (1.02 Mpx), Deep Blending 1332x876 (1.17 Mpx)
 PAPER_ITERATIONS = 30000
@@ -123,9 +122,17 @@ def with_size_budget(cfg: TrainConfig, observed_values: int) -> TrainConfig:
     return replace(cfg, max_params=max(1, int(round(cfg.max_params_per_value * observed_values))))
 
 
+def for_scene(cfg: TrainConfig, observed_values: int, pixels: float, coverage: float = 1.0) -> tuple[TrainConfig, int]:
+    """What a run on a scene's training views takes of the rules, in one call: the config resolved for them (its size
+    budget from their observed values, `with_size_budget`; then `resolve` at their typical pixel count and
+    coverage), and the cap on its initial points (`init_point_cap` of the budgeted config)."""
+    budgeted = with_size_budget(cfg, observed_values)
+    return resolve(budgeted, pixels, coverage), init_point_cap(budgeted, pixels, coverage)
+
+
 def init_point_cap(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> int:
     """Initial primitives: max_init_points, at most primitives_per_pixel per pixel of a typical view (x coverage, as
-    in `resolve`), and no more than a --max-params budget holds (size_budget.primitive_cap); 0 = all."""
+    in `resolve`), and no more than a --max-params budget holds (primitive_cap); 0 = all."""
     caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels * coverage)),
                         primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)) if c > 0]
     return min(caps) if caps else 0
@@ -159,3 +166,22 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
         rows.append({"setting": key, "unit": "iterations", "rule": "x iterations / 30000",
                      "paper": getattr(cfg, key), "values": vals})
     return rows
+
+
+# --max-params: primitives capped where even the smallest textures would fill the budget (the texels are kept within
+# it by ctgs.train.routines.size_budget)
+MIN_TEXELS = 4  # 2x2: the smallest texture a content-aware reallocation gives
+
+
+def params_per_primitive(method: str, max_sh_degree: int) -> int:
+    """SurfelModel.num_params per primitive of a `method` model (the 2dgs baseline has no texel size)."""
+    return surfels.params_per_primitive(max_sh_degree, textured=method != "2dgs")
+
+
+def primitive_cap(method: str, max_sh_degree: int, max_params: int, fixed_texture_res: int = 16) -> int:
+    """Most primitives a budget of max_params can hold (0 = no budget): each with its own parameters and the
+    smallest texture it can have."""
+    if max_params <= 0:
+        return 0
+    tex = {"2dgs": 0, "fixed_texture": fixed_texture_res ** 2}.get(method, MIN_TEXELS)
+    return max(1, max_params // (params_per_primitive(method, max_sh_degree) + 3 * tex))

@@ -5,9 +5,9 @@ Every iteration count in the config is at the paper's scale (30k iterations) and
 Periodic events fire when a multiple of their (fractional) period falls in (it - 1 + shift, it + shift]. With a
 fixed length shift = 0: the plain `it % period == 0` calendar. A `--time-budget` run re-plans cfg.iterations while
 it runs, which rescales every period; its planner then moves `shift` so that the phase (it + shift) / period is
-continuous across the re-plan (ctgs.train.components.budget.BudgetPlanner.shift). Without it (as before the shift existed) a re-plan
-moved the calendar's grid under the current iteration: on a `make demo` run 7 of 29 gaps between full routines
-were under half a period (10-95 iterations) and 7 over 1.5 periods (up to 3); after, 0.96-1.03
+continuous across the re-plan (ctgs.train.components.budget.BudgetPlanner.shift). Without it (as before the shift
+existed) a re-plan moved the calendar's grid under the current iteration: on a `make demo` run 7 of 29 gaps between
+full routines were under half a period (10-95 iterations) and 7 over 1.5 periods (up to 3); after, 0.96-1.03
 (benchmarks/results/archive/routine_spacing/80dacd2.md).
 """
 

@@ -3,7 +3,8 @@
 `Trainer.run()` is a generator of typed events (ctgs/train/events.py); it writes the JSON-lines log,
 atomic checkpoints, and on success model.pt + train_summary.json into the run folder. What changes the model
 besides the loss's gradient is the run's strategy (ctgs.train.strategies, by config `method`) and its components
-(ctgs.train.components), called through the hooks of ctgs.train.hooks.
+(ctgs.train.components), called through the hooks of ctgs.train.hooks with the run's TrainState (`Trainer.state`:
+the model, its optimiser, the config, the views and counters), never with the trainer.
 """
 
 from __future__ import annotations
@@ -12,8 +13,6 @@ import contextlib
 import json
 import os
 import time
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
@@ -24,18 +23,18 @@ from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim
 from ctgs.model.surfels import SurfelModel
 from ctgs.ops import fused
-from ctgs.render import render
 from ctgs.runs import checkpoint as ckpt
-from ctgs.train.config import rules, schedule
-from ctgs.train.step.adam import ALL_PARAMS, SurfelAdam
-from ctgs.train.components import ExposureCompensation, TimeBudget, make_components
-from ctgs.train.config import TrainConfig
+from ctgs.train.components import ExposureCompensation, Shell, TimeBudget, make_components
+from ctgs.train.config import TrainConfig, rules, schedule
 from ctgs.train.events import Checkpoint, Done, Eval, Step
-from ctgs.train.start.init import scene_model
+from ctgs.train.hooks import TrainState, TrainView
+from ctgs.train.loop import calibration
+from ctgs.train.loop.summary import write_outputs
 from ctgs.train.routines.kmin import compute_k_min, view_coverage
+from ctgs.train.start.init import scene_model
+from ctgs.train.step.adam import ALL_PARAMS, SurfelAdam
 from ctgs.train.step.loss import masked, recomposited, training_loss
 from ctgs.train.strategies import make_strategy
-from ctgs.train.loop.summary import write_outputs
 
 
 # What the run's wall time went to besides its steps (train_summary.json "seconds_in"): full and late routines,
@@ -47,15 +46,6 @@ class TrainingDiverged(UserError):
     """NaN/Inf in the loss or the parameters: training stopped, the last checkpoint is kept."""
 
     exit_code = 4
-
-
-@dataclass
-class TrainView:
-    name: str
-    camera: object  # Camera on the training device
-    image_t: torch.Tensor  # [H, W, 3] float32 in [0, 1]
-    mask_t: torch.Tensor | None = None  # [H, W, 1] bool: the pixels in the loss and the scores (None: all)
-    alpha_t: torch.Tensor | None = None  # [H, W, 1] a transparent photo's alpha (image_t is over cfg.background)
 
 
 def pick_device(cfg: TrainConfig) -> torch.device:
@@ -78,6 +68,11 @@ def make_views(views, device) -> list[TrainView]:
     return out
 
 
+def observed_values(train_views) -> int:
+    """Values a model is fitted to: RGB of every training pixel."""
+    return int(sum(3 * v.camera.width * v.camera.height for v in train_views))
+
+
 def _to_device(model: SurfelModel, device: torch.device) -> None:
     for name in ALL_PARAMS:
         setattr(model, name, getattr(model, name).detach().to(device).requires_grad_(True))
@@ -97,102 +92,128 @@ class Trainer:
     """cfg: the config as given (saved with the run); self.cfg is its copy resolved for this scene's image size
     (ctgs/train/config/rules.py) whose `iterations` is the planned run length (`--time-budget` re-plans it).
     start_time: time.monotonic() when the command started (the time budget counts from there).
-    self.parts: the strategy, then the components (ctgs.train.hooks), in the order their hooks are called."""
+    self.parts: the strategy, then the components (ctgs.train.hooks), in the order their hooks are called; each is
+    called with self.state, the run's TrainState (the model, its optimiser, the config, views and counters), which
+    holds what the trainer's model, opt, it, cfg, spent and clock attributes read."""
 
     def __init__(self, cfg: TrainConfig, scene, run_dir: str, resume: bool = False, start_time: float | None = None):
-        self.user_cfg = cfg
         self.run_dir = run_dir
-        self.start_time = time.monotonic() if start_time is None else start_time
         self.saved_at: float | None = None  # the clock's checkpoints: when the last was written, or the first step ended
-        self.device = pick_device(cfg)
+        device = pick_device(cfg)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)  # OpenMP spin-waiting on an oversubscribed CPU costs ~5x
-        if self.device.type == "cpu":
+        if device.type == "cpu":
             fused.tune_allocator()  # freed [T, 3] temporaries are reused, not faulted in afresh
-        self.extent = float(scene.extent)
         self.near = float(scene.train[0].camera.near) if scene.train else None  # the scene's (loader.near_plane)
         self.num_sfm_points = len(scene.points)
         self.world_origin = [float(x) for x in getattr(scene, "origin", (0.0, 0.0, 0.0))]  # saved with the model
-        self.train_views = make_views(scene.train, self.device)
-        self.test_views = make_views(scene.test, self.device)
-        if not self.train_views:
+        train_views = make_views(scene.train, device)
+        test_views = make_views(scene.test, device)
+        if not train_views:
             raise UserError(f"{scene.root}: no training images (check --images and holdout)")
-        self.cameras = [v.camera for v in self.train_views]
-        self.pixels = float(np.median([v.camera.width * v.camera.height for v in self.train_views]))
-        # max_params_per_value: the size budget from the observed values (an explicit max_params wins)
-        budgeted = rules.with_size_budget(cfg, self.observed_values())
-        # views' worth of scene in the capture (the primitive cap is per pixel of a typical view: ctgs.train.config.rules)
-        self.coverage = (view_coverage(torch.from_numpy(np.asarray(scene.points, np.float32)), self.cameras)
+        cameras = [v.camera for v in train_views]
+        self.pixels = float(np.median([v.camera.width * v.camera.height for v in train_views]))
+        # views' worth of scene in the capture (the primitive cap is per pixel of a typical view: config.rules)
+        self.coverage = (view_coverage(torch.from_numpy(np.asarray(scene.points, np.float32)), cameras)
                          if cfg.primitives_per_pixel > 0 else 1.0)
-        self.cfg = rules.resolve(budgeted, self.pixels, self.coverage)
+        # the config resolved for the scene (max_params_per_value: the size budget from the observed values, an
+        # explicit max_params wins) and the cap on the initial points
+        resolved, init_cap = rules.for_scene(cfg, observed_values(train_views), self.pixels, self.coverage)
         self.strategy = make_strategy(cfg.method)
-        self.parts = [self.strategy, *make_components(self, scene)]
+        self.parts = [self.strategy, *make_components(resolved, scene, train_views, device)]
         self.exposure, self.time = self.part(ExposureCompensation), self.part(TimeBudget)
-        self.wall_before = 0.0  # wall seconds of earlier sessions of this run (resume)
+        shell = self.part(Shell)
         self.last_routines_s = 0.0  # wall seconds of the last step's routines (their log records)
-        self.gen = torch.Generator().manual_seed(cfg.seed)
-        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
+        self.state = TrainState(
+            cfg=resolved, user_cfg=cfg, device=device, train_views=train_views, test_views=test_views,
+            extent=float(scene.extent), background=torch.tensor(cfg.background, dtype=torch.float32, device=device),
+            gen=torch.Generator().manual_seed(cfg.seed), log=self.log, check_finite=self._check_finite,
+            calibrate=lambda: calibration.calibrate(self),
+            start_time=time.monotonic() if start_time is None else start_time, calendar=self.time,
+            far=None if shell is None else shell.far,
+            view_gains=None if self.exposure is None else self.exposure.view_gains)
         os.makedirs(os.path.join(run_dir, "checkpoints"), exist_ok=True)
         self.log_path = os.path.join(run_dir, "log.jsonl")
-        state = ckpt.load_checkpoint(run_dir) if resume else None
-        if resume and state is None:
+        saved = ckpt.load_checkpoint(run_dir) if resume else None
+        if resume and saved is None:
             raise UserError(f"{run_dir}: --resume but no checkpoint in checkpoints/; start without --resume")
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed % 2**32)
-        if state is None:
-            self._start(scene, rules.init_point_cap(budgeted, self.pixels, self.coverage))
+        if saved is None:
+            self._start(scene_model(scene, cfg, init_cap, self.strategy.texture_mode))
         else:
-            self._restore(state)
+            self._restore(saved)
 
     def part(self, kind: type):
         """The run's part of that class, or None."""
         return next((p for p in self.parts if isinstance(p, kind)), None)
 
+    # What the loop, its progress display and the summary read of the run: the state's.
+    model = property(lambda self: self.state.model)
+    opt = property(lambda self: self.state.opt)
+    it = property(lambda self: self.state.it)
+    cfg = property(lambda self: self.state.cfg)
+    user_cfg = property(lambda self: self.state.user_cfg)
+    device = property(lambda self: self.state.device)
+    train_views = property(lambda self: self.state.train_views)
+    test_views = property(lambda self: self.state.test_views)
+    cameras = property(lambda self: self.state.cameras)
+    extent = property(lambda self: self.state.extent)
+    background = property(lambda self: self.state.background)
+    gen = property(lambda self: self.state.gen)
+    spent = property(lambda self: self.state.spent)
+    start_time = property(lambda self: self.state.start_time)
+    wall_before = property(lambda self: self.state.wall_before)
+
     # ---- state -----------------------------------------------------------------------------------
-    def _start(self, scene, max_points: int) -> None:
-        self.model = scene_model(scene, self.user_cfg, max_points, self.strategy.texture_mode)
-        _to_device(self.model, self.device)
-        self.model.k_min = compute_k_min(self.model.means.detach(), self.cameras)
-        self.opt = SurfelAdam(self.model, self.cfg.adam_eps)
-        self.it, self.train_seconds, self.perm, self.perm_pos, self.log_lines, self.saved_it = 0, 0.0, None, 0, 0, 0
-        self.spent = dict.fromkeys(SPENT_KINDS, 0.0)
+    def _start(self, model: SurfelModel) -> None:
+        """A fresh run from `model` (the scene's initial surfels, start.init.scene_model)."""
+        st = self.state
+        st.model = model
+        _to_device(st.model, st.device)
+        st.model.k_min = compute_k_min(st.model.means.detach(), st.cameras)
+        st.opt = SurfelAdam(st.model, st.cfg.adam_eps)
+        st.it, self.train_seconds, self.perm, self.perm_pos, self.log_lines, self.saved_it = 0, 0.0, None, 0, 0, 0
+        st.spent = dict.fromkeys(SPENT_KINDS, 0.0)
         for part in self.parts:
-            part.initialize(self)
+            part.initialize(st)
         open(self.log_path, "w").close()
 
-    def _restore(self, state: dict) -> None:
-        self.model = SurfelModel.from_state_dict(state["model"], self.device)
-        _to_device(self.model, self.device)
-        self.opt = SurfelAdam(self.model, self.cfg.adam_eps)
-        self.opt.load_state_dict(state["opt"], self.device)
-        self.it = self.saved_it = int(state["iteration"])  # the checkpoint it resumes from is saved
-        self.cfg.iterations = int(state.get("planned_iterations", self.cfg.iterations))
-        self.wall_before = float(state.get("wall_seconds", 0.0))
-        self.train_seconds = float(state["train_seconds"])
-        self.spent = dict.fromkeys(SPENT_KINDS, 0.0) | state.get("spent", {})  # older checkpoints: not counted
-        self.perm, self.perm_pos = state["perm"], int(state["perm_pos"])
+    def _restore(self, saved: dict) -> None:
+        st = self.state
+        st.model = SurfelModel.from_state_dict(saved["model"], st.device)
+        _to_device(st.model, st.device)
+        st.opt = SurfelAdam(st.model, st.cfg.adam_eps)
+        st.opt.load_state_dict(saved["opt"], st.device)
+        st.it = self.saved_it = int(saved["iteration"])  # the checkpoint it resumes from is saved
+        st.cfg.iterations = int(saved.get("planned_iterations", st.cfg.iterations))
+        st.wall_before = float(saved.get("wall_seconds", 0.0))
+        self.train_seconds = float(saved["train_seconds"])
+        st.spent = dict.fromkeys(SPENT_KINDS, 0.0) | saved.get("spent", {})  # older checkpoints: not counted
+        self.perm, self.perm_pos = saved["perm"], int(saved["perm_pos"])
         for part in self.parts:
-            part.restore(self, state)
-        ckpt.restore_rng(state["rng"], self.gen)
-        self.log_lines = ckpt.cut_log(self.log_path, int(state["log_lines"]))
+            part.restore(st, saved)
+        ckpt.restore_rng(saved["rng"], st.gen)
+        self.log_lines = ckpt.cut_log(self.log_path, int(saved["log_lines"]))
 
     def _state(self) -> dict:
-        state = {"model": self.model.state_dict(), "opt": self.opt.state_dict(), "iteration": self.it,
+        st = self.state
+        saved = {"model": st.model.state_dict(), "opt": st.opt.state_dict(), "iteration": st.it,
                  "train_seconds": self.train_seconds, "perm": self.perm, "perm_pos": self.perm_pos,
-                 "rng": ckpt.rng_state(self.gen), "log_lines": self.log_lines, "config": self.user_cfg.to_dict(),
-                 "planned_iterations": self.cfg.iterations, "wall_seconds": self.wall_seconds(),
-                 "spent": dict(self.spent)}
+                 "rng": ckpt.rng_state(st.gen), "log_lines": self.log_lines, "config": st.user_cfg.to_dict(),
+                 "planned_iterations": st.cfg.iterations, "wall_seconds": self.wall_seconds(),
+                 "spent": dict(st.spent)}
         for part in self.parts:
-            state.update(part.checkpoint())
-        return state
+            saved.update(part.checkpoint(st))
+        return saved
 
     def observed_values(self) -> int:
         """Values the model is fitted to: RGB of every training pixel."""
-        return int(sum(3 * v.camera.width * v.camera.height for v in self.train_views))
+        return observed_values(self.train_views)
 
     def wall_seconds(self) -> float:
         """Wall-clock seconds of this run so far, earlier sessions included."""
-        return self.wall_before + time.monotonic() - self.start_time
+        return self.state.wall_seconds()
 
     def _save_checkpoint(self) -> str:
         self._check_finite(None, full=True)
@@ -213,9 +234,7 @@ class Trainer:
 
     # ---- rendering -------------------------------------------------------------------------------
     def render_fn(self, inputs, camera, error_image=None, background=None, backward_stats=None):
-        return render(inputs, camera, backend=self.cfg.backend, sh_degree=self.model.sh_degree,
-                      background=self.background if background is None else background, error_image=error_image,
-                      backward_stats=backward_stats)
+        return self.state.render_fn(inputs, camera, error_image, background, backward_stats)
 
     def _next_view(self) -> TrainView:
         if self.perm is None or self.perm_pos >= len(self.perm):
@@ -275,24 +294,24 @@ class Trainer:
             f"this way: check the scene (`ctgs sfm` writes a report) and --images")
 
     # ---- loop ------------------------------------------------------------------------------------
-    def _training_render(self, inputs, view, bg, backward_stats=None):
+    def training_render(self, inputs, view, bg, backward_stats=None):
         """(rgb, rasterized) of a training step over `bg` (None: cfg.background): one render, or a part's (init_shell:
         the scene composited over the far primitives where the view sees past the SfM points, two renders).
         backward_stats: filled by the plain render's backward (ctgs.render.BackwardStats)."""
         for part in self.parts:
-            if (out := part.render(self, inputs, view, bg)) is not None:
+            if (out := part.render(self.state, inputs, view, bg)) is not None:
                 return out
         out = self.render_fn(inputs, view.camera, background=bg, backward_stats=backward_stats)
         return out.rgb, out.rasterized
 
     def run(self):
-        cfg = self.cfg
+        cfg, st = self.cfg, self.state
         if self.it == 0:
             self.log({"type": "start", "n": self.model.num_primitives, "method": cfg.method,
                       "device": str(self.device), "backend": cfg.backend, "pixels": self.pixels,
                       "coverage": round(self.coverage, 3), "max_primitives": cfg.max_primitives})
         for part in self.parts:
-            yield from part.begin(self)
+            yield from part.begin(st)
         while self.it < cfg.iterations:
             with self._whole_step():
                 it, loss, terms, lrs, events = self._train_step(cfg)
@@ -300,14 +319,14 @@ class Trainer:
                 self.log({"type": "step", "it": it, "loss": float(loss.detach()), "l1": terms.l1, "ssim": terms.ssim,
                           "psnr": terms.psnr, "n": self.model.num_primitives, "texels": self.model.num_texels,
                           "sh_degree": self.model.sh_degree, "lr_pos": lrs["means"],
-                          **{k: v for part in self.parts for k, v in part.log_fields(self, it).items()},
+                          **{k: v for part in self.parts for k, v in part.log_fields(st, it).items()},
                           "seconds": round(self.train_seconds, 3), "wall": round(self.wall_seconds(), 3),
                           **device_memory(self.device)})
             yield Step(it, float(loss.detach()), terms.psnr, self.model.num_primitives, self.model.num_texels,
                        self.train_seconds)
             yield from self._logged(events)
             # scored before the step at each test multiple, where routines and opacity resets fall (after one: ~14 dB)
-            if self._due(cfg.test_every, it + 1) and self.time.admits(self, "eval", it + 1):
+            if self._due(cfg.test_every, it + 1) and st.calendar.admits(st, "eval", it + 1):
                 yield self._evaluation(it, timed=True)
             if self._due(cfg.checkpoint_every, it) or self._checkpoint_late(it):
                 t0 = time.perf_counter()
@@ -315,10 +334,10 @@ class Trainer:
                 self._timed("checkpoint", time.perf_counter() - t0, it)
                 yield Checkpoint(it, path)
             for part in self.parts:
-                yield from part.after_step(self, it)
+                yield from part.after_step(st, it)
         for part in self.parts:
             t0 = time.perf_counter()
-            events = list(part.finish(self))
+            events = list(part.finish(st))
             self.last_routines_s = time.perf_counter() - t0
             yield from self._logged(events)
         final = self._evaluation(self.it)
@@ -328,7 +347,7 @@ class Trainer:
 
     def _due(self, paper_period: float, it: int) -> bool:
         """A periodic evaluation or checkpoint at `it` (none at the last iteration: the run's end has its own)."""
-        return bool(paper_period) and schedule.every(self.cfg, paper_period, it, self.time.shift) \
+        return bool(paper_period) and schedule.every(self.cfg, paper_period, it, self.state.calendar.shift) \
             and it < self.cfg.iterations
 
     def _checkpoint_late(self, it: int) -> bool:
@@ -345,7 +364,7 @@ class Trainer:
     def _timed(self, what: str, seconds: float, it: int) -> None:
         self.spent[what] += seconds
         for part in self.parts:
-            part.timed(self, what, seconds, it)
+            part.timed(self.state, what, seconds, it)
 
     def _evaluation(self, it: int, timed: bool = False) -> Eval:
         t0 = time.perf_counter()
@@ -366,18 +385,19 @@ class Trainer:
         """One iteration: a random training view, loss, backward, Adam, then the strategy's routines (_adapt).
         Returns (iteration, loss, loss terms, learning rates, routine events)."""
         t0 = time.perf_counter()
-        self.it += 1
-        it = self.it
+        st = self.state
+        st.it += 1
+        it = st.it
         self.model.sh_degree = schedule.sh_degree(cfg, it)
         view = self._next_view()
         # A random background colour per step (cfg.random_background) makes transparency unpredictable,
         # so coverage cannot stand in for dark colours; E, tests and exports use cfg.background.
         bg = torch.rand(3, generator=self.gen).to(self.device) if cfg.random_background else None
         inputs = self.model.render_inputs()
-        stats = self.strategy.step_stats(self)  # error_from_steps: the backward sums the loss's error image
-        rgb, rasterized = self._training_render(inputs, view, bg, stats)
+        stats = self.strategy.step_stats(st)  # error_from_steps: the backward sums the loss's error image
+        rgb, rasterized = self.training_render(inputs, view, bg, stats)
         for part in self.parts:
-            rgb = part.train_render(self, rgb, view)
+            rgb = part.train_render(st, rgb, view)
         gt = view.image_t if bg is None else recomposited(view.image_t, view.alpha_t, self.background, bg)
         terms = training_loss(*masked(rgb, gt, view.mask_t), self.model, view.camera, cfg, rasterized=rasterized,
                               textures=inputs.textures, want_error=stats is not None)
@@ -391,11 +411,11 @@ class Trainer:
             getattr(self.model, name).grad = None
         loss.backward()
         for part in self.parts:
-            part.post_backward(self, it, view)
+            part.post_backward(st, it, view)
         lrs = schedule.learning_rates(cfg, it, self.extent, self.model.sh.shape[1], self.device)
         self.opt.step(self.model, lrs)
         for part in self.parts:
-            part.post_step(self, it)
+            part.post_step(st, it)
         self._check_finite(loss.detach())
         t1 = time.perf_counter()
         events = list(self._adapt(it))
@@ -407,13 +427,13 @@ class Trainer:
         if events:
             self.spent["routine"] += t2 - t1
         for part in self.parts:
-            part.timed_step(self, it, t1 - t0, t2 - t1, events)
+            part.timed_step(st, it, t1 - t0, t2 - t1, events)
         return it, loss, terms, lrs, events
 
     def _adapt(self, it: int):
         """The routines of iteration `it` (the strategy's step_end)."""
         for part in self.parts:
-            yield from part.step_end(self, it)
+            yield from part.step_end(self.state, it)
 
     @contextlib.contextmanager
     def _whole_step(self):

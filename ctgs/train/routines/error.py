@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.ops.fused import error_image as fused_error_image
 from ctgs.metrics.ssim import ssim_map
+from ctgs.ops.fused import error_image as fused_error_image
 from ctgs.train.step.loss import masked
 
 

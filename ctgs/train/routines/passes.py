@@ -32,8 +32,8 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     gains: {view name: gain} for E (compute_E; exposure_in_E), or None.
     lean=False: upscale first, to 2x, then downscale, and let realloc crop (the paper's order; the same final state
     with up to ~2x the texels in between: tests/train/test_routines_image.py, benchmarks/results/archive/lean_routine/).
-    step_errors: E (and its support) from the training steps since the last routine (ctgs.train.routines.error.StepErrors),
-    when they cover the model's primitives; otherwise E is rendered over `views`.
+    step_errors: E (and its support) from the training steps since the last routine (error.StepErrors), when they
+    cover the model's primitives; otherwise E is rendered over `views`.
     """
     support = None
     from_steps = step_errors is not None and step_errors.covers(model.num_primitives)

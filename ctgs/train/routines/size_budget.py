@@ -4,7 +4,7 @@ Where the parameters go: a primitive holds a fixed count (59 at SH degree 3, few
 The budget is kept two ways:
 - primitives: splits (content-aware) and densification (baselines) stop at the count whose parameters, with the
   smallest texture each can have (2x2 texels; the fixed_texture baseline's fixed grid), fill the budget
-  (`primitive_cap`, folded into max_primitives by rules.resolve);
+  (ctgs.train.config.rules.primitive_cap, folded into max_primitives by rules.resolve);
 - texels: after every routine, reallocation and at the end, textures are coarsened where that loses least until the
   texels fit what the primitives leave (texels.fit_texels). Counted as the final trim will leave them, so the
   padding it drops does not use up the budget; at the end (after the trim) counted exactly, so the model written
@@ -15,24 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from ctgs.model import surfels
 from ctgs.train.routines import texels
-
-MIN_TEXELS = 4  # 2x2: the smallest texture a content-aware reallocation gives
-
-
-def params_per_primitive(method: str, max_sh_degree: int) -> int:
-    """SurfelModel.num_params per primitive of a `method` model (the 2dgs baseline has no texel size)."""
-    return surfels.params_per_primitive(max_sh_degree, textured=method != "2dgs")
-
-
-def primitive_cap(method: str, max_sh_degree: int, max_params: int, fixed_texture_res: int = 16) -> int:
-    """Most primitives a budget of max_params can hold (0 = no budget): each with its own parameters and the
-    smallest texture it can have."""
-    if max_params <= 0:
-        return 0
-    tex = {"2dgs": 0, "fixed_texture": fixed_texture_res ** 2}.get(method, MIN_TEXELS)
-    return max(1, max_params // (params_per_primitive(method, max_sh_degree) + 3 * tex))
 
 
 def texel_budget(model, max_params: int) -> int:

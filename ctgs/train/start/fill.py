@@ -5,8 +5,8 @@ method adds primitives only by splitting the ones it has (the paper's primitive 
 run can only cover such regions by growing the primitives at their edge. At 384x256 on herzjesu25 the `fast`
 1500-iteration runs leave 5-12% of some training views open, 64-94% of it in cells no SfM point reaches, where 2DGS,
 which clones, leaves 0-2.6% (docs/studies.md). `init_fill` adds, before training,
-one point per FILL_CELL_PX cell of each training view whose centre no SfM point reaches (ctgs.train.components.shell.open_mask:
-8-px cells, dilated by one), on the centre pixel's ray at the median z-depth of the NEIGHBOURS SfM points that
+one point per FILL_CELL_PX cell of each training view whose centre no SfM point reaches
+(ctgs.train.components.shell.open_mask: 8-px cells, dilated by one), on the centre pixel's ray at the median z-depth of the NEIGHBOURS SfM points that
 project nearest to it in that view, coloured by the cell's mean pixel. Views are taken in order and each one's
 occupancy counts the points the earlier views added, so a region seen by several views is filled once. The points
 are ordinary primitives from then on (split, upscaled and pruned like the others).

@@ -8,8 +8,8 @@ import torch
 from ctgs.errors import UserError
 from ctgs.model.surfels import SurfelModel
 from ctgs.render.geometry import frames_from_normals, rotmat_to_quat
-from ctgs.train.start.fill import fill_points
 from ctgs.train.components.shell import shell_points
+from ctgs.train.start.fill import fill_points
 
 SH_C0 = 0.28209479177387814
 

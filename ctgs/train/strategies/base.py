@@ -1,4 +1,5 @@
-"""What every training strategy has besides the hooks (ctgs.train.hooks)."""
+"""What every training strategy has besides the hooks (ctgs.train.hooks): a strategy sees the run's TrainState and
+keeps its own state."""
 
 from __future__ import annotations
 
@@ -11,8 +12,6 @@ class Strategy(Component):
     # what its pruning removes (said when a routine leaves no primitive)
     prune_rules = "opacity below its threshold"
 
-    textures_started = False
-
-    def step_stats(self, tr):
+    def step_stats(self, st):
         """A ctgs.render.BackwardStats for this step's render to fill in its backward, or None (no statistics)."""
         return None

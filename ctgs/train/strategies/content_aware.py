@@ -7,11 +7,10 @@ from __future__ import annotations
 
 from ctgs.render import BackwardStats
 from ctgs.train.config import schedule
+from ctgs.train.events import Routine
 from ctgs.train.routines import size_budget, texels
-from ctgs.train.components import Shell
 from ctgs.train.routines.densify import RESET_OPACITY, reset_opacity
 from ctgs.train.routines.error import StepErrors
-from ctgs.train.events import Routine
 from ctgs.train.routines.kmin import compute_k_min
 from ctgs.train.routines.passes import full_routine, late_routine
 from ctgs.train.strategies.base import Strategy
@@ -22,91 +21,90 @@ class ContentAware(Strategy):
     starts_textures = True
 
     def __init__(self):
-        self.textures_started = False
         self.errors = StepErrors()  # error_from_steps: E of the steps since the last full routine
         self.sink: BackwardStats | None = None  # the current step's statistics, filled by its backward
         self.sink_used = False  # whether the steps sum E (error_from_steps where it applies)
 
-    def restore(self, tr, state: dict) -> None:
-        self.textures_started = bool(state.get("textures_started", tr.it >= schedule.texture_start(tr.cfg)))
-        if "step_errors" in state:  # (older checkpoints: E is rendered at the next routine)
-            self.errors.load_state_dict(state["step_errors"])
+    def restore(self, st, saved: dict) -> None:
+        st.textures_started = bool(saved.get("textures_started", st.it >= schedule.texture_start(st.cfg)))
+        if "step_errors" in saved:  # (older checkpoints: E is rendered at the next routine)
+            self.errors.load_state_dict(saved["step_errors"])
 
-    def checkpoint(self) -> dict:
-        return {"textures_started": self.textures_started, "step_errors": self.errors.state_dict()}
+    def checkpoint(self, st) -> dict:
+        return {"textures_started": st.textures_started, "step_errors": self.errors.state_dict()}
 
-    def step_stats(self, tr) -> BackwardStats | None:
+    def step_stats(self, st) -> BackwardStats | None:
         """error_from_steps on the CPU backend: what this step's backward fills (its loss's error image, summed per
         primitive); None where E is rendered at the routines (other backends, init_shell's composited renders)."""
-        cfg = tr.cfg
-        on_cpu = tr.device.type == "cpu" and cfg.backend in ("auto", "cpu")
+        cfg = st.cfg
+        on_cpu = st.device.type == "cpu" and cfg.backend in ("auto", "cpu")
         self.sink = BackwardStats() if cfg.error_from_steps and on_cpu and cfg.init_shell <= 0 else None
         self.sink_used = self.sink is not None
         return self.sink
 
-    def errors_ready(self, tr) -> bool:
+    def errors_ready(self, st) -> bool:
         """error_from_steps: the steps since the last full routine hold at least as many views as a rendered E would
         (error_views, or every training view): a short plan's routine dates come every few steps, and an E of a handful
         of views ranks the primitives those views show. True where E is rendered."""
         if not self.sink_used:
             return True
-        need = tr.cfg.error_views if tr.cfg.error_views > 0 else len(tr.train_views)
-        return self.errors.steps >= min(need, len(tr.train_views))
+        need = st.cfg.error_views if st.cfg.error_views > 0 else len(st.train_views)
+        return self.errors.steps >= min(need, len(st.train_views))
 
-    def post_backward(self, tr, it: int, view) -> None:
+    def post_backward(self, st, it: int, view) -> None:
         sink, self.sink = self.sink, None
         if sink is not None and sink.contrib is not None:
             self.errors.add(sink.contrib, sink.err, view.image_t.shape[0] * view.image_t.shape[1])
 
-    def start_textures(self, tr) -> None:
-        """Allocate tr.model's textures (the run's texture start; the calibration does it on its copy)."""
-        cfg = tr.cfg
-        tr.model.k_min = compute_k_min(tr.model.means.detach(), tr.cameras)
-        texels.start_textures(tr.model, tr.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
+    def start_textures(self, st) -> None:
+        """Allocate st.model's textures (the run's texture start; the calibration does it on its copy)."""
+        cfg = st.cfg
+        st.model.k_min = compute_k_min(st.model.means.detach(), st.cameras)
+        texels.start_textures(st.model, st.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
                               cfg.texture_alloc, cfg.texture_sigma)
 
-    def step_end(self, tr, it: int):
-        cfg, model, opt, shift = tr.cfg, tr.model, tr.opt, tr.time.shift
+    def step_end(self, st, it: int):
+        cfg, model, opt, calendar = st.cfg, st.model, st.opt, st.calendar
+        shift = calendar.shift
         # --time-budget: not before the plan rests on measured steps (BudgetPlanner.measured_plan)
-        if not self.textures_started and it >= schedule.texture_start(cfg) and tr.time.textures_may_start:
-            self.textures_started = True
-            self.start_textures(tr)
+        if not st.textures_started and it >= schedule.texture_start(cfg) and calendar.textures_may_start:
+            st.textures_started = True
+            self.start_textures(st)
             budget = size_budget.fit(model, opt, cfg)
             yield Routine(it, "texture_start", {"t2p_exp_mean": float(model.t2p_exp.float().mean()),
                                                 **(budget or {})})
         # Routines refine textures: none before they start (a --time-budget run holds its texture start until
         # the plan rests on measured steps, while a short first plan's calendar may already call for routines).
-        kind = schedule.routine_kind(cfg, it, shift) if self.textures_started else None
-        if kind == "full" and not self.errors_ready(tr):
+        kind = schedule.routine_kind(cfg, it, shift) if st.textures_started else None
+        if kind == "full" and not self.errors_ready(st):
             kind = None  # error_from_steps: E of fewer steps than E would render views waits for more
-        if kind == "full" and not tr.time.admits(tr, "routine", it):
+        if kind == "full" and not calendar.admits(st, "routine", it):
             kind = None  # --time-budget: a date its routine calendar leaves out (ctgs.train.components.budget.SHARE)
         if kind == "full":
-            yield Routine(it, "full", self.full_routine(tr, it))
+            yield Routine(it, "full", self.full_routine(st, it))
             if schedule.content_opacity_reset(cfg, it, shift):
                 value = max(2.0 * cfg.prune_opacity, RESET_OPACITY)  # prune_opacity = 0 would give 0
                 reset_opacity(model, opt, value)
                 yield Routine(it, "opacity_reset", {"value": value})
         elif kind == "late":
-            yield Routine(it, "late", late_routine(model, opt, cfg, tr.cameras))
+            yield Routine(it, "late", late_routine(model, opt, cfg, st.cameras))
             self.errors.reset()  # (it prunes)
-        elif self.textures_started and schedule.every(cfg, cfg.realloc_every, it, shift):
+        elif st.textures_started and schedule.every(cfg, cfg.realloc_every, it, shift):
             texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
             if (budget := size_budget.fit(model, opt, cfg)) is not None:
                 yield Routine(it, "budget", budget)
 
-    def full_routine(self, tr, it: int) -> dict:
-        cfg = tr.cfg
-        gains = tr.exposure.view_gains() if tr.exposure is not None and cfg.exposure_in_E else None
-        shell = tr.part(Shell)  # init_shell: the far primitives the split/upscale ranking leaves out
-        stats = full_routine(tr.model, tr.opt, cfg, it, tr.train_views, tr.render_fn, tr.cameras,
-                             None if shell is None else shell.far, gains=gains,
-                             step_errors=self.errors if cfg.error_from_steps else None)
+    def full_routine(self, st, it: int) -> dict:
+        cfg = st.cfg
+        gains = st.view_gains() if st.view_gains is not None and cfg.exposure_in_E else None
+        # st.far (init_shell): the far primitives the split/upscale ranking leaves out
+        stats = full_routine(st.model, st.opt, cfg, it, st.train_views, st.render_fn, st.cameras, st.far,
+                             gains=gains, step_errors=self.errors if cfg.error_from_steps else None)
         self.errors.reset()  # the primitives changed: the next routine's E starts from its own steps
         return stats
 
-    def finish(self, tr):
-        if tr.cfg.texture_trim > 0:
+    def finish(self, st):
+        if st.cfg.texture_trim > 0:
             # Model only what the textures hold: texels below texture_trim in every channel go (texels.trim;
             # idempotent, so a resumed run that trims again changes nothing).
-            yield Routine(tr.it, "trim", texels.trim(tr.model, tr.opt, tr.cfg.texture_trim))
+            yield Routine(st.it, "trim", texels.trim(st.model, st.opt, st.cfg.texture_trim))
