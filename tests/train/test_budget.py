@@ -220,6 +220,8 @@ def test_few_passes_note_only_for_a_content_aware_plan_of_few_passes():
     assert few_passes_note("content_aware", FEW_PASSES * 21, 21) is None  # enough passes
     assert few_passes_note("2dgs", 100, 220) is None and few_passes_note("fixed_texture", 100, 220) is None
     assert few_passes_note("content_aware", 100, 0) is None
+    assert "292 iterations are 1.3 passes over the 220" in few_passes_note("content_aware", 292, 220)
+    assert "4 iterations are 1 pass over the 4" in few_passes_note("content_aware", 4, 4)
 
 
 @pytest.mark.parametrize("quiet", [True, False])
@@ -235,7 +237,7 @@ def test_a_budget_that_buys_a_short_run_warns_once_on_stderr(tmp_path, capsys, q
     err = capsys.readouterr().err
     assert err.count("ctgs train: warning:") == 1 and "shortest run measured" in err
     # the content-aware plan of few passes over the 4 training views is told where its textures had not paid
-    assert err.count("ctgs train: note:") == 1 and "passes over the 4 training views" in err
+    assert err.count("ctgs train: note:") == 1 and "over the 4 training views" in err
     assert summary["iterations"] < 1000 and summary["planned_iterations_initial"] < 1000
 
 

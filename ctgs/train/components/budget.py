@@ -107,7 +107,8 @@ def few_passes_note(method: str, iterations: int, views: int) -> str | None:
     passes = iterations / views
     if passes >= FEW_PASSES:
         return None
-    return (f"ctgs train: note: {iterations} iterations are {passes:.0f} passes over the {views} training views; "
+    count = f"{passes:.0f} passes" if passes >= 10 else f"{passes:.1f} passes" if passes != 1 else "1 pass"
+    return (f"ctgs train: note: {iterations} iterations are {count} over the {views} training views; "
             f"below about {FEW_PASSES} the textures had not paid for their cost in measured runs (bonsai252, 27 "
             f"passes: 1.45 dB below the 2dgs baseline given the same minutes; herzjesu25, 119 passes: 1.69 dB "
             f"above). More minutes, a smaller --images folder, or --config 2dgs may serve this capture better "
