@@ -60,11 +60,34 @@ def checkpoint_iteration(run: str) -> int | None:
     return None if found is None else found[1]
 
 
+def _wait_for_a_step(run: str, proc: subprocess.Popen, after_it: int) -> None:
+    """Until the run's log holds a step past iteration `after_it` (the start is training) or the process ends."""
+    path = os.path.join(run, "log.jsonl")
+    while proc.poll() is None:
+        try:
+            with open(path, encoding="utf-8") as fh:
+                lines = fh.read().splitlines()
+        except OSError:
+            lines = []
+        for line in reversed(lines):
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue  # a line being written
+            if rec.get("type") == "step":
+                if rec.get("it", 0) > after_it:
+                    return
+                break
+        time.sleep(0.02)
+
+
 def killed_run(scene: str, run: str, opts: argparse.Namespace, rng: random.Random, start_s: float,
                step_s: float) -> dict:
     """Start, kill at a random moment, resume, --kills times, then to the end. A quarter of the kills land while a
-    start loads (up to start_s), the others in its training, up to twice the left training's share of the kills left
-    (step_s a step): they spread over the whole run rather than the first ones ending it."""
+    start loads (within the first half of the reference's start-up, start_s: a start-up's length varies with the
+    machine's load), the others in its training: once the start has logged a step past its checkpoint, after up to
+    twice the left training's share of the kills left (step_s a step), so they spread over the whole run rather than
+    the first ones ending it, and none waits past a start-up that came quicker than the reference's."""
     kills = []
     starts = 0
     while not os.path.isfile(os.path.join(run, "model.pt")):
@@ -73,16 +96,21 @@ def killed_run(scene: str, run: str, opts: argparse.Namespace, rng: random.Rando
                                 stderr=subprocess.PIPE, text=True, env=_env())
         starts += 1
         if len(kills) < opts.kills:
-            left = opts.iterations - (checkpoint_iteration(run) or 0)
+            began = time.monotonic()
+            resumed_at = checkpoint_iteration(run) or 0
+            left = opts.iterations - resumed_at
             share = step_s * left / (opts.kills - len(kills) + 1)
-            delay = rng.uniform(0.1, start_s) if rng.random() < 0.25 else start_s + rng.uniform(0.0, 2.0 * share)
+            in_start = rng.random() < 0.25
+            delay = rng.uniform(0.1, 0.5 * start_s) if in_start else rng.uniform(0.0, 2.0 * share)
+            if not in_start:
+                _wait_for_a_step(run, proc, resumed_at)
             try:
                 proc.wait(timeout=delay)
             except subprocess.TimeoutExpired:
                 proc.send_signal(signal.SIGKILL)
             err = proc.communicate()[1]
             if proc.returncode == -signal.SIGKILL:
-                kills.append({"after_s": round(delay, 2), "resumed": bool(flag),
+                kills.append({"after_s": round(time.monotonic() - began, 2), "resumed": bool(flag),
                               "checkpoint_it": checkpoint_iteration(run)})
                 continue
         else:
