@@ -59,6 +59,9 @@ def rows(a: dict, b: dict) -> list[dict]:
     for it in sorted(set(a["evals"]) & set(b["evals"])):
         ea, eb = a["evals"][it], b["evals"][it]
         sa, sb = size_at(a, it), size_at(b, it)
+        # texels_active: inside the active extents, the authors' saved-model measure (ctgs.model.extent.active_texels);
+        # logged with each evaluation since it existed, absent (None) in older logs
+        sa["texels_active"] = ea.get("texels_active")
         out.append({"it": it,  # (the periodic evaluations are scored after this step, before each multiple)
                     "a": {"psnr": ea["psnr"], "ssim": ea["ssim"], "lpips": ea.get("lpips"), **sa},
                     "b": {"psnr": eb["psnr"], "ssim": eb["ssim"], "lpips": eb.get("lpips"), **sb}})
@@ -131,8 +134,10 @@ def markdown(res: dict) -> str:
                   f"| LPIPS, method - 2DGS* | {'-' if dl is None else f'{dl:+.3f}'} | {PAPER['d_lpips']:+.3f} |",
                   f"| primitives, method / 2DGS* | {a['primitives'] / max(b['primitives'], 1):.2f}x | "
                   f"{PAPER['prim_ratio']:.2f}x |",
-                  f"| texels per primitive (method) | {a['texels'] / max(a['primitives'], 1):.1f} | "
-                  f"{PAPER['texels_per_prim_bonsai']} (bonsai) |"]
+                  f"| texels per primitive (method), as allocated | {a['texels'] / max(a['primitives'], 1):.1f} | - |",
+                  "| texels per primitive (method), inside the active extents (the authors' saved models) | "
+                  + ("-" if a.get("texels_active") is None else f"{a['texels_active'] / max(a['primitives'], 1):.1f}")
+                  + f" | {PAPER['texels_per_prim_bonsai']} (bonsai) |"]
     lines += ["", "![curves](" + os.path.basename(res["png"]) + ")", ""]
     return "\n".join(lines)
 

@@ -30,3 +30,16 @@ def texel_size(model) -> torch.Tensor:
 def active_resolution(model) -> torch.Tensor:
     """[N, 2] texels across the active extent on each axis (not rounded)."""
     return 2 * active_half_extent(model) / texel_size(model)[:, None]
+
+
+def active_texels(model) -> int:
+    """Texels inside the active extents: per textured primitive ceil(active_resolution) on each axis, at least 1 and at
+    most its allocation. The authors' code crops every texture to this size when it saves a model
+    (`_calculate_active_texture_resolution`), so the paper's texel counts are of this kind; `num_texels` counts the
+    allocation (rounded up to a power of two or a multiple of 4 while training)."""
+    if model.num_primitives == 0 or model.num_texels == 0:
+        return 0
+    res = model.tex_res.to(torch.long)
+    act = torch.ceil(active_resolution(model)).to(torch.long)
+    act = torch.minimum(act.clamp_min(1), res)
+    return int(act.prod(1).sum())

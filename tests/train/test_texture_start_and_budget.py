@@ -137,3 +137,62 @@ def test_mult4_realloc_and_downscale_keep_the_image(tmp_path=None):
     texels.realloc(m, opt, 256, "mult4")
     assert all(v % 4 == 0 or v == 2 for v in m.tex_res[0].tolist())
     assert torch.abs(image(m) - before).max() < 0.03  # a linear ramp survives x2 downsampling
+
+
+def test_split_children_leave_the_candidates_unless_they_stay():
+    """The authors' code zeroes the error of the primitives a split adds, so a routine does not upscale them:
+    children_stay=False returns them as non-candidates; True (the CPU presets) carries the parent's flag. Either way a
+    child of the x split is still a candidate for the y split."""
+    means = [[x, 0.0, 3.0] for x in np.linspace(-1, 1, 4)]
+
+    def fresh():
+        m = model(means=means, scales=[[0.3, 0.3]] * 4, opacities=[0.9] * 4, tex_res=[[2, 2]] * 4, k_min=[0.005] * 4)
+        return m, optimiser(m)
+
+    cand = torch.tensor([True, True, False, False])
+    m, opt = fresh()
+    n, kept = split(m, opt, cand, tau=4.0, children_stay=True)
+    # Both axes split: 2 parents -> 4 children each, the 2 others untouched.
+    assert n == 2 + 4 and m.num_primitives == 2 + 8
+    assert int(kept.sum()) == 8
+    m, opt = fresh()
+    n2, left = split(m, opt, cand, tau=4.0, children_stay=False)
+    assert n2 == n and m.num_primitives == 2 + 8
+    assert not left.any()
+    # The untouched primitives keep their flags.
+    m, opt = fresh()
+    _, mixed = split(m, opt, torch.tensor([True, False, True, False]), tau=1e9, children_stay=False)
+    assert mixed.tolist() == [True, False, True, False]
+
+
+def test_active_texels_count_the_active_extents_not_the_allocation():
+    """The authors' saved models crop each texture to ceil(active extent / texel size) per axis: num_texels counts
+    the allocation, active_texels that crop (at least 1 texel per axis, at most the allocation)."""
+    from ctgs.model.extent import active_resolution, active_texels
+
+    m = model(means=[[0.0, 0.0, 3.0], [0.5, 0.0, 3.0]], scales=[[0.2, 0.1], [0.05, 0.05]], opacities=[0.9, 0.9],
+              tex_res=[[16, 16], [8, 8]], k_min=[0.05, 0.05], t2p_exp=[1, 1])
+    act = torch.ceil(active_resolution(m)).long()
+    assert act.tolist() in ([[12, 6], [3, 3]], [[13, 7], [4, 4]])  # 2 x 3 sigma x scale / 0.1 (float rounding)
+    expect = int(act.prod(1).sum())
+    assert m.num_texels == 16 * 16 + 8 * 8
+    assert active_texels(m) == expect < m.num_texels
+
+
+def test_thin_textures_downscale_only_with_the_authors_rule():
+    """A texture 2 texels wide on one axis and wider on the other: the authors' code downscales it (any axis above
+    2), downscale_thin=False (the CPU presets) leaves it; the routine's realloc then pads the thin axis again."""
+    def fresh():
+        m = model(means=[[0.0, 0.0, 3.0]], scales=[[0.4, 0.02]], opacities=[0.9], tex_res=[[8, 2]],
+                  textures=torch.zeros(16, 3), k_min=[0.01], t2p_exp=[2])
+        return m, optimiser(m)
+
+    m, opt = fresh()
+    down, e_d = texels.downscale(m, opt, torch.ones(1, dtype=torch.bool), tau_ds=0.02, thin=False)
+    assert not down.any() and torch.isnan(e_d).all() and m.tex_res.tolist() == [[8, 2]]
+    m, opt = fresh()
+    down, e_d = texels.downscale(m, opt, torch.ones(1, dtype=torch.bool), tau_ds=0.02, thin=True)
+    assert down.tolist() == [True] and float(e_d[0]) < 0.02  # a flat texture survives the round trip
+    assert m.tex_res.tolist() == [[4, 1]] and m.t2p_exp.tolist() == [3] and m.num_texels == 4
+    texels.realloc(m, opt, 256)
+    assert int(m.tex_res.min()) >= 2

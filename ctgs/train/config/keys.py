@@ -91,11 +91,11 @@ class TrainConfig:
     # ---- loss ----
     lambda_ssim: float = _f(0.2, "weight of 1 - SSIM (L1 gets 1 - this)")
     lambda_opacity: float = _f(0.01, "opacity regulariser weight on mean(opacity)")
-    opacity_reg_visible: bool = _f(False, "apply the opacity regulariser to the primitives the view rasterizes only "
-                                   "(their opacities summed / N): under Adam a constant gradient moves a primitive no "
-                                   "view shows at the full learning rate, which with hundreds of training views sinks "
-                                   "the primitives of the views not drawn lately below the pruning threshold "
-                                   "(false = mean over all, the paper)")
+    opacity_reg_visible: bool = _f(True, "apply the opacity regulariser to the primitives the view rasterizes only "
+                                   "(their opacities summed / N), as the authors' code does ((opacity x visibility)."
+                                   "mean()); false = the mean over all primitives, which under Adam moves a primitive "
+                                   "no view shows at the full learning rate and, with hundreds of training views, sinks "
+                                   "the primitives of the views not drawn lately below the pruning threshold")
     lambda_texture: float = _f(1e-8, "texture sparsity weight on sum |texel| of visible primitives")
     texture_reg_transmittance: bool = _f(False, "weight each primitive's texel L1 by 1 - its mean transmittance in "
                                         "the view (the authors' README variant; the paper and their code use plain L1)")
@@ -141,7 +141,13 @@ class TrainConfig:
                                 "it saw, not the routine's. Other backends, init_shell runs and a routine with "
                                 "no step since the last one render E as error_views says; false = the paper")
     top_fraction: float = _f(0.1, "fraction of primitives with the largest E eligible for split/upscale")
+    upscale_split_children: bool = _f(False, "a routine may upscale the children of its own splits (they inherit the "
+                                      "parent's E); false = the authors' code, which zeroes the E of the primitives a "
+                                      "split adds, so they are not upscaled in that routine and may be downscaled")
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
+    downscale_thin: bool = _f(True, "downscale a texture 2 texels wide on one axis when the other is wider, as the "
+                              "authors' code does (any axis above 2); false = only textures above 2 texels on both "
+                              "axes")
     tau_tr_start: float = _f(64.0, "split threshold on active texture resolution at iteration 0")
     tau_tr_end: float = _f(32.0, "split threshold reached at tau_tr_iters")
     tau_tr_pixel_exponent: float = _f(0.0, "tau_tr_start/end x (HW / 1e6) ** this (rules.py): 0 keeps the paper's "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 
+from ctgs.model.extent import active_texels
 from ctgs.runs import LOG_FILE, eval_peak, machine_name, new_model_id, write_finished
 
 
@@ -16,7 +17,8 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     summary = {"iterations": trainer.it, "train_seconds": round(trainer.train_seconds, 2), "backend": backend,
                "device": str(trainer.device), "machine": machine_name(), "method": cfg.method,
                "num_primitives": model.num_primitives, "num_texels": model.num_texels,
-               "num_params": model.num_params(), "final_test_psnr": test_psnr, "final_test_ssim": test_ssim,
+               "num_texels_active": active_texels(model), "num_params": model.num_params(),
+               "final_test_psnr": test_psnr, "final_test_ssim": test_ssim,
                "preset": trainer.user_cfg.preset, "wall_seconds": round(trainer.wall_seconds(), 2),
                "image_pixels": trainer.pixels, "observed_values": trainer.observed_values(),
                "params_per_observed_value": model.num_params() / max(trainer.observed_values(), 1),

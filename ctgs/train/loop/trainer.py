@@ -21,6 +21,7 @@ from ctgs.io import atomic
 from ctgs.io.signals import signals_deferred
 from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim
+from ctgs.model.extent import active_texels
 from ctgs.model.surfels import SurfelModel
 from ctgs.ops import fused
 from ctgs.runs import checkpoint as ckpt
@@ -371,7 +372,8 @@ class Trainer:
         p, s, lp = self.evaluate()
         if timed:
             self._timed("eval", time.perf_counter() - t0, it)
-        self.log({"type": "test", "it": it, "psnr": p, "ssim": s, **({"lpips": lp} if lp is not None else {})})
+        self.log({"type": "test", "it": it, "psnr": p, "ssim": s, **({"lpips": lp} if lp is not None else {}),
+                  **({"texels_active": active_texels(self.model)} if self.model.num_texels else {})})
         return Eval(it, p, s)
 
     def _logged(self, events):

@@ -52,21 +52,22 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
         top[~bg] = top_fraction_mask(E[~bg], cfg.top_fraction)
     n0 = model.num_primitives
     if support is None:
-        n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E)
+        n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E,
+                             children_stay=cfg.upscale_split_children)
     else:
         n_split, top, support = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E,
-                                      carry=support)
+                                      carry=support, children_stay=cfg.upscale_split_children)
     if lean:
         # The same result as upscaling first (the two touch disjoint primitives, each texture alone), with the
         # textures at their smallest in between: downscale the others first, then upscale cropped as made to what
         # realloc below gives it, so that 4x the upscaled texels never exist at once.
         up = texels.upscale_selection(model, top, cfg.min_t2p_exp)
-        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
+        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin)
         texels.upscale(model, opt, up, cfg.min_t2p_exp,
                        crop=(cameras, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma))
     else:
         up = texels.upscale(model, opt, top, cfg.min_t2p_exp)
-        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds)
+        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin)
     kept = model.opacities.detach() >= cfg.prune_opacity  # what prune keeps (support and up follow it)
     n_pruned = prune(model, opt, cfg.prune_opacity)
     model.k_min = compute_k_min(model.means.detach(), cameras)
@@ -83,7 +84,8 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
 def late_routine(model, opt, cfg, cameras) -> dict:
     """After the main phase: downscale everything that passes, light pruning, k_min, reallocate."""
     down, _ = texels.downscale(model, opt, torch.ones(model.num_primitives, dtype=torch.bool,
-                                                         device=model.means.device), cfg.tau_ds)
+                                                         device=model.means.device), cfg.tau_ds,
+                               thin=cfg.downscale_thin)
     n_pruned = prune(model, opt, cfg.prune_opacity_late)
     model.k_min = compute_k_min(model.means.detach(), cameras)
     texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)

@@ -15,7 +15,7 @@ CHILD_OPACITY_FACTOR = math.exp(-0.5)  # each child's opacity: parent's x exp(-1
 
 @torch.no_grad()
 def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int = 0,
-          priority: torch.Tensor | None = None, carry: torch.Tensor | None = None):
+          priority: torch.Tensor | None = None, carry: torch.Tensor | None = None, children_stay: bool = True):
     """Split candidates whose active resolution on an axis exceeds tau (x axis first, then y).
 
     Children sit at +-(1/6 of the active extent) along the axis, quantised to whole texels, with half the
@@ -23,8 +23,12 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
     stay at the same world positions. With max_primitives > 0, splits stop at the budget (largest
     `priority` first). Returns (number of splits, the [N'] bool candidate mask carried to children), and with
     `carry` (an [N] per-primitive tensor) a third item: carry for the N' primitives (children inherit the parent's).
+    A child of an x split is a candidate for the y split as its parent was; children_stay=False then leaves every
+    child out of the returned mask, as the authors' code zeroes the error of the primitives a split adds (so a
+    routine does not upscale them).
     """
     total = 0
+    is_child = torch.zeros(model.num_primitives, dtype=torch.bool, device=candidates.device)
     for axis in (0, 1):
         n = model.num_primitives
         sel = candidates & (active_resolution(model)[:, axis] > tau)
@@ -59,10 +63,13 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
         o = (opac[child] * CHILD_OPACITY_FACTOR).clamp(1e-6, 1 - 1e-6)
         model.opacity_logits.data[child] = torch.log(o / (1 - o))
         candidates = candidates[idx]
+        is_child = is_child[idx] | child
         if priority is not None:
             priority = priority[idx]
         if carry is not None:
             carry = carry[idx]
+    if not children_stay:
+        candidates = candidates & ~is_child
     if carry is not None:
         return total, candidates, carry
     return total, candidates

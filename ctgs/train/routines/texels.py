@@ -166,16 +166,20 @@ def downscale_error(model, candidates: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def downscale(model, opt, candidates: torch.Tensor, tau_ds: float) -> tuple[torch.Tensor, torch.Tensor]:
+def downscale(model, opt, candidates: torch.Tensor, tau_ds: float,
+              thin: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Double the texel size of candidates whose texture survives a x2 bicubic antialiased down/up round trip.
 
     E_d = Gaussian-weighted mean over texels of |mean_RGB(recon - orig)| (activated values). Accepted
     (E_d < tau_ds, resolution > 2 on both axes) keep the downsampled texture, t2p_exp + 1; their Adam
-    moments are 2x2 averaged. Returns (accepted [N] bool, E_d [N] with NaN where not evaluated).
+    moments are 2x2 averaged. thin=True also takes textures 2 texels wide on one axis and wider on the other (the
+    authors' code: any axis above 2); the thin axis is then 1 texel until the routine's realloc pads it again.
+    Returns (accepted [N] bool, E_d [N] with NaN where not evaluated).
     """
     n = model.num_primitives
     e_d = torch.full((n,), float("nan"), device=model.means.device)
-    sel = candidates & (model.tex_res.min(1).values > 2)
+    res = model.tex_res
+    sel = candidates & ((res.min(1).values >= 2) & (res.max(1).values > 2) if thin else (res.min(1).values > 2))
     accepted = torch.zeros(n, dtype=torch.bool, device=model.means.device)
     if not bool(sel.any()):
         return accepted, e_d
