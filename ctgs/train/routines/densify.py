@@ -45,8 +45,9 @@ class GradAccumulator:
 
 @torch.no_grad()
 def densify_and_prune(model, opt, acc: GradAccumulator, cfg, extent: float, gen: torch.Generator,
-                      prune_big: bool) -> dict:
-    """One 3DGS densification step; returns counts."""
+                      prune_big: bool, prune_faint: bool = True) -> dict:
+    """One 3DGS densification step; returns counts. prune_faint=False skips the opacity test (see
+    ctgs.train.strategies.densify.RESET_RECOVERY_STEPS)."""
     n = model.num_primitives
     dev = model.means.device
     avg = acc.sum / acc.count.clamp_min(1)
@@ -80,6 +81,8 @@ def densify_and_prune(model, opt, acc: GradAccumulator, cfg, extent: float, gen:
         model.means.data[s0:] += offs
         model.log_scales.data[s0:] -= torch.log(torch.tensor(SPLIT_SCALE_DIV))
     drop = model.opacities.detach() < cfg.prune_opacity_2dgs
+    if not prune_faint:
+        drop = torch.zeros_like(drop)
     # World size only: 3DGS/2DGS also test a 2D radius > 20 px, but their densification_postfix has zeroed the radii
     # by then, so that test prunes nothing in the published code (docs/guide/training.md, baseline overlays).
     if prune_big:

@@ -8,6 +8,11 @@ from ctgs.train.events import Routine
 from ctgs.train.routines.densify import GradAccumulator, densify_and_prune, reset_opacity
 from ctgs.train.strategies.base import Strategy
 
+# Steps a reset's primitives get before a densification may prune them by opacity: 2DGS resets to 0.01 and prunes below
+# 0.05 at its next densification, 100 steps later. A schedule scaled to a short run can densify sooner, which pruned
+# every primitive of a 120-step demo run; such a densification then skips the opacity test (size pruning still runs).
+RESET_RECOVERY_STEPS = 100
+
 
 class Densify(Strategy):
     """`2dgs`: untextured surfels."""
@@ -17,6 +22,7 @@ class Densify(Strategy):
 
     def __init__(self):
         self.acc = None  # the gradient statistics since the last densification
+        self.last_reset = None  # iteration of the last opacity reset
 
     def initialize(self, st) -> None:
         self.acc = GradAccumulator(st.model.num_primitives, st.device)
@@ -24,9 +30,10 @@ class Densify(Strategy):
     def restore(self, st, saved: dict) -> None:
         self.initialize(st)
         self.acc.load_state_dict({k: v.to(st.device) for k, v in saved["acc"].items()})
+        self.last_reset = saved.get("last_reset")  # absent from older checkpoints
 
     def checkpoint(self, st) -> dict:
-        return {"acc": {k: v.cpu() for k, v in self.acc.state_dict().items()}}
+        return {"acc": {k: v.cpu() for k, v in self.acc.state_dict().items()}, "last_reset": self.last_reset}
 
     def post_backward(self, st, it: int, view) -> None:
         # the loss's gradient only: terms back-propagated after this hook are not in the statistics
@@ -37,10 +44,12 @@ class Densify(Strategy):
         cfg, shift = st.cfg, st.calendar.shift
         if schedule.densify_active(cfg, it, shift):
             prune_big = it > schedule.at(cfg, cfg.opacity_reset_every)
+            recovered = self.last_reset is None or it - self.last_reset >= RESET_RECOVERY_STEPS
             yield Routine(it, "densify", densify_and_prune(st.model, st.opt, self.acc, cfg, st.extent, st.gen,
-                                                           prune_big))
+                                                           prune_big, prune_faint=recovered))
         if schedule.opacity_reset(cfg, it, shift):
             reset_opacity(st.model, st.opt)
+            self.last_reset = it
             yield Routine(it, "opacity_reset", {})
 
 
