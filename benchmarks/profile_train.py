@@ -246,6 +246,7 @@ def machine() -> dict:
 
 def write(res: dict, out_dir: str) -> None:
     base = os.path.join(out_dir, f"profile_{res['tag']}_{res['label']}{'_cpu' if res.get('clock') == 'cpu' else ''}")
+    os.makedirs(out_dir, exist_ok=True)  # a profile of minutes is not lost to a missing folder
     with open(base + ".json", "w") as fh:
         json.dump(res, fh, indent=2)
     per = res["per_iteration_s"]
