@@ -180,7 +180,8 @@ class TrainConfig:
     densify_grad_threshold: float = _f(0.0002, "view-space positional gradient threshold (3DGS NDC units)")
     percent_dense: float = _f(0.01, "clone if max scale <= this * extent, else split")
     opacity_reset_every: int = _f(3000, "iterations between opacity resets (paper scale)")
-    prune_opacity_2dgs: float = _f(0.05, "baseline prune threshold (2DGS's opacity_cull, also gsplat's 2DGS trainer; 3DGS prunes at 0.005)")
+    prune_opacity_2dgs: float = _f(0.05, "baseline prune threshold (2DGS's opacity_cull, also gsplat's 2DGS "
+                                   "trainer; 3DGS prunes at 0.005)")
     # ---- logging / checkpoints ----
     log_every: int = _f(10, "iterations between JSON-lines step records")
     test_every: int = _f(1000, "iterations between test-view PSNR evaluations (0 = only at the end)")
