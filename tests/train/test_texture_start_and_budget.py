@@ -196,3 +196,101 @@ def test_thin_textures_downscale_only_with_the_authors_rule():
     assert m.tex_res.tolist() == [[4, 1]] and m.t2p_exp.tolist() == [3] and m.num_texels == 4
     texels.realloc(m, opt, 256)
     assert int(m.tex_res.min()) >= 2
+
+
+def test_texture_start_rounds_the_exponent_up_with_the_authors_rule():
+    """The authors' code takes the texel size's exponent with ceil (at most start_texels across the smaller active
+    extent); start_exp_ceil=False (the CPU presets) takes the nearest power of two."""
+    def fresh():
+        return model(means=[[0.0, 0.0, 3.0], [0.5, 0.0, 3.0], [0, 0.3, 3.0]],
+                     scales=[[0.2, 0.2], [0.003, 0.003], [0.2, 0.1]], opacities=[0.9] * 3, tex_res=[[0, 0]] * 3,
+                     textures=torch.zeros(0, 3), k_min=[0.002] * 3)
+
+    m = fresh()
+    texels.start_textures(m, optimiser(m), start_texels=8, min_exp=1, cap=256, ceil=True)
+    # 2^6.23 -> 2^7 and 2^5.23 -> 2^6 (the nearest would be 6 and 5); prim 1 stays at the minimum.
+    assert m.t2p_exp.tolist() == [7, 1, 6]
+    extent = 2 * texels.active_half_extent(m).min(1).values
+    across = (extent / texels.texel_size(m))[[0, 2]]
+    assert bool(((across > 4) & (across <= 8)).all())
+
+
+def _split_pair():
+    """Two primitives 18 texels wide (tau 4 splits them on both axes), textures 16 x 16, Adam moments all 1."""
+    m = model(means=[[-0.5, 0.0, 3.0], [0.5, 0.0, 3.0]], scales=[[0.03, 0.03]] * 2, opacities=[0.9] * 2,
+              tex_res=[[16, 16]] * 2, k_min=[0.005] * 2)
+    opt = optimiser(m)
+    for st in (opt.exp_avg, opt.exp_avg_sq):
+        for k in st:
+            st[k] = torch.ones_like(st[k])
+    return m, opt
+
+
+def test_split_children_start_with_zero_moments_with_the_authors_rule():
+    """The authors' code appends a split's children as new parameters (zero Adam moments, textures too) and drops
+    the parent; split_fresh_moments=False (the CPU presets) lets them inherit the parent's. The primitive left
+    alone keeps its moments either way."""
+    from ctgs.model.surfels import jagged_offsets
+
+    for fresh in (True, False):
+        m, opt = _split_pair()
+        kids = []
+        split(m, opt, torch.tensor([True, False]), tau=4.0, fresh_children=fresh, children_out=kids)
+        child = kids[0]
+        assert m.num_primitives == 1 + 4 and child.tolist() == [False, True, True, True, True]
+        for st in (opt.exp_avg, opt.exp_avg_sq):
+            assert bool((st["means"][~child] == 1).all())
+            assert bool((st["means"][child] == (0 if fresh else 1)).all())
+            off, res = jagged_offsets(m.tex_res), m.tex_res.long()
+            alone = st["textures_raw"][int(off[0]): int(off[0]) + int(res[0].prod())]
+            assert alone.numel() > 0 and bool((alone == 1).all())
+            kids_texels = st["textures_raw"][int(off[1]):]
+            if fresh:
+                assert kids_texels.numel() > 0 and bool((kids_texels == 0).all())
+            else:  # the parent's, shifted (texels shifted in from outside its texture start at 0)
+                assert float(kids_texels.mean()) > 0.5
+
+
+def test_split_children_scale_is_capped_at_tau_texels_over_3_with_the_authors_rule():
+    """A primitive far wider than tau texels: halving leaves its children wider than tau texels; the authors' code
+    caps a child's scale on the split axis at tau x texel / 3."""
+    def fresh():
+        m = model(means=[[0.0, 0.0, 3.0]], scales=[[2.0, 0.005]], opacities=[0.9], tex_res=[[4, 4]], k_min=[0.005])
+        return m, optimiser(m)
+
+    tau = 4.0
+    m, opt = fresh()
+    k = float(texels.texel_size(m)[0])
+    split(m, opt, torch.tensor([True]), tau=tau, scale_cap=False)
+    assert torch.allclose(m.scales[:, 0], torch.full((2,), 1.0))
+    m, opt = fresh()
+    split(m, opt, torch.tensor([True]), tau=tau, scale_cap=True)
+    assert m.num_primitives == 2
+    assert torch.allclose(m.scales[:, 0], torch.full((2,), tau * k / 3), rtol=1e-5)
+    assert torch.allclose(m.scales[:, 1], torch.full((2,), 0.005), rtol=1e-5)  # the other axis: untouched
+
+
+def test_the_upscale_set_after_the_split_takes_the_top_fraction_of_every_primitive():
+    """The authors' code upscales E above its (1 - top_fraction) quantile over every primitive after the split, E
+    taken as 0 for the split's children and where the texel size is at its smallest: 10% of 20 primitives is 2, the
+    largest E among those that can be upscaled, whatever a child or a minimum-size texel held."""
+    from types import SimpleNamespace
+
+    from ctgs.train.routines.passes import upscale_after_split
+
+    n = 20
+    m = model(means=[[0.1 * i, 0.0, 3.0] for i in range(n)], scales=[[0.05, 0.05]] * n, opacities=[0.9] * n,
+              tex_res=[[4, 4]] * n, t2p_exp=[2] * n)
+    m.t2p_exp[0] = 1  # at min_t2p_exp: cannot be upscaled
+    E = torch.arange(1, n + 1, dtype=torch.float32).flip(0)  # E[0] = 20 (largest) ... E[19] = 1
+    children = torch.zeros(n, dtype=torch.bool)
+    children[1] = True  # E 19, a child of this split
+    cfg = SimpleNamespace(upscale_split_children=False, min_t2p_exp=1, top_fraction=0.1)
+    up = upscale_after_split(m, E, children, cfg, None)
+    assert torch.nonzero(up).flatten().tolist() == [2, 3]
+    cfg.upscale_split_children = True
+    assert torch.nonzero(upscale_after_split(m, E, children, cfg, None)).flatten().tolist() == [1, 2]
+    far = torch.zeros(n, dtype=torch.bool)
+    far[2] = True
+    cfg.upscale_split_children = False
+    assert torch.nonzero(upscale_after_split(m, E, children, cfg, far)).flatten().tolist() == [3, 4]

@@ -123,6 +123,8 @@ class TrainConfig:
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
+    start_exp_ceil: bool = _f(True, "texture start: the texel-size exponent is rounded up (coarser texels, the "
+                              "authors' code); false = to the nearest")
     routine_every: int = _f(250, "iterations between routines (E, split, up/downscale, prune, k_min)")
     routine_until: int = _f(25000, "last full routine iteration (also capped at iterations - routine_margin)")
     routine_margin: int = _f(3000, "no full routines during the last this many iterations (paper scale)")
@@ -144,6 +146,15 @@ class TrainConfig:
     upscale_split_children: bool = _f(False, "a routine may upscale the children of its own splits (they inherit the "
                                       "parent's E); false = the authors' code, which zeroes the E of the primitives a "
                                       "split adds, so they are not upscaled in that routine and may be downscaled")
+    upscale_after_split: bool = _f(True, "the upscale set is chosen after the split, as the authors' code does: E "
+                                   "above its (1 - top_fraction) quantile over every primitive, E taken as 0 where "
+                                   "the texel size is at its smallest (and for the split's children unless "
+                                   "upscale_split_children); false = the split's candidates (the top fraction of E "
+                                   "before it) that are left and can be upscaled")
+    split_fresh_moments: bool = _f(True, "a split's children start with zero Adam moments, as the authors' code does "
+                                   "(it appends them as new parameters); false = they inherit the parent's")
+    split_scale_cap: bool = _f(True, "a split child's scale on the split axis is at most tau_tr texels / 3, besides "
+                               "halved, as the authors' code does; false = halved only")
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
     downscale_thin: bool = _f(True, "downscale a texture 2 texels wide on one axis when the other is wider, as the "
                               "authors' code does (any axis above 2); false = only textures above 2 texels on both "

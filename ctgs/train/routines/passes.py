@@ -21,11 +21,31 @@ def error_views(views, cfg, it: int) -> list:
     return [views[i] for i in pick.tolist()]
 
 
+def upscale_after_split(model, E: torch.Tensor, children: torch.Tensor, cfg, far: torch.Tensor | None) -> torch.Tensor:
+    """[N] bool: the upscale set as the authors' code chooses it, after the split: E (children of this split at 0,
+    as it zeroes theirs) times [texture can be upscaled], strictly above its (1 - top_fraction) quantile over every
+    primitive (every one but the `far` ones, which are never upscaled), and > 0. With cfg.upscale_split_children the
+    children keep their E."""
+    E = E.clone()
+    if not cfg.upscale_split_children:
+        E[children] = 0
+    E = E * texels.upscale_selection(model, torch.ones_like(children), cfg.min_t2p_exp).to(E.dtype)
+    if far is None:
+        return top_fraction_mask(E, cfg.top_fraction)
+    top = torch.zeros_like(far)
+    top[~far] = top_fraction_mask(E[~far], cfg.top_fraction)
+    return top
+
+
 @torch.no_grad()
 def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background=None, lean: bool = True,
                  gains=None, step_errors=None) -> dict:
     """E over the training views (all, or cfg.error_views of them); split (tau_tr), upscale top E (t2p_exp > min),
     downscale the others (E_d < tau_ds); prune; k_min; reallocate. Returns statistics for the log.
+
+    The upscale set: with cfg.upscale_after_split (the authors' code) the top fraction of E over every primitive
+    after the split, among those whose texture can be upscaled (upscale_after_split); otherwise the split's
+    candidates (the top fraction of E before it) that are left and can be upscaled.
 
     background: optional function model -> [N] bool of primitives the ranking leaves out (never split or upscaled;
     the top fraction is taken among the others).
@@ -51,12 +71,21 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
         top = torch.zeros_like(bg)
         top[~bg] = top_fraction_mask(E[~bg], cfg.top_fraction)
     n0 = model.num_primitives
-    if support is None:
-        n_split, top = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E,
-                             children_stay=cfg.upscale_split_children)
-    else:
-        n_split, top, support = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E,
-                                      carry=support, children_stay=cfg.upscale_split_children)
+    # carried through the split (children inherit the parent's): E for an upscale set chosen after it, and support
+    cols = ([E] if cfg.upscale_after_split else []) + ([support] if support is not None else [])
+    carry = torch.stack([c.to(E.dtype) for c in cols], 1) if cols else None
+    children = []
+    out = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E, carry=carry,
+                children_stay=cfg.upscale_split_children, fresh_children=cfg.split_fresh_moments,
+                scale_cap=cfg.split_scale_cap, children_out=children)
+    n_split, top = out[0], out[1]
+    if carry is not None:
+        carry = out[2]
+        if support is not None:
+            support = carry[:, -1]
+    if cfg.upscale_after_split:
+        top = upscale_after_split(model, carry[:, 0], children[0], cfg,
+                                  None if background is None else background(model))
     if lean:
         # The same result as upscaling first (the two touch disjoint primitives, each texture alone), with the
         # textures at their smallest in between: downscale the others first, then upscale cropped as made to what

@@ -15,7 +15,8 @@ CHILD_OPACITY_FACTOR = math.exp(-0.5)  # each child's opacity: parent's x exp(-1
 
 @torch.no_grad()
 def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int = 0,
-          priority: torch.Tensor | None = None, carry: torch.Tensor | None = None, children_stay: bool = True):
+          priority: torch.Tensor | None = None, carry: torch.Tensor | None = None, children_stay: bool = True,
+          fresh_children: bool = False, scale_cap: bool = False, children_out: list | None = None):
     """Split candidates whose active resolution on an axis exceeds tau (x axis first, then y).
 
     Children sit at +-(1/6 of the active extent) along the axis, quantised to whole texels, with half the
@@ -26,6 +27,10 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
     A child of an x split is a candidate for the y split as its parent was; children_stay=False then leaves every
     child out of the returned mask, as the authors' code zeroes the error of the primitives a split adds (so a
     routine does not upscale them).
+    fresh_children: children start with zero Adam moments (the authors' code appends them as new tensors and drops
+    the parent); False: they inherit the parent's. scale_cap: a child's scale on the split axis is at most
+    tau texels / 3 (the authors' code), besides halved. children_out: a list that receives the [N'] bool mask of
+    the children this call made.
     """
     total = 0
     is_child = torch.zeros(model.num_primitives, dtype=torch.bool, device=candidates.device)
@@ -57,9 +62,13 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
         d_world = (s[idx] * k[idx] * sign)[:, None] * rot[idx]
         opac = model.opacities.detach()[idx]
         child = sign != 0
-        edit.select(model, opt, idx, fresh=None, tex_shift=shift)
+        edit.select(model, opt, idx, fresh=child if fresh_children else None, tex_shift=shift,
+                    fresh_textures=fresh_children)
         model.means.data[child] += d_world[child]
         model.log_scales.data[child, axis] -= math.log(2.0)
+        if scale_cap:
+            cap = torch.log(tau * k[idx][child] / 3).to(model.log_scales.dtype)
+            model.log_scales.data[child, axis] = torch.minimum(model.log_scales.data[child, axis], cap)
         o = (opac[child] * CHILD_OPACITY_FACTOR).clamp(1e-6, 1 - 1e-6)
         model.opacity_logits.data[child] = torch.log(o / (1 - o))
         candidates = candidates[idx]
@@ -68,6 +77,8 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
             priority = priority[idx]
         if carry is not None:
             carry = carry[idx]
+    if children_out is not None:
+        children_out.append(is_child)
     if not children_stay:
         candidates = candidates & ~is_child
     if carry is not None:

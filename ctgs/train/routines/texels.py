@@ -44,12 +44,13 @@ def needed_res(model, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA,
 
 @torch.no_grad()
 def start_textures(model, opt, start_texels: float, min_exp: int, cap: int, mode: str = "pow2",
-                   sigma: float = CUTOFF_SIGMA) -> None:
+                   sigma: float = CUTOFF_SIGMA, ceil: bool = False) -> None:
     """Texture start: t2p_exp so the smaller active extent spans ~start_texels texels (paper: "smallest axis is
-    8 texels wide", nearest power of two; exponent >= min_exp), then
-    allocate zero-offset textures (activated 0: the image does not change)."""
+    8 texels wide"; a power of two, the nearest or with ceil the next coarser as the authors' code takes it, so at
+    most start_texels; exponent >= min_exp), then allocate zero-offset textures (activated 0: the image does not
+    change)."""
     extent = 2 * active_half_extent(model).min(1).values.clamp_min(1e-12)
-    e = torch.round(torch.log2(extent / (start_texels * model.k_min)))
+    e = (torch.ceil if ceil else torch.round)(torch.log2(extent / (start_texels * model.k_min)))
     model.t2p_exp = e.clamp(min=min_exp, max=60).to(torch.int32)
     realloc(model, opt, cap, mode, sigma)
 

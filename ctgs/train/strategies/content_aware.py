@@ -61,7 +61,7 @@ class ContentAware(Strategy):
         cfg = st.cfg
         st.model.k_min = compute_k_min(st.model.means.detach(), st.cameras)
         texels.start_textures(st.model, st.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
-                              cfg.texture_alloc, cfg.texture_sigma)
+                              cfg.texture_alloc, cfg.texture_sigma, ceil=cfg.start_exp_ceil)
 
     def step_end(self, st, it: int):
         cfg, model, opt, calendar = st.cfg, st.model, st.opt, st.calendar
