@@ -45,13 +45,10 @@ def scene_background(scene_dir, background, sets):
 
 
 def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset=None,
-                   time_budget=None, max_params=None, backgrounds=(), background=None, scene_backgrounds=False):
-    """The run's config. backgrounds: BACKGROUNDS names to apply; scene_backgrounds (`ctgs train`): those the scene
-    takes with the --background `background` instead (scene_background)."""
+                   time_budget=None, max_params=None, backgrounds=()):
+    """The run's config. backgrounds: BACKGROUNDS names to apply (`ctgs train`: scene_background's)."""
     from ctgs.train.config import load_config, parse_set
 
-    if scene_backgrounds:
-        backgrounds = scene_background(scene_dir, background, sets)
     overrides = parse_set(list(sets))
     for name in backgrounds:
         overrides.update(BACKGROUNDS[name])
@@ -66,6 +63,32 @@ def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume,
         cfg = load_config(config, overrides, preset=preset)
     cfg.scene_dir = os.path.abspath(scene_dir)
     return cfg
+
+
+# Without --preset/--config, a --time-budget run on a CPU whose first plan makes fewer passes over the training views
+# than budget.FEW_PASSES trains this config instead: in every CPU run measured at equal time (bonsai252 and
+# herzjesu25, 33 to 120 passes) the 2DGS baseline ended ahead of the content-aware presets (docs/results.md).
+BUDGET_FALLBACK = "2dgs"
+
+
+def _pays_better(trainer) -> str | None:
+    """For a fresh content-aware --time-budget run on a CPU: its first plan (made now, on a copy of the model), and if
+    that plan makes fewer than budget.FEW_PASSES passes over the training views, the line that says the baseline is
+    trained instead (None otherwise: the run goes on as planned)."""
+    from ctgs.train.components import budget
+
+    if trainer.device.type != "cpu" or trainer.cfg.method != "content_aware" or trainer.time.planner is None:
+        return None
+    iterations = trainer.time.plan_now(trainer.state)
+    views = len(trainer.train_views)
+    if iterations is None or iterations >= budget.FEW_PASSES * views:
+        return None
+    passes = iterations / views
+    return (f"ctgs train: {trainer.user_cfg.time_budget:g} min buy about {iterations} iterations here, "
+            f"{passes:.{0 if passes >= 10 else 1}f} passes over the {views} training views; below "
+            f"{budget.FEW_PASSES} the {BUDGET_FALLBACK} baseline trained the better model in every CPU run measured at "
+            f"equal time, so it is trained instead (--preset fast to train textures anyway; docs/guide/training.md, "
+            f"\"When textures pay\")")
 
 
 # `ctgs train`'s marker kind (ctgs.io.owner), and the names it (or a Slurm job, slurm.log) writes in a run folder
@@ -100,7 +123,8 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     owner.check_ours(run_dir, RUN_KIND, "a ctgs run folder", legacy=_earlier_run)
     if not resume and os.path.exists(os.path.join(run_dir, "model.pt")):
         raise UserError(f"{run_dir}: already holds a finished run; choose another -o folder or delete it")
-    if preset is None and config is None and not (resume and os.path.exists(os.path.join(run_dir, "config.toml"))):
+    chosen = preset is not None or config is not None or (resume and os.path.exists(os.path.join(run_dir, "config.toml")))
+    if not chosen:
         preset = default_preset()
         if not quiet:
             import torch
@@ -108,8 +132,9 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
             where = "a CUDA GPU is present" if torch.cuda.is_available() else "no GPU: CPU training"
             print(f"ctgs train: preset '{preset}' ({where}; --preset preview|fast|balanced|paper to choose, "
                   f"--time-budget MINUTES to fit a time)", file=sys.stderr)
+    backgrounds = scene_background(scene_dir, background, sets)
     cfg = resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume, backend, seed, preset,
-                         time_budget, max_params, background=background, scene_backgrounds=True)
+                         time_budget, max_params, backgrounds=backgrounds)
     created = not os.path.exists(run_dir)
     held = trainer = None
     try:
@@ -123,6 +148,13 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
             held = lock.RunLock(run_dir, "ctgs train")  # one writer: a second training or --resume here is refused
         owner.mark(run_dir, RUN_KIND)
         trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
+        if not chosen and not resume and (line := _pays_better(trainer)):
+            # the machine's default preset, planned where its textures have not paid: the baseline that did
+            print(line, file=sys.stderr)
+            trainer = None
+            cfg = resolve_config(scene_dir, run_dir, BUDGET_FALLBACK, iterations, sets, images, resume, backend, seed,
+                                 None, time_budget, max_params, backgrounds=backgrounds)
+            trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
         if not quiet and cfg.max_params == 0 and trainer.cfg.max_params > 0:
             print(f"ctgs train: size budget {trainer.cfg.max_params} params ({cfg.max_params_per_value:g} per observed "
                   "value; --set max_params_per_value=0 for none, --max-params N for another)", file=sys.stderr)

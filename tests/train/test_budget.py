@@ -4,6 +4,7 @@ growth guess; its first plan is close to the run when the calibration measured t
 
 from __future__ import annotations
 
+import json
 import os
 import types
 
@@ -597,3 +598,27 @@ def test_a_real_run_on_a_slowed_machine_keeps_routines_to_their_share_and_ends_o
     first = full[0]["step_routines_s"]
     assert routine_s - first <= (budget_mod.SHARE["routine"] + 0.05) * wall, (routine_s, first, len(full), wall)
     assert summary["iterations"] >= 100, summary["iterations"]
+
+
+@pytest.mark.parametrize("preset,few", [(None, True), (None, False), ("fast", True)])
+def test_a_default_cpu_budget_too_short_for_textures_trains_the_baseline(tmp_path, capsys, monkeypatch, preset, few):
+    """Without --preset/--config, a CPU --time-budget run whose first plan makes fewer passes than FEW_PASSES over the
+    training views trains the 2dgs baseline (the better model in every CPU run measured at equal time) and says so
+    once; a longer plan keeps the default preset, and a preset asked for is trained as asked (with the note)."""
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import train_main
+
+    monkeypatch.setattr(budget_mod, "FEW_PASSES", 10**6 if few else 0)
+    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=48, height=36, points=150)
+    run = tmp_path / "run"
+    summary = train_main(scene_dir, str(run), preset=preset, time_budget=0.03, quiet=True, sets=("threads=1",))
+    err = capsys.readouterr().err
+    method = load_config(str(run / "config.toml")).method
+    switched = preset is None and few
+    assert method == ("2dgs" if switched else "content_aware")
+    assert err.count("is trained instead") == (1 if switched else 0)
+    if switched:
+        assert "passes over the 4 training views" in err and "--preset fast" in err
+        assert summary["num_texels"] == 0 and summary["time_budget_s"] == pytest.approx(1.8)
+        plans = [json.loads(line) for line in open(run / "log.jsonl") if '"plan"' in line]
+        assert plans and "calibration_step_s" in plans[0]  # the baseline's own plan, logged once from the start

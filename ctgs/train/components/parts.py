@@ -155,6 +155,14 @@ class TimeBudget(Component):
     def checkpoint(self, st) -> dict:
         return {"planner": self.planner.state_dict(), "calendar_last_kept": dict(self.last_kept)} if self.planner else {}
 
+    def plan_now(self, st) -> int | None:
+        """A fresh --time-budget run's first plan (calibrated on a copy of the model), made now instead of at the first
+        step, which then logs it; the planned iterations, or None for a run without a budget or already planned."""
+        if self.planner is None or self.planner.plan.iterations != 0:
+            return None
+        st.cfg.iterations = self.planner.calibrate(*st.calibrate())
+        return st.cfg.iterations
+
     def begin(self, st):
         if self.estimator is not None:
             # (not in log.jsonl, which holds what the run did: the estimates are clock readings, in the summary)
