@@ -294,3 +294,43 @@ def test_the_upscale_set_after_the_split_takes_the_top_fraction_of_every_primiti
     far[2] = True
     cfg.upscale_split_children = False
     assert torch.nonzero(upscale_after_split(m, E, children, cfg, far)).flatten().tolist() == [3, 4]
+
+
+def test_resized_textures_restart_their_moments_only_with_the_authors_rule():
+    """The authors' code zeroes the Adam moments of every texture it upscales, downscales or re-sizes; with
+    fresh_moments=False (the CPU presets) they are resampled with it. A texture left as it is keeps its moments."""
+    from ctgs.model.surfels import jagged_offsets
+
+    def fresh():
+        m = model(means=[[-0.3, 0.0, 3.0], [0.3, 0.0, 3.0]], scales=[[0.05, 0.05]] * 2, opacities=[0.9] * 2,
+                  tex_res=[[16, 16]] * 2, textures=torch.zeros(512, 3), t2p_exp=[2, 2], k_min=[0.005] * 2)
+        opt = optimiser(m)
+        for st in (opt.exp_avg, opt.exp_avg_sq):
+            st["textures_raw"] = torch.ones_like(st["textures_raw"])
+        return m, opt
+
+    def moments(m, opt, i):
+        off, n = int(jagged_offsets(m.tex_res)[i]), int(m.tex_res[i].long().prod())
+        return [st["textures_raw"][off: off + n] for st in (opt.exp_avg, opt.exp_avg_sq)]
+
+    first = torch.tensor([True, False])
+    for fresh_moments in (True, False):
+        for edit_texture in ("upscale", "downscale"):
+            m, opt = fresh()
+            if edit_texture == "upscale":
+                done = texels.upscale(m, opt, first, 1, fresh_moments=fresh_moments)
+            else:
+                done, _ = texels.downscale(m, opt, first, tau_ds=1.0, fresh_moments=fresh_moments)
+            assert done.tolist() == [True, False] and m.tex_res[0].tolist() != [16, 16]
+            for mom in moments(m, opt, 0):
+                assert bool((mom == (0 if fresh_moments else 1)).all())
+            for mom in moments(m, opt, 1):
+                assert bool((mom == 1).all())
+        m, opt = fresh()
+        with torch.no_grad():
+            m.log_scales[0] += 1.0  # the first grows: its needed size changes; the second's does not
+        need = texels.needed_res(m, 256)
+        assert need[0].tolist() != [16, 16] and need[1].tolist() == [16, 16]
+        texels.realloc(m, opt, 256, fresh_moments=fresh_moments)
+        assert bool((moments(m, opt, 0)[0] == 0).all()) == fresh_moments
+        assert bool((moments(m, opt, 1)[0] == 1).all())

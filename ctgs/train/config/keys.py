@@ -153,6 +153,9 @@ class TrainConfig:
                                    "before it) that are left and can be upscaled")
     split_fresh_moments: bool = _f(True, "a split's children start with zero Adam moments, as the authors' code does "
                                    "(it appends them as new parameters); false = they inherit the parent's")
+    texture_fresh_moments: bool = _f(True, "a texture a routine or reallocation resizes (upscale, downscale, a new "
+                                     "needed size) restarts its Adam moments at zero, as the authors' code does; "
+                                     "false = they are resampled with it")
     split_scale_cap: bool = _f(True, "a split child's scale on the split axis is at most tau_tr texels / 3, besides "
                                "halved, as the authors' code does; false = halved only")
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")

@@ -78,6 +78,17 @@ def replace_blocks(model, opt: SurfelAdam, new_res: torch.Tensor, new_blocks) ->
     _set_textures(model, opt, raw, m, v, off)
 
 
+@torch.no_grad()
+def zero_texture_moments(model, opt: SurfelAdam, prims: torch.Tensor) -> None:
+    """Zero the Adam moments of the texels of the primitives `prims` [N] bool (their textures then train as new
+    parameters do, as the authors' code has it for every texture it resizes)."""
+    if not bool(prims.any()) or model.num_texels == 0:
+        return
+    per_texel = torch.repeat_interleave(prims, model.tex_res.long().prod(1))
+    for st in (opt.exp_avg, opt.exp_avg_sq):
+        st[TEX_PARAM][per_texel] = 0
+
+
 def _set_textures(model, opt, raw, m, v, off) -> None:
     model.textures_raw = _leaf(raw)
     model.tex_offset = off

@@ -91,16 +91,20 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
         # textures at their smallest in between: downscale the others first, then upscale cropped as made to what
         # realloc below gives it, so that 4x the upscaled texels never exist at once.
         up = texels.upscale_selection(model, top, cfg.min_t2p_exp)
-        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin)
+        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin,
+                                      fresh_moments=cfg.texture_fresh_moments)
         texels.upscale(model, opt, up, cfg.min_t2p_exp,
-                       crop=(cameras, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma))
+                       crop=(cameras, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma),
+                       fresh_moments=cfg.texture_fresh_moments)
     else:
-        up = texels.upscale(model, opt, top, cfg.min_t2p_exp)
-        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin)
+        up = texels.upscale(model, opt, top, cfg.min_t2p_exp, fresh_moments=cfg.texture_fresh_moments)
+        down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin,
+                                      fresh_moments=cfg.texture_fresh_moments)
     kept = model.opacities.detach() >= cfg.prune_opacity  # what prune keeps (support and up follow it)
     n_pruned = prune(model, opt, cfg.prune_opacity)
     model.k_min = compute_k_min(model.means.detach(), cameras)
-    texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
+    texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma,
+                   fresh_moments=cfg.texture_fresh_moments)
     # --max-params: what was just upscaled stays; the rest is coarsened where that loses least (size_budget)
     budget = size_budget.fit(model, opt, cfg, keep=up[kept], support=None if support is None else support[kept])
     return {"E_mean": float(E.mean()) if E.numel() else 0.0, "E_p90": float(E.quantile(0.9)) if E.numel() else 0.0,
@@ -114,9 +118,10 @@ def late_routine(model, opt, cfg, cameras) -> dict:
     """After the main phase: downscale everything that passes, light pruning, k_min, reallocate."""
     down, _ = texels.downscale(model, opt, torch.ones(model.num_primitives, dtype=torch.bool,
                                                          device=model.means.device), cfg.tau_ds,
-                               thin=cfg.downscale_thin)
+                               thin=cfg.downscale_thin, fresh_moments=cfg.texture_fresh_moments)
     n_pruned = prune(model, opt, cfg.prune_opacity_late)
     model.k_min = compute_k_min(model.means.detach(), cameras)
-    texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
+    texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma,
+                   fresh_moments=cfg.texture_fresh_moments)
     budget = size_budget.fit(model, opt, cfg)
     return {"downscaled": int(down.sum()), "pruned": n_pruned, **(budget or {})}

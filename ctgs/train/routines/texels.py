@@ -56,11 +56,16 @@ def start_textures(model, opt, start_texels: float, min_exp: int, cap: int, mode
 
 
 @torch.no_grad()
-def realloc(model, opt, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA) -> int:
-    """Resize every texture to its needed resolution (needed_res), content centred; returns the texel count."""
+def realloc(model, opt, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGMA, fresh_moments: bool = False) -> int:
+    """Resize every texture to its needed resolution (needed_res), content centred, Adam moments with it (with
+    fresh_moments: zeroed for every texture whose size changes, as the authors' code does); returns the texel count."""
     if model.texture_mode != "content_aware":
         return model.num_texels
-    edit.relayout(model, opt, needed_res(model, cap, mode, sigma))
+    new_res = needed_res(model, cap, mode, sigma)
+    changed = (new_res != model.tex_res).any(1)
+    edit.relayout(model, opt, new_res)
+    if fresh_moments and opt is not None:
+        edit.zero_texture_moments(model, opt, changed)
     return model.num_texels
 
 
@@ -89,9 +94,11 @@ def upscale_selection(model, mask: torch.Tensor, min_exp: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = None) -> torch.Tensor:
+def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = None,
+            fresh_moments: bool = False) -> torch.Tensor:
     """Halve the texel size (t2p_exp - 1) of masked primitives with t2p_exp > min_exp; each texel becomes
-    2x2 (nearest neighbour), Adam moments too. Returns the [N] bool mask actually upscaled.
+    2x2 (nearest neighbour), Adam moments too (with fresh_moments: zeroed, as the authors' code does). Returns the
+    [N] bool mask actually upscaled.
 
     crop (cameras, cap, mode, sigma): each upscaled texture is cropped, centred, to what the routine's next
     reallocation (realloc with those arguments, after compute_k_min(cameras)) gives it, as it is made, instead
@@ -130,6 +137,8 @@ def upscale(model, opt, mask: torch.Tensor, min_exp: int, crop: tuple | None = N
         del vals
     edit.replace_blocks(model, opt, new_res, blocks)
     model.t2p_exp[sel] -= 1
+    if fresh_moments:
+        edit.zero_texture_moments(model, opt, sel)
     return sel
 
 
@@ -167,13 +176,13 @@ def downscale_error(model, candidates: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def downscale(model, opt, candidates: torch.Tensor, tau_ds: float,
-              thin: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+def downscale(model, opt, candidates: torch.Tensor, tau_ds: float, thin: bool = False,
+              fresh_moments: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Double the texel size of candidates whose texture survives a x2 bicubic antialiased down/up round trip.
 
     E_d = Gaussian-weighted mean over texels of |mean_RGB(recon - orig)| (activated values). Accepted
     (E_d < tau_ds, resolution > 2 on both axes) keep the downsampled texture, t2p_exp + 1; their Adam
-    moments are 2x2 averaged. thin=True also takes textures 2 texels wide on one axis and wider on the other (the
+    moments are 2x2 averaged (with fresh_moments: zeroed, as the authors' code does). thin=True also takes textures 2 texels wide on one axis and wider on the other (the
     authors' code: any axis above 2); the thin axis is then 1 texel until the routine's realloc pads it again.
     Returns (accepted [N] bool, E_d [N] with NaN where not evaluated).
     """
@@ -204,6 +213,8 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float,
     if blocks:
         edit.replace_blocks(model, opt, new_res, blocks)
         model.t2p_exp[accepted] += 1
+        if fresh_moments:
+            edit.zero_texture_moments(model, opt, accepted)
     return accepted, e_d
 
 

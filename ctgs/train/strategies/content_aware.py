@@ -90,7 +90,8 @@ class ContentAware(Strategy):
             yield Routine(it, "late", late_routine(model, opt, cfg, st.cameras))
             self.errors.reset()  # (it prunes)
         elif st.textures_started and schedule.every(cfg, cfg.realloc_every, it, shift):
-            texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma)
+            texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma,
+                           fresh_moments=cfg.texture_fresh_moments)
             if (budget := size_budget.fit(model, opt, cfg)) is not None:
                 yield Routine(it, "budget", budget)
 
