@@ -32,14 +32,15 @@ def active_resolution(model) -> torch.Tensor:
     return 2 * active_half_extent(model) / texel_size(model)[:, None]
 
 
-def active_texels(model) -> int:
-    """Texels inside the active extents: per textured primitive ceil(active_resolution) on each axis, at least 1 and at
-    most its allocation. The authors' code crops every texture to this size when it saves a model
-    (`_calculate_active_texture_resolution`), so the paper's texel counts are of this kind; `num_texels` counts the
-    allocation (rounded up to a power of two or a multiple of 4 while training)."""
+def active_texels(model, cap: int = 256) -> int:
+    """Texels of the textures as the authors' code saves a model (`save_texture_maps`: each texture cropped tight to
+    its active extent, `_calculate_active_texture_resolution`): per textured primitive and axis, with e =
+    ceil(active_resolution), e + 2 texels if e is even and e + 1 if odd (the texels centred on the surfel that cover
+    e), at most `cap` (the authors' maximum resolution). The paper's texel counts are of this kind; `num_texels`
+    counts the allocation (rounded up to a power of two or a multiple of 4 while training)."""
     if model.num_primitives == 0 or model.num_texels == 0:
         return 0
-    res = model.tex_res.to(torch.long)
-    act = torch.ceil(active_resolution(model)).to(torch.long)
-    act = torch.minimum(act.clamp_min(1), res)
-    return int(act.prod(1).sum())
+    textured = model.tex_res.to(torch.long).prod(1) > 0
+    e = torch.ceil(active_resolution(model)).to(torch.long)
+    tight = torch.where(e % 2 == 0, e + 2, e + 1).clamp(1, cap)
+    return int(tight[textured].prod(1).sum())

@@ -77,3 +77,33 @@ def test_the_hooks_are_called_in_their_order_within_each_iteration(scene, tmp_pa
     # iteration 1: its checkpoint (written with each part's state), timed; then after_step
     assert rec.calls == [("begin", 0), *[(h, 1) for h in step], ("checkpoint", 1), ("timed", 1),
                          ("after_step", 1), *[(h, 2) for h in step]]
+
+
+@pytest.mark.parametrize("final", [1.0 / 255.0, 0.0])
+def test_the_final_prune_removes_what_cannot_reach_alpha_1_255_before_the_model_is_scored(scene, tmp_path, final):
+    """prune_opacity_final (the `paper` preset: 1/255, as the authors' save) prunes after the last iteration, before
+    the final evaluation and model.pt; 0 (the CPU presets) keeps every primitive."""
+    import json
+    import os
+
+    import torch
+
+    from ctgs.runs import load_run
+    from ctgs.train.loop.progress import run_with_progress
+
+    run = str(tmp_path / "run")
+    # (the routines' own prunes off: only the final one may remove the faint primitives)
+    trainer = _trainer(scene, run, ("texture_trim=0", "prune_opacity=0", "prune_opacity_late=0",
+                                    f"prune_opacity_final={final}"))
+    with torch.no_grad():  # a tenth of the primitives made too faint to be drawn (the run's 20 steps lift few of them)
+        trainer.model.opacity_logits[::10] = -12.0
+    run_with_progress(trainer, quiet=True)
+    log = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
+    prunes = [r for r in log if r["type"] == "routine" and r["kind"] == "final_prune"]
+    model = load_run(run).model
+    if final > 0:
+        assert len(prunes) == 1 and prunes[0]["pruned"] > 0
+        assert float(model.opacities.min()) >= final
+        assert [r["type"] for r in log[log.index(prunes[0]):]][-1] == "test"
+    else:
+        assert not prunes and float(model.opacities.min()) < 1.0 / 255.0

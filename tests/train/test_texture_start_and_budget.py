@@ -165,18 +165,22 @@ def test_split_children_leave_the_candidates_unless_they_stay():
     assert mixed.tolist() == [True, False, True, False]
 
 
-def test_active_texels_count_the_active_extents_not_the_allocation():
-    """The authors' saved models crop each texture to ceil(active extent / texel size) per axis: num_texels counts
-    the allocation, active_texels that crop (at least 1 texel per axis, at most the allocation)."""
+def test_active_texels_count_the_textures_as_the_authors_save_them():
+    """The authors' save crops each texture tight to its active extent: e = ceil(active extent / texel size) per axis,
+    e + 2 texels if e is even, e + 1 if odd (centred texels covering e), at most 256. num_texels counts the allocation."""
     from ctgs.model.extent import active_resolution, active_texels
 
     m = model(means=[[0.0, 0.0, 3.0], [0.5, 0.0, 3.0]], scales=[[0.2, 0.1], [0.05, 0.05]], opacities=[0.9, 0.9],
               tex_res=[[16, 16], [8, 8]], k_min=[0.05, 0.05], t2p_exp=[1, 1])
-    act = torch.ceil(active_resolution(m)).long()
-    assert act.tolist() in ([[12, 6], [3, 3]], [[13, 7], [4, 4]])  # 2 x 3 sigma x scale / 0.1 (float rounding)
-    expect = int(act.prod(1).sum())
+    e = torch.ceil(active_resolution(m)).long()
+    assert e.tolist() in ([[12, 6], [3, 3]], [[13, 7], [4, 4]])  # 2 x 3 sigma x scale / 0.1 (float rounding)
+    tight = {12: 14, 6: 8, 3: 4, 13: 14, 7: 8, 4: 6}
+    expect = sum(tight[a] * tight[b] for a, b in e.tolist())
     assert m.num_texels == 16 * 16 + 8 * 8
-    assert active_texels(m) == expect < m.num_texels
+    assert active_texels(m) == expect
+    wide = model(means=[[0.0, 0.0, 3.0]], scales=[[50.0, 0.1]], opacities=[0.9], tex_res=[[256, 8]], k_min=[0.05],
+                 t2p_exp=[1])
+    assert active_texels(wide) == 256 * 8  # at most 256 on an axis
 
 
 def test_thin_textures_downscale_only_with_the_authors_rule():

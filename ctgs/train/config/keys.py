@@ -170,6 +170,8 @@ class TrainConfig:
     tau_tr_iters: int = _f(7000, "iterations of the linear tau_tr decay (paper scale)")
     prune_opacity: float = _f(10.0 / 255.0, "prune below this opacity during routines")
     prune_opacity_late: float = _f(1.0 / 255.0, "prune threshold after routine_until")
+    prune_opacity_final: float = _f(1.0 / 255.0, "after the last iteration, before the model is evaluated and "
+                                    "saved, prune below this opacity (the authors' save does); 0 = none")
     content_opacity_reset: bool = _f(False, "content-aware runs: at the first full routine at or past each multiple "
                                      "of opacity_reset_every (up to densify_until), after the routine, clamp "
                                      "opacities to <= 2 x prune_opacity (3DGS's ratio of reset value to prune "
@@ -273,6 +275,7 @@ _RANGES = [
     ("tau_tr_start", _gt(0), "> 0 texels"), ("tau_tr_end", _gt(0), "> 0 texels"), ("tau_tr_iters", _gt(0), "> 0"),
     ("tau_tr_pixel_exponent", lambda v: 0 <= v <= 1, "in [0, 1]"),
     ("prune_opacity", _prob, "in [0, 1)"), ("prune_opacity_late", _prob, "in [0, 1)"),
+    ("prune_opacity_final", _prob, "in [0, 1)"),
     ("max_primitives", _ge(0), ">= 0 (0 = unlimited)"), ("max_params", _ge(0), ">= 0 (0 = no budget)"),
     ("max_params_per_value", _ge(0), ">= 0 (0 = no budget)"),
     ("max_texture_res", lambda v: v >= 2 and (v & (v - 1)) == 0, "a power of two >= 2"),

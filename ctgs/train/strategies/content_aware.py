@@ -13,6 +13,7 @@ from ctgs.train.routines.densify import RESET_OPACITY, reset_opacity
 from ctgs.train.routines.error import StepErrors
 from ctgs.train.routines.kmin import compute_k_min
 from ctgs.train.routines.passes import full_routine, late_routine
+from ctgs.train.routines.split import prune
 from ctgs.train.strategies.base import Strategy
 
 
@@ -105,6 +106,9 @@ class ContentAware(Strategy):
         return stats
 
     def finish(self, st):
+        if st.cfg.prune_opacity_final > 0:
+            # As the authors' save: what can no longer reach alpha 1/255 goes before the model is evaluated and saved
+            yield Routine(st.it, "final_prune", {"pruned": prune(st.model, st.opt, st.cfg.prune_opacity_final)})
         if st.cfg.texture_trim > 0:
             # Model only what the textures hold: texels below texture_trim in every channel go (texels.trim;
             # idempotent, so a resumed run that trims again changes nothing).
