@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from ctgs.train.routines import texels
@@ -338,3 +339,28 @@ def test_resized_textures_restart_their_moments_only_with_the_authors_rule():
         texels.realloc(m, opt, 256, fresh_moments=fresh_moments)
         assert bool((moments(m, opt, 0)[0] == 0).all()) == fresh_moments
         assert bool((moments(m, opt, 1)[0] == 1).all())
+
+
+def test_the_downscale_round_trip_with_corner_aligned_resampling_and_the_split_offset_truncated():
+    """The authors' code resamples the downscale round trip with align_corners=True (a linear ramp's corner texels
+    stay put, so E_d differs from the centre-keeping round trip) and truncates the split offset to whole texels."""
+    def fresh():
+        m = model(means=[[0.0, 0.0, 3.0]], scales=[[0.2, 0.2]], opacities=[0.9], tex_res=[[8, 8]],
+                  textures=torch.zeros(64, 3), k_min=[0.01], t2p_exp=[2])
+        u = torch.linspace(-0.6, 0.6, 8)
+        with torch.no_grad():
+            m.textures_raw.copy_(torch.logit(((u[None, :].expand(8, 8) + 1) / 2)).reshape(-1, 1).expand(64, 3))
+        return m, optimiser(m)
+
+    m, opt = fresh()
+    _, e_centres = texels.downscale(m, opt, torch.ones(1, dtype=torch.bool), tau_ds=-1.0)
+    m, opt = fresh()
+    _, e_corners = texels.downscale(m, opt, torch.ones(1, dtype=torch.bool), tau_ds=-1.0, corners=True)
+    assert float(e_corners[0]) != pytest.approx(float(e_centres[0]), rel=0.05)
+    # offset: active extent 2 x 3 x 0.03 = 0.18 world units / 6 = 0.03 = 1.5 texels of 0.02 -> 2 rounded, 1 truncated
+    for truncate, texels_off in ((False, 2), (True, 1)):
+        s = model(means=[[0.0, 0.0, 3.0]], scales=[[0.03, 0.005]], opacities=[0.9], tex_res=[[16, 4]], k_min=[0.01],
+                  t2p_exp=[1])
+        split(s, optimiser(s), torch.tensor([True]), tau=4.0, truncate=truncate)
+        assert s.num_primitives == 2
+        assert torch.allclose(s.means[:, 0].abs(), torch.full((2,), 0.02 * texels_off), atol=1e-6)

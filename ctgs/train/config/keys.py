@@ -156,12 +156,17 @@ class TrainConfig:
     texture_fresh_moments: bool = _f(True, "a texture a routine or reallocation resizes (upscale, downscale, a new "
                                      "needed size) restarts its Adam moments at zero, as the authors' code does; "
                                      "false = they are resampled with it")
+    split_offset_truncated: bool = _f(True, "a split child's offset, 1/6 of the active extent, is truncated to whole "
+                                      "texels, as the authors' code does; false = rounded")
     split_scale_cap: bool = _f(True, "a split child's scale on the split axis is at most tau_tr texels / 3, besides "
                                "halved, as the authors' code does; false = halved only")
     tau_ds: float = _f(0.02, "downscale threshold on the Gaussian-weighted reconstruction error E_d")
     downscale_thin: bool = _f(True, "downscale a texture 2 texels wide on one axis when the other is wider, as the "
                               "authors' code does (any axis above 2); false = only textures above 2 texels on both "
                               "axes")
+    downscale_corners: bool = _f(True, "the downscale round trip (E_d and the texture kept) resamples with "
+                                 "align_corners=True, as the authors' code does (a downscaled texture's content "
+                                 "shrinks slightly towards its centre); false = texel centres kept")
     tau_tr_start: float = _f(64.0, "split threshold on active texture resolution at iteration 0")
     tau_tr_end: float = _f(32.0, "split threshold reached at tau_tr_iters")
     tau_tr_pixel_exponent: float = _f(0.0, "tau_tr_start/end x (HW / 1e6) ** this (rules.py): 0 keeps the paper's "

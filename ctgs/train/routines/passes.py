@@ -77,7 +77,7 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
     children = []
     out = split(model, opt, top, schedule.tau_tr(cfg, it), cfg.max_primitives, priority=E, carry=carry,
                 children_stay=cfg.upscale_split_children, fresh_children=cfg.split_fresh_moments,
-                scale_cap=cfg.split_scale_cap, children_out=children)
+                scale_cap=cfg.split_scale_cap, children_out=children, truncate=cfg.split_offset_truncated)
     n_split, top = out[0], out[1]
     if carry is not None:
         carry = out[2]
@@ -92,14 +92,14 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
         # realloc below gives it, so that 4x the upscaled texels never exist at once.
         up = texels.upscale_selection(model, top, cfg.min_t2p_exp)
         down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin,
-                                      fresh_moments=cfg.texture_fresh_moments)
+                                      fresh_moments=cfg.texture_fresh_moments, corners=cfg.downscale_corners)
         texels.upscale(model, opt, up, cfg.min_t2p_exp,
                        crop=(cameras, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma),
                        fresh_moments=cfg.texture_fresh_moments)
     else:
         up = texels.upscale(model, opt, top, cfg.min_t2p_exp, fresh_moments=cfg.texture_fresh_moments)
         down, e_d = texels.downscale(model, opt, ~up, cfg.tau_ds, thin=cfg.downscale_thin,
-                                      fresh_moments=cfg.texture_fresh_moments)
+                                      fresh_moments=cfg.texture_fresh_moments, corners=cfg.downscale_corners)
     kept = model.opacities.detach() >= cfg.prune_opacity  # what prune keeps (support and up follow it)
     n_pruned = prune(model, opt, cfg.prune_opacity)
     model.k_min = compute_k_min(model.means.detach(), cameras)
@@ -118,7 +118,8 @@ def late_routine(model, opt, cfg, cameras) -> dict:
     """After the main phase: downscale everything that passes, light pruning, k_min, reallocate."""
     down, _ = texels.downscale(model, opt, torch.ones(model.num_primitives, dtype=torch.bool,
                                                          device=model.means.device), cfg.tau_ds,
-                               thin=cfg.downscale_thin, fresh_moments=cfg.texture_fresh_moments)
+                               thin=cfg.downscale_thin, fresh_moments=cfg.texture_fresh_moments,
+                               corners=cfg.downscale_corners)
     n_pruned = prune(model, opt, cfg.prune_opacity_late)
     model.k_min = compute_k_min(model.means.detach(), cameras)
     texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma,

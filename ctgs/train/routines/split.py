@@ -16,7 +16,8 @@ CHILD_OPACITY_FACTOR = math.exp(-0.5)  # each child's opacity: parent's x exp(-1
 @torch.no_grad()
 def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int = 0,
           priority: torch.Tensor | None = None, carry: torch.Tensor | None = None, children_stay: bool = True,
-          fresh_children: bool = False, scale_cap: bool = False, children_out: list | None = None):
+          fresh_children: bool = False, scale_cap: bool = False, children_out: list | None = None,
+          truncate: bool = False):
     """Split candidates whose active resolution on an axis exceeds tau (x axis first, then y).
 
     Children sit at +-(1/6 of the active extent) along the axis, quantised to whole texels, with half the
@@ -29,7 +30,8 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
     routine does not upscale them).
     fresh_children: children start with zero Adam moments (the authors' code appends them as new tensors and drops
     the parent); False: they inherit the parent's. scale_cap: a child's scale on the split axis is at most
-    tau texels / 3 (the authors' code), besides halved. children_out: a list that receives the [N'] bool mask of
+    tau texels / 3 (the authors' code), besides halved. truncate: the offset in texels is truncated (the authors'
+    code), not rounded. children_out: a list that receives the [N'] bool mask of
     the children this call made.
     """
     total = 0
@@ -50,7 +52,7 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
         total += m
         k = texel_size(model)  # [N]
         half = active_half_extent(model)[:, axis]  # [N]
-        s = torch.round((2 * half / 6) / k).long()  # texels
+        s = (torch.trunc if truncate else torch.round)((2 * half / 6) / k).long()  # texels
         keep_idx = torch.nonzero(~sel).flatten()
         par = torch.nonzero(sel).flatten()
         idx = torch.cat([keep_idx, par, par])

@@ -152,14 +152,16 @@ def texel_weights(model, prims: torch.Tensor, ru: int, rv: int) -> torch.Tensor:
     return torch.exp(-0.5 * rho) * (rho <= CUTOFF_RHO)
 
 
-def _roundtrips(model, sel: torch.Tensor):
+def _roundtrips(model, sel: torch.Tensor, corners: bool = False):
     """Yield (ru, rv, prims, down, E_d) per resolution group of the selected primitives: the x2 bicubic
-    antialiased downsampling of their activated textures [G, 3, rv/2, ru/2] and E_d [G] (see downscale)."""
+    antialiased downsampling of their activated textures [G, 3, rv/2, ru/2] and E_d [G] (see downscale). corners:
+    both resamplings with align_corners=True (the authors' code: the corner texels stay put, so the content of a
+    downscaled texture shrinks towards its centre by (n - 1) / (n - 2) for n texels); False keeps texel centres."""
     for ru, rv, prims in _groups(model.tex_res, sel):
         raw = jagged.blocks(model.textures_raw.detach(), model.tex_offset, prims, ru, rv)  # [G, rv, ru, 3]
         act = (2 * torch.sigmoid(raw) - 1).permute(0, 3, 1, 2)  # [G, 3, rv, ru]
-        down = F.interpolate(act, size=(rv // 2, ru // 2), mode="bicubic", antialias=True, align_corners=False)
-        up = F.interpolate(down, size=(rv, ru), mode="bicubic", align_corners=False)
+        down = F.interpolate(act, size=(rv // 2, ru // 2), mode="bicubic", antialias=True, align_corners=corners)
+        up = F.interpolate(down, size=(rv, ru), mode="bicubic", align_corners=corners)
         diff = (up - act).mean(1).abs()  # [G, rv, ru]
         w = texel_weights(model, prims, ru, rv)
         yield ru, rv, prims, down, (diff * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1e-12)
@@ -177,12 +179,13 @@ def downscale_error(model, candidates: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def downscale(model, opt, candidates: torch.Tensor, tau_ds: float, thin: bool = False,
-              fresh_moments: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+              fresh_moments: bool = False, corners: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Double the texel size of candidates whose texture survives a x2 bicubic antialiased down/up round trip.
 
     E_d = Gaussian-weighted mean over texels of |mean_RGB(recon - orig)| (activated values). Accepted
     (E_d < tau_ds, resolution > 2 on both axes) keep the downsampled texture, t2p_exp + 1; their Adam
-    moments are 2x2 averaged (with fresh_moments: zeroed, as the authors' code does). thin=True also takes textures 2 texels wide on one axis and wider on the other (the
+    moments are 2x2 averaged (with fresh_moments: zeroed, as the authors' code does). corners: the round trip with
+    align_corners=True, as the authors' code resamples (_roundtrips). thin=True also takes textures 2 texels wide on one axis and wider on the other (the
     authors' code: any axis above 2); the thin axis is then 1 texel until the routine's realloc pads it again.
     Returns (accepted [N] bool, E_d [N] with NaN where not evaluated).
     """
@@ -195,7 +198,7 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float, thin: bool = 
         return accepted, e_d
     new_res = model.tex_res.clone()
     blocks = []
-    for ru, rv, prims, down, ed in _roundtrips(model, sel):
+    for ru, rv, prims, down, ed in _roundtrips(model, sel, corners):
         e_d[prims] = ed
         rows = torch.nonzero(ed < tau_ds).flatten()  # (one host sync per group on a GPU, not three)
         if rows.numel() == 0:
