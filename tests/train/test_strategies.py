@@ -107,3 +107,16 @@ def test_the_final_prune_removes_what_cannot_reach_alpha_1_255_before_the_model_
         assert [r["type"] for r in log[log.index(prunes[0]):]][-1] == "test"
     else:
         assert not prunes and float(model.opacities.min()) < 1.0 / 255.0
+
+
+@pytest.mark.parametrize("from_start", [True, False])
+def test_the_textures_adam_steps_count_from_the_first_iteration_with_the_authors_rule(scene, tmp_path, from_start):
+    """torch's Adam in the authors' code counts the textures' steps while their learning rate is 0: at the texture
+    start their step count is the iteration's, not 0 (so no bias correction on their first steps)."""
+    from ctgs.train.step.adam import TEX_PARAM
+
+    trainer = _trainer(scene, str(tmp_path / "run"), ("texture_start=2000", f"texture_steps_from_start={from_start}"))
+    st = trainer.state
+    st.it = 7
+    trainer.strategy.start_textures(st)
+    assert st.opt.steps[TEX_PARAM] == (7 if from_start else 0)

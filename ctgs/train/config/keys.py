@@ -123,6 +123,11 @@ class TrainConfig:
     # ---- content-aware texturing (paper sections 3.2-3.4) ----
     texture_start: int = _f(500, "iteration at which textures are allocated and optimised (paper scale)")
     start_texels: float = _f(8.0, "texels across the active extent when textures start")
+    texture_steps_from_start: bool = _f(True, "the textures' Adam step count runs from the first iteration, as torch's "
+                                        "Adam in the authors' code counts the steps of a learning rate of 0 before "
+                                        "the texture start: no bias correction afterwards, so texels whose moments "
+                                        "restart at zero move by up to several times the learning rate at first; "
+                                        "false = counted from the texture start")
     start_exp_ceil: bool = _f(True, "texture start: the texel-size exponent is rounded up (coarser texels, the "
                               "authors' code); false = to the nearest")
     routine_every: int = _f(250, "iterations between routines (E, split, up/downscale, prune, k_min)")

@@ -14,6 +14,7 @@ from ctgs.train.routines.error import StepErrors
 from ctgs.train.routines.kmin import compute_k_min
 from ctgs.train.routines.passes import full_routine, late_routine
 from ctgs.train.routines.split import prune
+from ctgs.train.step.adam import TEX_PARAM
 from ctgs.train.strategies.base import Strategy
 
 
@@ -63,6 +64,11 @@ class ContentAware(Strategy):
         st.model.k_min = compute_k_min(st.model.means.detach(), st.cameras)
         texels.start_textures(st.model, st.opt, cfg.start_texels, cfg.min_t2p_exp, cfg.max_texture_res,
                               cfg.texture_alloc, cfg.texture_sigma, ceil=cfg.start_exp_ceil)
+        if cfg.texture_steps_from_start:
+            # torch's Adam in the authors' code counts the textures' steps from the first iteration (their learning
+            # rate is 0 until the texture start): no bias correction after it, so moments restarted at zero move a
+            # texel by up to several times the learning rate at first
+            st.opt.steps[TEX_PARAM] = max(st.opt.steps[TEX_PARAM], st.it)
 
     def step_end(self, st, it: int):
         cfg, model, opt, calendar = st.cfg, st.model, st.opt, st.calendar
