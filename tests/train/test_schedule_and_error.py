@@ -83,19 +83,23 @@ def test_tau_tr_schedule_and_calendar():
     assert schedule.routine_kind(c, 250) is None  # before texture start (500)
     assert schedule.routine_kind(c, 500) == "full" and schedule.routine_kind(c, 750) == "full"
     assert schedule.routine_kind(c, 760) is None
-    assert schedule.routine_kind(c, 25000) == "full" and schedule.routine_kind(c, 25250) is None
+    assert schedule.routine_kind(c, 25000) == "full" and schedule.routine_kind(c, 25100) is None
+    # after the routines: a light prune every 250 (the authors' code), a downscale every 1000, none at the end
+    assert schedule.routine_kind(c, 25250) == "late_prune" and schedule.routine_kind(c, 25500) == "late_prune"
     assert schedule.routine_kind(c, 26000) == "late" and schedule.routine_kind(c, 30000) is None
+    assert schedule.routine_kind(TrainConfig(late_prune_every=0), 25250) is None
     # A schedule is a fraction of the run: 3000 iterations = every paper count x 0.1.
     short = TrainConfig(iterations=3000)
     assert schedule.texture_start(short) == 50 and schedule.routine_kind(short, 25) is None
     assert schedule.routine_kind(short, 50) == "full" and schedule.routine_kind(short, 75) == "full"
-    assert schedule.routine_kind(short, 2500) == "full" and schedule.routine_kind(short, 2525) is None
+    assert schedule.routine_kind(short, 2500) == "full" and schedule.routine_kind(short, 2510) is None
+    assert schedule.routine_kind(short, 2525) == "late_prune"
     assert schedule.routine_kind(short, 2600) == "late" and schedule.routine_kind(short, 3000) is None
     assert schedule.sh_degree(short, 99) == 0 and schedule.sh_degree(short, 100) == 1
     assert schedule.tau_tr(short, 350) == 48
     # schedule_scale > 0 overrides the fraction: paper counts x 1 on a 10k run ends routines at 10000 - 3000.
     pinned = TrainConfig(iterations=10000, schedule_scale=1.0)
-    assert schedule.routine_kind(pinned, 7000) == "full" and schedule.routine_kind(pinned, 7250) is None
+    assert schedule.routine_kind(pinned, 7000) == "full" and schedule.routine_kind(pinned, 7250) == "late_prune"
     # Non-integer periods fire once per multiple (250 x 0.12 = 30 within float rounding).
     odd = TrainConfig(iterations=3600)
     assert [i for i in range(1, 200) if schedule.every(odd, 250, i)] == [30, 60, 90, 120, 150, 180]

@@ -364,3 +364,17 @@ def test_the_downscale_round_trip_with_corner_aligned_resampling_and_the_split_o
         split(s, optimiser(s), torch.tensor([True]), tau=4.0, truncate=truncate)
         assert s.num_primitives == 2
         assert torch.allclose(s.means[:, 0].abs(), torch.full((2,), 0.02 * texels_off), atol=1e-6)
+
+
+def test_the_late_prune_removes_faint_primitives_and_updates_k_min():
+    """Between the late downscales (the authors' every 250 iterations): prune below prune_opacity_late, new k_min."""
+    from types import SimpleNamespace
+
+    from ctgs.train.routines.passes import late_prune
+    from train_helpers import camera
+
+    m = model(means=[[0.0, 0.0, 3.0], [0.3, 0.0, 3.0]], scales=[[0.05, 0.05]] * 2, opacities=[0.9, 0.002],
+              tex_res=[[4, 4]] * 2, k_min=[1.0, 1.0])
+    stats = late_prune(m, optimiser(m), SimpleNamespace(prune_opacity_late=1.0 / 255.0), [camera()])
+    assert stats == {"pruned": 1} and m.num_primitives == 1
+    assert float(m.k_min[0]) < 0.1  # recomputed from the camera (3 units away, focal 60: 0.05 per pixel)

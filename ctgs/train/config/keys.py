@@ -134,6 +134,8 @@ class TrainConfig:
     routine_until: int = _f(25000, "last full routine iteration (also capped at iterations - routine_margin)")
     routine_margin: int = _f(3000, "no full routines during the last this many iterations (paper scale)")
     late_downscale_every: int = _f(1000, "after routine_until: downscale + light prune only, this often")
+    late_prune_every: int = _f(250, "after routine_until: a light prune (prune_opacity_late) and k_min this often "
+                               "between the late downscales, as the authors' code does (paper scale); 0 = none")
     realloc_every: int = _f(100, "iterations between jagged texture reallocations")
     error_views: int = _f(0, "> 0: E from at most this many training views per full routine, drawn at random "
                           "without replacement, a new draw at every routine (an unbiased estimate of the paper's sums "
@@ -280,7 +282,7 @@ _RANGES = [
     ("exposure_min_gain", _ge(0), ">= 0"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
     ("virtual_every", _ge(1), ">= 1"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
     ("routine_every", _gt(0), "> 0"), ("routine_until", _ge(0), ">= 0"), ("routine_margin", _ge(0), ">= 0"),
-    ("late_downscale_every", _gt(0), "> 0"), ("realloc_every", _gt(0), "> 0"),
+    ("late_downscale_every", _gt(0), "> 0"), ("late_prune_every", _ge(0), ">= 0 (0 = none)"), ("realloc_every", _gt(0), "> 0"),
     ("top_fraction", _unit_open_closed, "in (0, 1]"), ("tau_ds", _gt(0), "> 0"),
     ("tau_tr_start", _gt(0), "> 0 texels"), ("tau_tr_end", _gt(0), "> 0 texels"), ("tau_tr_iters", _gt(0), "> 0"),
     ("tau_tr_pixel_exponent", lambda v: 0 <= v <= 1, "in [0, 1]"),

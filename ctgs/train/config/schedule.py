@@ -88,10 +88,12 @@ def replanned_shift(shift: float, it: int, old_iterations: int, new_iterations: 
 
 
 def routine_kind(cfg: TrainConfig, it: int, shift: float = 0.0) -> str | None:
-    """'full' (E, split, up/downscale, prune, k_min), 'late' (downscale + light prune) or None.
+    """'full' (E, split, up/downscale, prune, k_min), 'late' (downscale + light prune), 'late_prune' (light prune and
+    k_min only) or None.
 
     Full routines: every routine_every from texture_start to min(routine_until, iterations - margin).
-    After that, a downscale-only pass every late_downscale_every until the end (not at the last step).
+    After that, a downscale pass every late_downscale_every until the end (not at the last step), and with
+    late_prune_every > 0 a light prune at its other multiples (the authors' code prunes every 250 iterations).
     """
     if cfg.method != "content_aware" or it <= 0 or it >= cfg.iterations:
         return None
@@ -100,6 +102,8 @@ def routine_kind(cfg: TrainConfig, it: int, shift: float = 0.0) -> str | None:
         return "full"
     if it > max(end, start) and every(cfg, cfg.late_downscale_every, it, shift):
         return "late"
+    if it > max(end, start) and cfg.late_prune_every > 0 and every(cfg, cfg.late_prune_every, it, shift):
+        return "late_prune"
     return None
 
 

@@ -126,3 +126,12 @@ def late_routine(model, opt, cfg, cameras) -> dict:
                    fresh_moments=cfg.texture_fresh_moments)
     budget = size_budget.fit(model, opt, cfg)
     return {"downscaled": int(down.sum()), "pruned": n_pruned, **(budget or {})}
+
+
+@torch.no_grad()
+def late_prune(model, opt, cfg, cameras) -> dict:
+    """Between the late downscales (late_prune_every): prune below prune_opacity_late and update k_min, as the authors'
+    code does every 250 iterations after its routines end."""
+    n_pruned = prune(model, opt, cfg.prune_opacity_late)
+    model.k_min = compute_k_min(model.means.detach(), cameras)
+    return {"pruned": n_pruned}

@@ -12,7 +12,7 @@ from ctgs.train.routines import size_budget, texels
 from ctgs.train.routines.densify import RESET_OPACITY, reset_opacity
 from ctgs.train.routines.error import StepErrors
 from ctgs.train.routines.kmin import compute_k_min
-from ctgs.train.routines.passes import full_routine, late_routine
+from ctgs.train.routines.passes import full_routine, late_prune, late_routine
 from ctgs.train.routines.split import prune
 from ctgs.train.step.adam import TEX_PARAM
 from ctgs.train.strategies.base import Strategy
@@ -96,6 +96,11 @@ class ContentAware(Strategy):
         elif kind == "late":
             yield Routine(it, "late", late_routine(model, opt, cfg, st.cameras))
             self.errors.reset()  # (it prunes)
+        elif kind == "late_prune":
+            stats = late_prune(model, opt, cfg, st.cameras)
+            if stats["pruned"]:
+                self.errors.reset()
+            yield Routine(it, "late_prune", stats)
         elif st.textures_started and schedule.every(cfg, cfg.realloc_every, it, shift):
             texels.realloc(model, opt, cfg.max_texture_res, cfg.texture_alloc, cfg.texture_sigma,
                            fresh_moments=cfg.texture_fresh_moments)
