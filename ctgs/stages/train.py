@@ -210,7 +210,8 @@ def _list_keys(ctx, _param, value):
 @click.argument("scene_dir", type=click.Path(file_okay=False))
 @click.option("-o", "--output", "run_dir", required=True, type=click.Path(file_okay=False), help="Run folder.")
 @click.option("--preset", type=click.Choice(["preview", "fast", "balanced", "paper"]), default=None,
-              help="Recipe: paper = the authors' exactly (default with a GPU); fast (default on a CPU), "
+              help="Recipe: paper = the authors' exactly (default with a GPU); fast (default on a CPU; with "
+                   "--time-budget, the 2dgs baseline where the plan makes under 150 passes over the views), "
                    "preview and balanced trade time for quality (docs/guide/training.md).")
 @click.option("--time-budget", "time_budget", type=float, default=None, metavar="MINUTES",
               help="Plan the iteration count so the whole run ends within MINUTES (> 0) on this machine (without it, "
