@@ -9,7 +9,8 @@ PSNR, SSIM and LPIPS); finished or still running (the record covers the iteratio
 The record (benchmarks/results/parity/NAME_<commit>.{md,json,png}) holds, at every common evaluation: test PSNR, SSIM,
 LPIPS, primitives, texels, texels per primitive and parameters of both runs, their differences, and the paper's
 relative figures beside the last common one (Mip-NeRF 360 average: method - 2DGS* = -0.18 dB PSNR, -0.019 LPIPS,
-0.10x the primitives; bonsai: 30.8 texels per primitive).
+0.10x the primitives, 1.27x the parameters; bonsai: 30.8 texels per primitive). The method's parameters beside the
+paper's count the texels as the authors' save crops them (texels_active), as the paper's do.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from datetime import datetime, timezone
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import record  # noqa: E402
 
-PAPER = {"d_psnr": -0.18, "d_lpips": -0.019, "prim_ratio": 0.10, "texels_per_prim_bonsai": 30.8}
+PAPER = {"d_psnr": -0.18, "d_lpips": -0.019, "prim_ratio": 0.10, "params_ratio": 1.27, "texels_per_prim_bonsai": 30.8}
 PARAMS_PER_PRIM = {0: 14, 1: 23, 2: 38, 3: 59}  # 3 + 2 + 4 + 1 + 3 (SH coefficients) + texel exponent, by SH degree
 
 
@@ -62,6 +63,14 @@ def rows(a: dict, b: dict) -> list[dict]:
         # texels_active: inside the active extents, the authors' saved-model measure (ctgs.model.extent.active_texels);
         # logged with each evaluation since it existed, absent (None) in older logs
         sa["texels_active"] = ea.get("texels_active")
+        for run, size in ((a, sa), (b, sb)):  # the end's evaluation scores the model as saved (after a final prune)
+            summ = run["summary"]
+            if summ and it == summ["iterations"]:
+                size.update(primitives=summ["num_primitives"], texels=summ["num_texels"], params=summ["num_params"])
+                if summ.get("num_texels_active") is not None and size is sa:
+                    sa["texels_active"] = summ["num_texels_active"]
+        if sa["texels_active"] is not None:  # the parameters as the authors' saved model holds them
+            sa["params_saved"] = sa["params"] - 3 * sa["texels"] + 3 * sa["texels_active"]
         out.append({"it": it,  # (the periodic evaluations are scored after this step, before each multiple)
                     "a": {"psnr": ea["psnr"], "ssim": ea["ssim"], "lpips": ea.get("lpips"), **sa},
                     "b": {"psnr": eb["psnr"], "ssim": eb["ssim"], "lpips": eb.get("lpips"), **sb}})
@@ -85,11 +94,24 @@ def plot(res: dict, path: str) -> None:
 
     r = res["rows"]
     its = [x["it"] for x in r]
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
-    for ax, key, label in zip(axes, ("psnr", "lpips", "primitives", "texels"),
-                              ("test PSNR (dB)", "test LPIPS (VGG)", "primitives", "texels")):
+    for x in r:
+        for side in ("a", "b"):
+            v = x[side]
+            v["texels_per_primitive"] = (v.get("texels_active") or v["texels"]) / max(v["primitives"], 1)
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7))
+    axes = axes.flatten()
+    panels = (("psnr", "test PSNR (dB)"), ("ssim", "test SSIM"), ("lpips", "test LPIPS (VGG)"),
+              ("primitives", "primitives"), ("texels", "texels (allocated; dashed: as saved)"),
+              ("texels_per_primitive", "texels per primitive (as saved)"))
+    for ax, (key, label) in zip(axes, panels):
         ax.plot(its, [x["a"][key] for x in r], "o-", color="tab:red", label=res["method_label"], ms=3)
-        ax.plot(its, [x["b"][key] for x in r], "s-", color="tab:blue", label=res["baseline_label"], ms=3)
+        if key == "texels" and any(x["a"].get("texels_active") is not None for x in r):
+            ax.plot(its, [x["a"].get("texels_active") for x in r], "o--", color="tab:red", ms=2)
+        if key not in ("texels", "texels_per_primitive"):
+            ax.plot(its, [x["b"][key] for x in r], "s-", color="tab:blue", label=res["baseline_label"], ms=3)
+        if key == "texels_per_primitive":
+            ax.axhline(PAPER["texels_per_prim_bonsai"], color="grey", ls=":", label="paper (bonsai)")
+            ax.legend(fontsize=8)
         ax.set_xlabel("iteration")
         ax.set_title(label)
         ax.grid(alpha=0.3)
@@ -134,6 +156,9 @@ def markdown(res: dict) -> str:
                   f"| LPIPS, method - 2DGS* | {'-' if dl is None else f'{dl:+.3f}'} | {PAPER['d_lpips']:+.3f} |",
                   f"| primitives, method / 2DGS* | {a['primitives'] / max(b['primitives'], 1):.2f}x | "
                   f"{PAPER['prim_ratio']:.2f}x |",
+                  "| parameters, method (texels as saved) / 2DGS* | "
+                  + ("-" if a.get("params_saved") is None else f"{a['params_saved'] / max(b['params'], 1):.2f}x")
+                  + f" | {PAPER['params_ratio']:.2f}x (Mip-NeRF 360) |",
                   f"| texels per primitive (method), as allocated | {a['texels'] / max(a['primitives'], 1):.1f} | - |",
                   "| texels per primitive (method), inside the active extents (the authors' saved models) | "
                   + ("-" if a.get("texels_active") is None else f"{a['texels_active'] / max(a['primitives'], 1):.1f}")
