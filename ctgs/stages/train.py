@@ -123,7 +123,8 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
     owner.check_ours(run_dir, RUN_KIND, "a ctgs run folder", legacy=_earlier_run)
     if not resume and os.path.exists(os.path.join(run_dir, "model.pt")):
         raise UserError(f"{run_dir}: already holds a finished run; choose another -o folder or delete it")
-    chosen = preset is not None or config is not None or (resume and os.path.exists(os.path.join(run_dir, "config.toml")))
+    own_config = resume and os.path.exists(os.path.join(run_dir, "config.toml"))  # a resumed run keeps its own
+    chosen = preset is not None or config is not None or own_config
     if not chosen:
         preset = default_preset()
         if not quiet:

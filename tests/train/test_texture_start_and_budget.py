@@ -168,7 +168,8 @@ def test_split_children_leave_the_candidates_unless_they_stay():
 
 def test_active_texels_count_the_textures_as_the_authors_save_them():
     """The authors' save crops each texture tight to its active extent: e = ceil(active extent / texel size) per axis,
-    e + 2 texels if e is even, e + 1 if odd (centred texels covering e), at most 256. num_texels counts the allocation."""
+    e + 2 texels if e is even, e + 1 if odd (centred texels covering e), at most 256. num_texels counts the
+    allocation."""
     from ctgs.model.extent import active_resolution, active_texels
 
     m = model(means=[[0.0, 0.0, 3.0], [0.5, 0.0, 3.0]], scales=[[0.2, 0.1], [0.05, 0.05]], opacities=[0.9, 0.9],

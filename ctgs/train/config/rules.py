@@ -59,8 +59,8 @@ PAPER_ITERATIONS = 30000
 
 # Keys holding an iteration count at the paper's scale (ctgs/train/config/schedule.py scales them).
 ITERATION_KEYS = ("texture_start", "sh_every", "routine_every", "routine_until", "routine_margin",
-                  "late_downscale_every", "late_prune_every", "realloc_every", "tau_tr_iters", "densify_from", "densify_until",
-                  "densify_every", "opacity_reset_every", "test_every", "checkpoint_every")
+                  "late_downscale_every", "late_prune_every", "realloc_every", "tau_tr_iters", "densify_from",
+                  "densify_until", "densify_every", "opacity_reset_every", "test_every", "checkpoint_every")
 # Smallest texture cap the rule may produce (texels per axis): above the split threshold (tau_tr_end = 32), so
 # a primitive always splits before its texture reaches the cap.
 MIN_TEXTURE_CAP = 64

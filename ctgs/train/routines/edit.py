@@ -20,11 +20,11 @@ def _leaf(t: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def select(model, opt: SurfelAdam, idx: torch.Tensor, fresh: torch.Tensor | None = None,
-           tex_shift: torch.Tensor | None = None, fresh_textures: bool = False) -> None:
+           tex_shift: torch.Tensor | None = None) -> None:
     """Keep primitives idx [N'] (repeats allowed: duplicates), in that order.
 
-    fresh [N'] bool: rows whose Adam moments start at zero (new primitives, as 3DGS does); with fresh_textures,
-    their texels' moments too.
+    fresh [N'] bool: rows whose Adam moments start at zero (new primitives, as 3DGS does; their texels keep theirs:
+    zero_texture_moments).
     tex_shift [N', 2] int64: texel shift of each new primitive's texture (split children).
     """
     idx = idx.long()
@@ -43,10 +43,6 @@ def select(model, opt: SurfelAdam, idx: torch.Tensor, fresh: torch.Tensor | None
         tex_shift = torch.zeros(len(idx), 2, dtype=torch.long, device=idx.device)
     bufs = [model.textures_raw.detach(), opt.exp_avg[TEX_PARAM], opt.exp_avg_sq[TEX_PARAM]]
     (raw, m, v), off = jagged.remap(bufs, old_res, old_off, idx, tex_shift, model.tex_res)
-    if fresh_textures and fresh is not None and m.shape[0] > 0:
-        per_texel = torch.repeat_interleave(fresh, model.tex_res.long().prod(1))
-        m[per_texel] = 0
-        v[per_texel] = 0
     _set_textures(model, opt, raw, m, v, off)
 
 

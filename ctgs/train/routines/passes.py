@@ -30,10 +30,15 @@ def upscale_after_split(model, E: torch.Tensor, children: torch.Tensor, cfg, far
     if not cfg.upscale_split_children:
         E[children] = 0
     E = E * texels.upscale_selection(model, torch.ones_like(children), cfg.min_t2p_exp).to(E.dtype)
+    return _top_fraction(E, cfg.top_fraction, far)
+
+
+def _top_fraction(E: torch.Tensor, fraction: float, far: torch.Tensor | None) -> torch.Tensor:
+    """[N] bool: top_fraction_mask of E, taken among the primitives that are not `far` (never chosen) where given."""
     if far is None:
-        return top_fraction_mask(E, cfg.top_fraction)
+        return top_fraction_mask(E, fraction)
     top = torch.zeros_like(far)
-    top[~far] = top_fraction_mask(E[~far], cfg.top_fraction)
+    top[~far] = top_fraction_mask(E[~far], fraction)
     return top
 
 
@@ -64,12 +69,7 @@ def full_routine(model, opt, cfg, it: int, views, render_fn, cameras, background
                                gains=gains)
     else:
         E = compute_E(model, error_views(views, cfg, it), render_fn, cfg.lambda_ssim, gains=gains)
-    if background is None:
-        top = top_fraction_mask(E, cfg.top_fraction)
-    else:
-        bg = background(model)
-        top = torch.zeros_like(bg)
-        top[~bg] = top_fraction_mask(E[~bg], cfg.top_fraction)
+    top = _top_fraction(E, cfg.top_fraction, None if background is None else background(model))
     n0 = model.num_primitives
     # carried through the split (children inherit the parent's): E for an upscale set chosen after it, and support
     cols = ([E] if cfg.upscale_after_split else []) + ([support] if support is not None else [])

@@ -31,8 +31,7 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
     fresh_children: children start with zero Adam moments (the authors' code appends them as new tensors and drops
     the parent); False: they inherit the parent's. scale_cap: a child's scale on the split axis is at most
     tau texels / 3 (the authors' code), besides halved. truncate: the offset in texels is truncated (the authors'
-    code), not rounded. children_out: a list that receives the [N'] bool mask of
-    the children this call made.
+    code), not rounded. children_out: a list that receives the [N'] bool mask of the children this call made.
     """
     total = 0
     is_child = torch.zeros(model.num_primitives, dtype=torch.bool, device=candidates.device)
@@ -64,8 +63,9 @@ def split(model, opt, candidates: torch.Tensor, tau: float, max_primitives: int 
         d_world = (s[idx] * k[idx] * sign)[:, None] * rot[idx]
         opac = model.opacities.detach()[idx]
         child = sign != 0
-        edit.select(model, opt, idx, fresh=child if fresh_children else None, tex_shift=shift,
-                    fresh_textures=fresh_children)
+        edit.select(model, opt, idx, fresh=child if fresh_children else None, tex_shift=shift)
+        if fresh_children:
+            edit.zero_texture_moments(model, opt, child)
         model.means.data[child] += d_world[child]
         model.log_scales.data[child, axis] -= math.log(2.0)
         if scale_cap:

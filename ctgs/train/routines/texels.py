@@ -62,9 +62,9 @@ def realloc(model, opt, cap: int, mode: str = "pow2", sigma: float = CUTOFF_SIGM
     if model.texture_mode != "content_aware":
         return model.num_texels
     new_res = needed_res(model, cap, mode, sigma)
-    changed = (new_res != model.tex_res).any(1)
+    changed = (new_res != model.tex_res).any(1) if fresh_moments and opt is not None else None
     edit.relayout(model, opt, new_res)
-    if fresh_moments and opt is not None:
+    if changed is not None:
         edit.zero_texture_moments(model, opt, changed)
     return model.num_texels
 
@@ -185,8 +185,9 @@ def downscale(model, opt, candidates: torch.Tensor, tau_ds: float, thin: bool = 
     E_d = Gaussian-weighted mean over texels of |mean_RGB(recon - orig)| (activated values). Accepted
     (E_d < tau_ds, resolution > 2 on both axes) keep the downsampled texture, t2p_exp + 1; their Adam
     moments are 2x2 averaged (with fresh_moments: zeroed, as the authors' code does). corners: the round trip with
-    align_corners=True, as the authors' code resamples (_roundtrips). thin=True also takes textures 2 texels wide on one axis and wider on the other (the
-    authors' code: any axis above 2); the thin axis is then 1 texel until the routine's realloc pads it again.
+    align_corners=True, as the authors' code resamples (_roundtrips). thin=True also takes textures 2 texels wide on
+    one axis and wider on the other (the authors' code: any axis above 2); the thin axis is then 1 texel until the
+    routine's realloc pads it again.
     Returns (accepted [N] bool, E_d [N] with NaN where not evaluated).
     """
     n = model.num_primitives
