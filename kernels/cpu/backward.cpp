@@ -210,20 +210,21 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
           v_ly = v_ly + v_vv * P.ikv;
           g.ku += sel(tx.active, -v_uu * h.lx * P.iku2, zero);
           g.kv += sel(tx.active, -v_vv * h.ly * P.ikv2, zero);
+          using Q = typename Quad<S>::Q;
           for (int k = 0; k < W; ++k) {
             if (!tx.active[k]) continue;
+            const Q gk{gtex[0][k], gtex[1][k], gtex[2][k], S(0)};
             for (int t = 0; t < 4; ++t) {
               if (tx.row[t][k] < 0) continue;
               S* dst = b.v_tex + 3 * tx.row[t][k];
-              const S wt = tx.w[t][k];
-              for (int ch = 0; ch < 3; ++ch) {
-                const S val = wt * gtex[ch][k];
-                if (b.atomics) {
+              const Q val = tx.w[t][k] * gk;
+              if (b.atomics) {
+                for (int ch = 0; ch < 3; ++ch) {
 #pragma omp atomic
-                  dst[ch] += val;
-                } else {
-                  dst[ch] += val;
+                  dst[ch] += val[ch];
                 }
+              } else {
+                store_rgb(dst, load_rgb(dst) + val);
               }
             }
           }

@@ -15,6 +15,7 @@
 #include "ctgs/constants.h"
 #include "ctgs/surfel.h"
 #include "lanes.h"
+#include "tex_gather.h"
 
 namespace ctgs {
 namespace cpu {
@@ -138,17 +139,38 @@ CTGS_INLINE void lane_alpha(const LanePrim<S>& P, const LaneRow<S>& R, typename 
   h.z = sel(h.valid, h.t, splat(P.muz));
 }
 
+// One texel's three channels in a short vector (a fourth lane, 0, pads it to a power of two): a texel is read and its
+// gradient added with a few vector instructions instead of three scalar ones each. Reads and writes exactly three
+// values, so a texel at the end of a buffer is safe and a neighbour's channel is never touched.
+template <typename S>
+struct Quad {
+  typedef S Q __attribute__((vector_size(4 * sizeof(S))));
+};
+
+template <typename S>
+CTGS_INLINE typename Quad<S>::Q load_rgb(const S* p) {
+  return typename Quad<S>::Q{p[0], p[1], p[2], S(0)};
+}
+
+template <typename S>
+CTGS_INLINE void store_rgb(S* p, typename Quad<S>::Q q) {
+  p[0] = q[0];
+  p[1] = q[1];
+  p[2] = q[2];
+}
+
 // Step 5 (bilinear taps) for the lanes in `use`: active lanes, fractions, tap weights, and per lane the
 // fetched colour tex (the taps summed in order, 0 in inactive lanes). With keep, also each tap's texel
-// values and row (-1 outside the grid) for the backward. The fetch itself runs lane by lane (a gather)
-// and writes plain arrays that are read back as whole vectors only once per channel.
+// values and row (-1 outside the grid) for the backward. The fetch itself is a gather: twelve AVX2 gathers
+// (tex_gather.h) where the CPU has them, else lane by lane with a texel's channels as one short vector; both
+// write plain arrays that are read back as whole vectors only once per channel.
 template <typename S>
 struct LaneTex {
   typename Lanes<S>::I active;
   typename Lanes<S>::V fu, fv, w[4];
   alignas(32) S tex[3][Lanes<S>::W];       // [channel][lane]
   alignas(32) S texel[4][3][Lanes<S>::W];  // [tap][channel][lane] (keep only)
-  long long row[4][Lanes<S>::W];           // [tap][lane] (keep only)
+  alignas(32) long long row[4][Lanes<S>::W];  // [tap][lane] (keep only)
 };
 
 template <typename S>
@@ -176,26 +198,33 @@ CTGS_INLINE void lane_texture(const LanePrim<S>& P, const S* textures, const Lan
   vstore(flv, fl_v);
   vstore(act, tx.active);
   for (int t = 0; t < 4; ++t) vstore(wt[t], tx.w[t]);
+#ifdef CTGS_AVX2_GATHER
+  if constexpr (W == 8 && sizeof(S) == 4) {
+    if (have_avx2_gather()) {
+      fetch_taps_avx2(flu, flv, act, &wt[0][0], P.res_u, P.res_v, P.tex_off, textures, &tx.tex[0][0],
+                      keep ? &tx.texel[0][0][0] : nullptr, keep ? &tx.row[0][0] : nullptr);
+      return;
+    }
+  }
+#endif
+  using Q = typename Quad<S>::Q;
+  const Q zero{};
   for (int k = 0; k < W; ++k) {
-    S sum[3] = {S(0), S(0), S(0)};
+    Q sum = zero;
     if (act[k]) {
       const int u0 = int(flu[k]), v0 = int(flv[k]);  // in [-1, res - 1]
+      const bool in_u0 = u0 >= 0, in_u1 = u0 + 1 < P.res_u, in_v0 = v0 >= 0, in_v1 = v0 + 1 < P.res_v;
+      const bool inside[4] = {in_u0 && in_v0, in_u1 && in_v0, in_u0 && in_v1, in_u1 && in_v1};
+      const long long row0 = P.tex_off + static_cast<long long>(v0) * P.res_u + u0;
+      const long long rows[4] = {row0, row0 + 1, row0 + P.res_u, row0 + P.res_u + 1};
+      // A texel's three channels as one short vector (the fourth lane 0): the same products and sums, in the same
+      // order, as channel by channel: w[0] t[0] + w[1] t[1] + w[2] t[2] + w[3] t[3].
       for (int t = 0; t < 4; ++t) {
-        const int iu = u0 + (t & 1), iv = v0 + (t >> 1);
-        const bool inside = iu >= 0 && iu < P.res_u && iv >= 0 && iv < P.res_v;
-        const long long row = inside ? P.tex_off + static_cast<long long>(iv) * P.res_u + iu : -1;
-        S val[3] = {S(0), S(0), S(0)};
-        if (inside) {
-          const S* src = textures + 3 * row;
-          val[0] = src[0];
-          val[1] = src[1];
-          val[2] = src[2];
-        }
-        // The same sum, in the same order, as w[0] t[0] + w[1] t[1] + w[2] t[2] + w[3] t[3] per lane.
-        for (int c = 0; c < 3; ++c) sum[c] = t == 0 ? wt[0][k] * val[c] : sum[c] + wt[t][k] * val[c];
+        const Q val = inside[t] ? load_rgb(textures + 3 * rows[t]) : zero;
+        sum = t == 0 ? wt[0][k] * val : sum + wt[t][k] * val;
         if (keep) {
           for (int c = 0; c < 3; ++c) tx.texel[t][c][k] = val[c];
-          tx.row[t][k] = row;
+          tx.row[t][k] = inside[t] ? rows[t] : -1;
         }
       }
     } else if (keep) {
@@ -237,7 +266,7 @@ CTGS_INLINE void prefetch_spans(const LanePrim<S>& P, int y0, int y1) {
 // Asks the memory system for the start of a primitive's texel block (and of its gradient rows) ahead of
 // use: the gathers and scatters of trained scenes (1-2M texels, tens of MB) miss the caches, and the
 // next primitive of a tile list is known while the current one is processed.
-constexpr long long PREFETCH_TEXELS = 128;  // 1.5 KB of float texels: the rows a tile usually touches
+constexpr long long PREFETCH_TEXELS = 32;  // 384 B of float texels: the first rows (the hardware prefetcher streams on)
 template <typename S>
 CTGS_INLINE void prefetch_texels(const LanePrim<S>& P, const S* textures, const S* grad) {
   if (!P.textured) return;

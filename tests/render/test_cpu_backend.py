@@ -173,3 +173,39 @@ def test_texel_gradients_with_two_threads_any_block_layout(layout):
         for i in range(s.num_primitives):
             owned[int(s.tex_offset[i]):int(s.tex_offset[i]) + int(s.tex_res[i, 0] * s.tex_res[i, 1])] = True
         assert torch.equal(grads[1][~owned], torch.zeros_like(grads[1][~owned]))
+
+
+_FETCH_SCRIPT = """
+import sys, torch
+sys.path.insert(0, {tests!r})
+from scenes import FLOAT_INPUTS, cast, random_scene, with_grad
+from ctgs.render import render
+torch.set_num_threads(1)  # the forward's statistics are summed per thread, in the order threads take tiles
+case = random_scene(60, seed=5, width=64, height=48, sh_degree=3, max_res=8)
+s, cam = with_grad(cast(case.surfels, torch.float32)), case.camera.to("cpu", torch.float32)
+out = render(s, cam, backend="cpu", error_image=torch.rand(48, 64, generator=torch.Generator().manual_seed(1)))
+g = torch.Generator().manual_seed(7)
+loss = sum((o * (torch.rand(o.shape, generator=g) - 0.3)).sum() for o in (out.rgb, out.alpha, out.depth))
+grads = torch.autograd.grad(loss, [getattr(s, n) for n in FLOAT_INPUTS])
+torch.save([out.rgb, out.alpha, out.depth, out.stats.err, *grads], {path!r})
+"""
+
+
+def test_texel_fetch_with_and_without_avx2_gathers_gives_the_same_bits(tmp_path):
+    """Float lanes fetch texels with AVX2 gathers where the CPU has them, else lane by lane (CTGS_CPU_GATHER=0, or
+    a CPU without AVX2): the same products summed in the same order, so the same images and gradients, bit for bit."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    results = []
+    for gather in ("1", "0"):
+        path = tmp_path / f"gather{gather}.pt"
+        script = _FETCH_SCRIPT.format(tests=str(Path(__file__).parent), path=str(path))
+        env = {**os.environ, "CTGS_CPU_GATHER": gather}
+        subprocess.run([sys.executable, "-c", script], env=env, check=True, timeout=600)
+        results.append(torch.load(path))
+    assert results[0][-1].abs().max() > 0  # the texel gradients (the last float input) are not all zero
+    for x, y in zip(*results):
+        assert torch.equal(x, y)
