@@ -14,7 +14,8 @@ jobs on a shared machine), interleaved so that a change of the machine's speed r
               textured steps before it; splits, texel rescaling, prune, reallocation) on a copy of the model and
               optimiser
 Each step uses the next training view of a fixed list, the same list for both kinds. Reported: the medians, the
-ratio textured / untextured (goal: at most 1.25) and routine / textured step (goal: at most 10).
+ratio textured / untextured (goal: at most 1.25) and routine / textured step (goal: at most 10), and the renderer's own
+phase counters (binning, forward and backward raster, reductions) for both kinds of step.
 Records: benchmarks/results/step_cost/<tag>_<commit>.{json,md}.
 """
 
@@ -59,8 +60,15 @@ def measure(args) -> dict:
     views = tr.train_views[: max(args.reps, 1)]
     mode = model.texture_mode
 
+    from ctgs.ops.ext import load_cpu
+
+    # The kernel's own counters (wall seconds per phase; one thread, so the raster loops' time), per step kind.
+    counters = getattr(load_cpu(), "profile_counters", lambda reset: {})
+    phases = {True: {}, False: {}}
+
     def step(view, textured: bool) -> float:
         model.texture_mode = mode if textured else "none"
+        counters(True)
         t0 = time.process_time()
         for name in ALL_PARAMS:
             getattr(model, name).grad = None
@@ -78,6 +86,8 @@ def measure(args) -> dict:
         opt.step(model, lrs)
         tr._check_finite(None)
         seconds = time.process_time() - t0
+        for name, value in counters(True).items():
+            phases[textured].setdefault(name, []).append(value)
         model.texture_mode = mode
         return seconds
 
@@ -98,6 +108,8 @@ def measure(args) -> dict:
     for v in views[:2]:  # warm-up: first touches of the buffers
         step(v, True)
         step(v, False)
+    phases[True].clear()
+    phases[False].clear()
     textured, untextured, routines = [], [], []
     for k, v in enumerate(views):
         textured.append(step(v, True))
@@ -112,7 +124,9 @@ def measure(args) -> dict:
             "pixels": tr.pixels, "error_views": tr.cfg.error_views, "reps": len(views),
             "textured_s": tex, "untextured_s": plain, "routine_s": rout, "textured_over_untextured": tex / plain,
             "routine_over_textured_step": rout / tex, "textured_all": textured, "untextured_all": untextured,
-            "routine_all": routines, "routine_E_steps": e_steps, "error_from_steps": tr.cfg.error_from_steps,
+            "routine_all": routines, "routine_E_steps": e_steps,
+            "kernel_phases_ms": {kind: {k: 1e3 * statistics.median(v) for k, v in sorted(phases[flag].items())}
+                                 for kind, flag in (("textured", True), ("untextured", False))}, "error_from_steps": tr.cfg.error_from_steps,
             "commit": record.commit(), "machine": machine(), "torch": torch.__version__,
             "loadavg": os.getloadavg(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "command": " ".join([os.path.relpath(sys.executable, record.ROOT)] + sys.argv)}
@@ -133,7 +147,19 @@ def markdown(r: dict) -> str:
         f"| untextured step (same primitives, pixels) | {r['untextured_s']:.4f} | 1 | |",
         f"| textured step | {r['textured_s']:.4f} | {r['textured_over_untextured']:.2f}x untextured | <= 1.25x |",
         f"| full routine | {r['routine_s']:.3f} | {r['routine_over_textured_step']:.1f} textured steps | <= 10 |",
-        ""])
+        "", *phase_table(r.get("kernel_phases_ms", {}))])
+
+
+def phase_table(phases: dict) -> list[str]:
+    """The kernel counters' medians, textured against untextured: where a textured step's extra time goes."""
+    tex, plain = phases.get("textured", {}), phases.get("untextured", {})
+    names = [k for k in tex if tex[k] > 0.05 or plain.get(k, 0) > 0.05]
+    if not names:
+        return []
+    return ["Inside the renderer (its counters, median wall ms per step, one thread):", "",
+            "| phase | textured | untextured | ratio |", "| --- | ---: | ---: | ---: |",
+            *[f"| {k} | {tex[k]:.1f} | {plain.get(k, 0):.1f} | "
+              f"{tex[k] / plain[k] if plain.get(k) else float('nan'):.2f}x |" for k in names], ""]
 
 
 def main() -> None:
