@@ -200,7 +200,8 @@ CTGS_INLINE void lane_texture(const LanePrim<S>& P, const S* textures, const Lan
   for (int t = 0; t < 4; ++t) vstore(wt[t], tx.w[t]);
 #ifdef CTGS_AVX2_GATHER
   if constexpr (W == 8 && sizeof(S) == 4) {
-    if (have_avx2_gather()) {
+    // (the gathers index texels with 32-bit offsets: a block of 2^28 texels or more, 3 GB, takes the loop below)
+    if (have_avx2_gather() && static_cast<long long>(P.res_u) * P.res_v < (1LL << 28)) {
       fetch_taps_avx2(flu, flv, act, &wt[0][0], P.res_u, P.res_v, P.tex_off, textures, &tx.tex[0][0],
                       keep ? &tx.texel[0][0][0] : nullptr, keep ? &tx.row[0][0] : nullptr);
       return;
