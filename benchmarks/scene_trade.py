@@ -25,6 +25,7 @@ Writes benchmarks/results/scene_trade/<scene>_<images>_<minutes>min_<variants>_<
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -44,6 +45,8 @@ METRICS = ("psnr", "ssim", "lpips", "points", "texels", "params", "fps", "bytes_
 
 def train_one(args, variant: str, seed: int, threads: int) -> str:
     tag = variant.replace("@", "_").replace(",", "_").replace("=", "")
+    if len(tag) > 60:  # a long list of overrides: a file name holds at most 255 bytes
+        tag = tag[:40] + "_" + hashlib.sha1(variant.encode()).hexdigest()[:10]
     run = os.path.join(args.work, f"{args.scene}_{args.images}_{args.minutes:g}min_{tag}_s{seed}")
     if os.path.isfile(os.path.join(run, "eval", "metrics.json")):
         return run
