@@ -63,7 +63,7 @@ def measure(args) -> dict:
     from ctgs.ops.ext import load_cpu
 
     # The kernel's own counters (wall seconds per phase; one thread, so the raster loops' time), per step kind.
-    counters = getattr(load_cpu(), "profile_counters", lambda reset: {})
+    counters = load_cpu().profile_counters
     phases = {True: {}, False: {}}
 
     def step(view, textured: bool) -> float:
@@ -124,9 +124,9 @@ def measure(args) -> dict:
             "pixels": tr.pixels, "error_views": tr.cfg.error_views, "reps": len(views),
             "textured_s": tex, "untextured_s": plain, "routine_s": rout, "textured_over_untextured": tex / plain,
             "routine_over_textured_step": rout / tex, "textured_all": textured, "untextured_all": untextured,
-            "routine_all": routines, "routine_E_steps": e_steps,
+            "routine_all": routines, "routine_E_steps": e_steps, "error_from_steps": tr.cfg.error_from_steps,
             "kernel_phases_ms": {kind: {k: 1e3 * statistics.median(v) for k, v in sorted(phases[flag].items())}
-                                 for kind, flag in (("textured", True), ("untextured", False))}, "error_from_steps": tr.cfg.error_from_steps,
+                                 for kind, flag in (("textured", True), ("untextured", False))},
             "commit": record.commit(), "machine": machine(), "torch": torch.__version__,
             "loadavg": os.getloadavg(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "command": " ".join([os.path.relpath(sys.executable, record.ROOT)] + sys.argv)}

@@ -3,7 +3,11 @@ statistics and gradients w.r.t. every input with random cotangents."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -194,11 +198,6 @@ torch.save([out.rgb, out.alpha, out.depth, out.stats.err, *grads], {path!r})
 def test_texel_fetch_with_and_without_avx2_gathers_gives_the_same_bits(tmp_path):
     """Float lanes fetch texels with AVX2 gathers where the CPU has them, else lane by lane (CTGS_CPU_GATHER=0, or
     a CPU without AVX2): the same products summed in the same order, so the same images and gradients, bit for bit."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
     results = []
     for gather in ("1", "0"):
         path = tmp_path / f"gather{gather}.pt"
