@@ -94,8 +94,8 @@ def short_plan_warning(iterations: int, budget_s: float, step_s: float, pixels: 
 
 # Passes over the training views (iterations / views) below which the content-aware method's textures had not paid
 # for their cost in any run measured at equal time on a CPU against the 2DGS baseline (at 2DGS's own prune threshold):
-# bonsai252 at 200x133 (220 views), `fast` for 15 minutes, about 33 passes: 1.27 dB below; herzjesu25 at 384x256 (21
-# views), 10 minutes, about 120 passes: 0.38 dB below. At equal iterations `paper` leads 2DGS* (bonsai252, 30k
+# bonsai252 at 200x133 (220 views), `fast` for 15 minutes, about 25 passes: 1.21 dB below; herzjesu25 at 384x256 (21
+# views), 10 minutes, about 100 passes: 0.13 dB below. At equal iterations `paper` leads 2DGS* (bonsai252, 30k
 # iterations: +0.17 dB): the CPU's minutes, not the method, are short. docs/guide/training.md, "When textures pay".
 FEW_PASSES = 150
 
@@ -110,8 +110,8 @@ def few_passes_note(method: str, iterations: int, views: int) -> str | None:
     count = f"{passes:.0f} passes" if passes >= 10 else f"{passes:.1f} passes" if passes != 1 else "1 pass"
     return (f"ctgs train: note: {iterations} iterations are {count} over the {views} training views; "
             f"below about {FEW_PASSES} the textures had not paid for their cost in the CPU runs measured against "
-            f"the 2dgs baseline given the same minutes (bonsai252, 33 passes: 1.27 dB below; herzjesu25, 120 "
-            f"passes: 0.38 dB below). More minutes, a smaller --images folder, or --config 2dgs may serve this "
+            f"the 2dgs baseline given the same minutes (bonsai252, 25 passes: 1.21 dB below; herzjesu25, 100 "
+            f"passes: 0.13 dB below). More minutes, a smaller --images folder, or --config 2dgs may serve this "
             f"capture better "
             f"(docs/guide/training.md, \"When textures pay\")")
 
