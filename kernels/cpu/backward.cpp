@@ -123,6 +123,10 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
       const LanePrim<S>& Q = b.prims[b.bins->list[begin + jj - 1]];
       prefetch_spans(Q, y0, y1 - 1);
       prefetch_texels(Q, a.textures, b.v_tex);
+      // and its gradient row, which the end of its tile reads and writes (a miss: primitives come in depth order)
+      const char* g = reinterpret_cast<const char*>(b.g_thread + size_t(b.bins->list[begin + jj - 1]) * G_STRIDE);
+      __builtin_prefetch(g, 1, 3);
+      __builtin_prefetch(g + G_STRIDE * sizeof(S) - 1, 1, 3);
     }
     const PixelRect& r = P.rect;
     const int ry0 = std::max(r.y0, y0), ry1 = std::min(r.y1, y1 - 1);
