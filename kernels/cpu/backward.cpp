@@ -120,11 +120,12 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
     // Two entries ahead: the struct; one ahead: its spans, texels and texel gradients.
     if (jj > 1) prefetch_prim(&b.prims[b.bins->list[begin + jj - 2]]);
     if (jj > 0) {
-      const LanePrim<S>& Q = b.prims[b.bins->list[begin + jj - 1]];
+      const int32_t next = b.bins->list[begin + jj - 1];
+      const LanePrim<S>& Q = b.prims[next];
       prefetch_spans(Q, y0, y1 - 1);
       prefetch_texels(Q, a.textures, b.v_tex);
       // and its gradient row, which the end of its tile reads and writes (a miss: primitives come in depth order)
-      const char* g = reinterpret_cast<const char*>(b.g_thread + size_t(b.bins->list[begin + jj - 1]) * G_STRIDE);
+      const char* g = reinterpret_cast<const char*>(b.g_thread + size_t(next) * G_STRIDE);
       __builtin_prefetch(g, 1, 3);
       __builtin_prefetch(g + G_STRIDE * sizeof(S) - 1, 1, 3);
     }
