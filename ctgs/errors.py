@@ -42,6 +42,7 @@ _FIXES = {
                  "remount it and run again"),
     "EMFILE": ("too many open files", "raise the limit (ulimit -n) and run again"),
     "ENFILE": ("too many open files on the system", "close other programs or raise the limit and run again"),
+    "EEXIST": ("already exists", "choose another output (-o); ctgs does not write over it"),
     "ENOENT": ("no such file or folder", "check the path"),
     "ENOTDIR": ("a part of the path is not a folder", "check the path"),
     "EISDIR": ("is a folder, a file was expected", "check the path"),

@@ -13,6 +13,7 @@ its `filename` set to the final path, so the CLI's one line names the file the u
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -240,12 +241,20 @@ def atomic_dir(out_dir: str, *, replace: bool = True) -> Iterator[str]:
         raise
 
 
+def _exists(out_dir: str) -> FileExistsError:
+    return FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), out_dir)
+
+
 def _move_into_place(tmp: str, out_dir: str, replace: bool) -> None:
     if not os.path.lexists(out_dir):
-        os.rename(tmp, out_dir)
-        return
+        try:
+            os.rename(tmp, out_dir)
+            return
+        except OSError as exc:  # a folder put there by another writer since the check: as if it had been there before
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not os.path.lexists(out_dir):
+                raise
     if not replace or os.path.islink(out_dir) or not os.path.isdir(out_dir):
-        raise FileExistsError(f"{out_dir}: already exists; choose another output folder")
+        raise _exists(out_dir)
     # Two renames: the old folder stays whole until the new one is complete, and is deleted last.
     old = tempfile.mkdtemp(prefix=_tmp_prefix(out_dir) + "old-", dir=os.path.dirname(os.path.abspath(out_dir)))
     os.rmdir(old)

@@ -4,7 +4,8 @@ A benchmark scene often ships some levels only (Mip-NeRF 360 has images_2/4/8; a
 run asks for the one the protocol or the machine needs. The level is made once, by the same resampling as `ctgs sfm`
 (OpenImageIO's antialiased resize to round(W / N) x round(H / N), same file names and bit depth), and kept: in the
 scene folder when it is writable, else in the cache (CTGS_CACHE_DIR, ~/.cache/ctgs) under a key of the scene's path
-and photos. It is written under a temporary name and renamed when complete, so a killed run leaves no half level.
+and photos. It is written under a temporary name and renamed when complete, so a killed run leaves no half level, and
+two runs that make the same level at once both use the one renamed into place first.
 """
 
 from __future__ import annotations
@@ -74,5 +75,11 @@ def level_dir(scene_dir: str, images: str, quiet: bool = False) -> str | None:
         if not quiet:
             print(f"ctgs: {scene_dir} has no {images}: making it from images/ ({len(names)} photos shrunk {factor}x, "
                   f"as `ctgs sfm` does) in {dst}", file=sys.stderr)
-        make_level(src, dst, factor, names)  # a full disk or a read-only cache: the CLI's one line names dst
+        try:
+            make_level(src, dst, factor, names)  # a full disk or a read-only cache: the CLI's one line names dst
+        except FileExistsError:
+            if not os.path.isdir(dst):
+                raise
+            # another run made it first (two trainings started together on a scene lacking the level): that one is
+            # complete, since levels appear only by a rename, and made from the same photos the same way
     return dst

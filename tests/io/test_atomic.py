@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import stat
@@ -9,7 +10,7 @@ import stat
 import pytest
 import torch
 
-from ctgs.errors import Terminated
+from ctgs.errors import Terminated, describe_os_error
 from ctgs.io import atomic
 from ctgs.io.signals import signals_deferred
 
@@ -79,6 +80,43 @@ def test_no_replace_refuses_an_existing_folder(tmp_path):
         with atomic.atomic_dir(str(tmp_path / "x"), replace=False) as tmp:
             open(os.path.join(tmp, "new"), "w").write("n")
     assert _names(tmp_path / "x") == ["keep"] and _names(tmp_path) == ["x"]
+
+
+def test_an_existing_folder_is_named_in_the_one_line(tmp_path):
+    (tmp_path / "x").mkdir()
+    with pytest.raises(FileExistsError) as info:
+        with atomic.atomic_dir(str(tmp_path / "x"), replace=False):
+            pass
+    assert info.value.filename == str(tmp_path / "x") and info.value.errno == errno.EEXIST
+    line = describe_os_error(info.value)
+    assert line == f"{tmp_path / 'x'}: already exists; choose another output (-o); ctgs does not write over it"
+
+
+@pytest.mark.parametrize("replace", [False, True])
+def test_a_folder_another_writer_renames_in_first_is_treated_as_there_before(tmp_path, monkeypatch, replace):
+    """Between the existence check and the rename another writer puts its complete folder there (the rename then
+    fails with ENOTEMPTY): refused by name without replace, replaced with it, never an unnamed error."""
+    out = tmp_path / "x"
+    real_lexists = os.path.lexists
+
+    def theirs_lands_after_the_check(path):
+        seen = real_lexists(path)
+        if path == str(out) and not real_lexists(out):
+            out.mkdir()
+            (out / "theirs").write_text("t")
+        return seen
+
+    monkeypatch.setattr(atomic.os.path, "lexists", theirs_lands_after_the_check)
+    if replace:
+        with atomic.atomic_dir(str(out)) as tmp:
+            open(os.path.join(tmp, "mine"), "w").write("m")
+        assert _names(out) == ["mine"]
+    else:
+        with pytest.raises(FileExistsError):
+            with atomic.atomic_dir(str(out), replace=False) as tmp:
+                open(os.path.join(tmp, "mine"), "w").write("m")
+        assert _names(out) == ["theirs"]
+    assert _names(tmp_path) == ["x"]
 
 
 class _SignalsWhilePickled:

@@ -11,6 +11,7 @@ import pytest
 
 from ctgs.errors import UserError
 from ctgs.io.images import image_info, read_image
+from ctgs.scene import levels
 from ctgs.scene.levels import level_dir
 from ctgs.scene.loader import load_scene
 from ctgs.scene.sfm import build_pyramid
@@ -56,3 +57,23 @@ def test_read_only_scene_keeps_its_level_in_the_cache(tiny_demo, tmp_path, monke
 def test_unknown_folder_still_names_what_exists(tiny_demo):
     with pytest.raises(UserError, match="image folder not found; available: images"):
         load_scene(str(tiny_demo), images="photos", holdout=8)
+
+
+def test_two_runs_making_one_level_at_once_both_use_it(tiny_demo, monkeypatch):
+    """Two trainings started together on a scene lacking images_2 both made it; the one that renamed second failed
+    with "already exists". Here the other run makes the whole level while this one is writing its first image."""
+    scene = str(tiny_demo)
+    real_write = levels.write_image
+    other = {}
+
+    def write_while_another_run_finishes(path, *args, **kwargs):
+        if not other:
+            other["started"] = True
+            other["path"] = level_dir(scene, "images_2", quiet=True)  # the other run, start to end
+        return real_write(path, *args, **kwargs)
+
+    monkeypatch.setattr(levels, "write_image", write_while_another_run_finishes)
+    path = level_dir(scene, "images_2", quiet=True)
+    assert path == other["path"] == os.path.join(scene, "images_2")
+    assert sorted(os.listdir(path)) == sorted(os.listdir(os.path.join(scene, "images")))
+    assert not [d for d in os.listdir(scene) if d.startswith(".images_2")]  # this run's temporary is gone
