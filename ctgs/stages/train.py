@@ -67,7 +67,8 @@ def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume,
 
 # Without --preset/--config, a --time-budget run on a CPU whose first plan makes fewer passes over the training views
 # than budget.FEW_PASSES trains this config instead: in every CPU run measured at equal time (bonsai252 and
-# herzjesu25, 25 to 100 passes) the 2DGS baseline ended ahead of the content-aware presets (docs/results.md).
+# herzjesu25, 25 to 100 passes) the 2DGS baseline ended ahead of the content-aware presets; at 230 passes (herzjesu25,
+# 20 minutes) `fast` led (docs/results.md).
 BUDGET_FALLBACK = "2dgs"
 
 
