@@ -219,8 +219,8 @@ def atomic_dir(out_dir: str, *, replace: bool = True) -> Iterator[str]:
     """Yield an empty temporary folder next to `out_dir`; fill it, and on success it becomes `out_dir`.
 
     replace: an existing `out_dir` is swapped out and deleted (callers decide beforehand whether that
-    folder may be deleted: ctgs.io.owner); otherwise an existing `out_dir` makes the rename fail with OSError. On any
-    exception the temporary folder and everything in it is removed and `out_dir` is left as it was.
+    folder may be deleted: ctgs.io.owner); otherwise an existing `out_dir` is refused with a FileExistsError naming
+    it. On any exception the temporary folder and everything in it is removed and `out_dir` is left as it was.
     """
     out_dir = os.path.normpath(out_dir)
     parent = os.path.dirname(os.path.abspath(out_dir))
@@ -241,10 +241,6 @@ def atomic_dir(out_dir: str, *, replace: bool = True) -> Iterator[str]:
         raise
 
 
-def _exists(out_dir: str) -> FileExistsError:
-    return FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), out_dir)
-
-
 def _move_into_place(tmp: str, out_dir: str, replace: bool) -> None:
     if not os.path.lexists(out_dir):
         try:
@@ -254,7 +250,7 @@ def _move_into_place(tmp: str, out_dir: str, replace: bool) -> None:
             if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not os.path.lexists(out_dir):
                 raise
     if not replace or os.path.islink(out_dir) or not os.path.isdir(out_dir):
-        raise _exists(out_dir)
+        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), out_dir)
     # Two renames: the old folder stays whole until the new one is complete, and is deleted last.
     old = tempfile.mkdtemp(prefix=_tmp_prefix(out_dir) + "old-", dir=os.path.dirname(os.path.abspath(out_dir)))
     os.rmdir(old)

@@ -97,7 +97,8 @@ def short_plan_warning(iterations: int, budget_s: float, step_s: float, pixels: 
 # bonsai252 at 200x133 (220 views), `fast` for 15 minutes, about 25 passes: 1.21 dB below; herzjesu25 at 384x256 (21
 # views), 10 minutes, about 100 passes: 0.13 dB below; bonsai252 at 399x266, 60 minutes, about 29 passes: 0.95 dB
 # below. Above it: herzjesu25, 20 minutes, about 230 passes: 0.75 dB ahead (2 of 3 seeds). At equal iterations `paper`
-# leads 2DGS* (bonsai252, 30k iterations: +0.17 dB): the CPU's minutes, not the method, are short. docs/guide/training.md, "When textures pay".
+# leads 2DGS* (bonsai252, 30k iterations: +0.17 dB): the CPU's minutes, not the method, are short.
+# docs/guide/training.md, "When textures pay".
 FEW_PASSES = 150
 
 
