@@ -214,6 +214,7 @@ def _metrics(run, opts: EvalOptions, scored: _Scored, rows: list, strips: list, 
         "run_dir": run.run_dir, "model_source": scored.source, "scene_dir": run.scene_dir,
         "images": run.images, "holdout": run.holdout, "split": opts.split, "num_views": len(rows),
         "num_test_views": len(rows) if opts.split == "test" else None,
+        "test_list": "test_views.txt" if getattr(run, "test_views", None) else None,  # the scene's own test views
         "psnr": mean("psnr"), "ssim": mean("ssim"), "open_pixels": mean("open"),
         # exposure diagnostic (not the protocol's PSNR): PSNR after each view's least-squares gain
         "psnr_gain_matched": mean("psnr_gain"), "gain_range": [min(r.gain for r in rows), max(r.gain for r in rows)],

@@ -36,6 +36,8 @@ class RunModel:
     # [3] float64: the model's frame origin in the scene's COLMAP frame (ctgs.scene.loader.world_origin); zero for
     # runs from before recentring existed (their scenes were never recentred)
     world_origin: tuple = (0.0, 0.0, 0.0)
+    # the test views the scene's test_views.txt named when the run trained (None: every holdout-th view)
+    test_views: list | None = None
 
 
 def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
@@ -73,7 +75,8 @@ def load_run(run_dir: str, device: torch.device | str = "cpu") -> RunModel:
                     images=ckpt.get("images", "images"), holdout=int(ckpt.get("holdout", 8)),
                     iteration=int(ckpt.get("iteration", -1)), config=ckpt.get("config") or {},
                     summary=summary, model_bytes=os.path.getsize(path),
-                    world_origin=tuple(float(x) for x in ckpt.get("world_origin") or (0.0, 0.0, 0.0)))
+                    world_origin=tuple(float(x) for x in ckpt.get("world_origin") or (0.0, 0.0, 0.0)),
+                    test_views=list(ckpt["test_views"]) if ckpt.get("test_views") else None)
 
 
 def _check_same_run(path: str, ckpt: dict, spath: str, summary: dict) -> None:

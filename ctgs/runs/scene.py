@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from ctgs.scene.loader import load_scene, validation_split
+from ctgs.errors import UserError
+from ctgs.scene.loader import TEST_LIST, load_scene, validation_split
 from ctgs.scene.types import Scene
 
 
@@ -19,5 +20,15 @@ def training_scene(cfg) -> Scene:
 
 def run_scene(run, **options) -> Scene:
     """The scene the finished run `run` (ctgs.runs.RunModel; with_scene for this machine's copy) was trained on: its
-    image folder and test views. `options`: load_scene's load_images and background."""
-    return load_scene(run.scene_dir, images=run.images, holdout=run.holdout, **options)
+    image folder and test views. `options`: load_scene's load_images and background. UserError when the scene's
+    test views are not the ones the run was trained without (its test_views.txt added, changed or removed since):
+    scores on them would count training views."""
+    scene = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, **options)
+    now = scene.meta.get("test_names")
+    if run.holdout and (now or None) != (getattr(run, "test_views", None) or None):
+        was = (f"the {len(run.test_views)} views its {TEST_LIST} listed" if getattr(run, "test_views", None)
+               else f"every {run.holdout}th view")
+        is_ = f"the {len(now)} its {TEST_LIST} lists" if now else f"every {run.holdout}th view (no {TEST_LIST})"
+        raise UserError(f"{run.run_dir}: trained with {was} of {scene.root} held out, but the scene's test views are now "
+                        f"{is_}; restore the scene's {TEST_LIST} as it was, or train again")
+    return scene

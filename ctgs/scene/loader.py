@@ -1,7 +1,9 @@
 """`load_scene`: a scene folder -> train/test views with cameras, images and SfM points.
 
 Conventions (3DGS/2DGS, so numbers are comparable):
-- views are sorted by image name; view idx is a test view iff idx % holdout == 0 (holdout 0/None: none);
+- views are sorted by image name; view idx is a test view iff idx % holdout == 0 (holdout 0/None: none), unless
+  the scene folder holds TEST_LIST (test_views.txt: one image name per line), which names its test views instead:
+  a protocol's split over all the photos stays the same when SfM registered only some of them;
 - intrinsics are rescaled to the size of the image actually read, with separate x and y ratios
   (Tanks&Temples ships JPEGs at about half the calibration size, not exactly half on both axes);
 - `Scene.extent` = 1.1 * max distance of the camera centres from their mean (3DGS `getNerfppNorm`);
@@ -47,6 +49,8 @@ RECENTRE_EXTENTS = 100.0
 # The near plane as a fraction of the scene extent: 0.01 world units (Camera's default, gsplat's) at an extent of 10
 # (COLMAP's normalised scale), and the same fraction at any scale.
 NEAR_FRACTION = 1e-3
+# A scene's own list of test views (one image name per line, `#` comments), read instead of every holdout-th view.
+TEST_LIST = "test_views.txt"
 
 
 def is_test_index(idx: int, holdout: int | None) -> bool:
@@ -57,6 +61,56 @@ def is_test_index(idx: int, holdout: int | None) -> bool:
 def split_views(views: list[View], holdout: int | None) -> tuple[list[View], list[View]]:
     train = [v for i, v in enumerate(views) if not is_test_index(i, holdout)]
     test = [v for i, v in enumerate(views) if is_test_index(i, holdout)]
+    return train, test
+
+
+def read_test_list(scene_dir: str) -> list[str] | None:
+    """The image names SCENE_DIR/test_views.txt lists (None when the scene has no such file)."""
+    path = os.path.join(scene_dir, TEST_LIST)
+    if not os.path.isfile(path):
+        return None
+    try:
+        with open(path, encoding="utf-8") as f:
+            names = [s for s in (line.split("#", 1)[0].strip() for line in f) if s]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot read the scene's test-view list ({exc}); fix or delete it (without it, "
+                        "every 8th view is a test view)") from None
+    if not names:
+        raise UserError(f"{path}: lists no image; write one test image name per line, or delete it to take every "
+                        "8th view")
+    if len(set(names)) != len(names):
+        twice = sorted({n for n in names if names.count(n) > 1})
+        raise UserError(f"{path}: names {', '.join(twice[:3])} more than once; list each test image once")
+    return names
+
+
+def split_listed(views: list[View], names: list[str], path: str) -> tuple[list[View], list[View], str]:
+    """(training, test, note) for a scene whose test views are `names` (its test_views.txt at `path`). A name matches
+    a view's image name, or its stem where a downsampled folder changed the extension. Listed names no view has
+    (photos SfM did not register) are left out and counted in the note; a list matching no view is an error."""
+    listed = set(names)
+    stems = {os.path.splitext(n)[0] for n in names}
+    test_set = {v.name for v in views if v.name in listed or os.path.splitext(v.name)[0] in stems}
+    if not test_set:
+        raise UserError(f"{path}: none of its {len(names)} names is an image of this scene (first: {names[0]}); "
+                        "list the scene's own image names, one per line")
+    train = [v for v in views if v.name not in test_set]
+    test = [v for v in views if v.name in test_set]
+    note = f"{len(test)} test views from {TEST_LIST}, {len(train)} training views"
+    if len(test) < len(names):
+        note += f" ({len(names) - len(test)} listed names are not views of the scene and are left out)"
+    return train, test, note
+
+
+def _split(scene_dir: str, views: list[View], holdout: int | None, meta: dict) -> tuple[list[View], list[View]]:
+    """The scene's train/test split: its test_views.txt where it has one (and a test split is asked for: holdout
+    not 0), else every holdout-th view. Says which in meta["split"] / meta["test_list"]."""
+    names = read_test_list(scene_dir) if holdout else None
+    if names is None:
+        return split_views(views, holdout)
+    train, test, meta["split"] = split_listed(views, names, os.path.join(scene_dir, TEST_LIST))
+    meta["test_list"] = TEST_LIST
+    meta["test_names"] = [v.name for v in test]
     return train, test
 
 
@@ -219,7 +273,6 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
     centers = np.stack([-im.viewmat[:3, :3].T @ im.viewmat[:3, 3] for im in model.images])  # [C, 3]
     extent = scene_extent(centers)
     origin = world_origin(centers, extent)
-    train, test = split_views(_views(sources, loaded, near_plane(extent), origin), holdout)
     meta = {
         "layout": "colmap",
         "model_dir": model.path,
@@ -229,6 +282,7 @@ def load_scene(scene_dir: str, images: str = "images", holdout: int | None = 8, 
         "holdout": holdout or 0,
         "masks": sum(s.mask_path is not None for s in sources),
     }
+    train, test = _split(scene_dir, _views(sources, loaded, near_plane(extent), origin), holdout, meta)
     points, colors = _initial_points(model.points if len(model.points) else None, model.colors,
                                      [im.viewmat for im in model.images], None,
                                      f"{model_file(model.path, 'points3D')} holds none", meta)
@@ -297,7 +351,7 @@ def _load_transforms(scene_dir: str, images: str, holdout: int | None, load_imag
         test = [v for v, f in zip(views, fs.frames) if f.split == "test"]
         meta["split"] = f"the file's own: {len(train)} training, {len(test)} test views"
     else:
-        train, test = split_views(views, holdout)
+        train, test = _split(scene_dir, views, holdout, meta)
     if fs.ply_path:
         meta["points"] = fs.ply_path
     points, colors = _initial_points(fs.points, fs.colors, [f.viewmat for f in fs.frames], fs.aabb,

@@ -39,5 +39,6 @@ def write_outputs(trainer, test_psnr: float, test_ssim: float) -> dict:
     write_finished(trainer.run_dir, summary,
                    {"model": model.state_dict(), "scene_dir": cfg.scene_dir, "images": cfg.images,
                     "holdout": cfg.holdout, "iteration": trainer.it, "config": trainer.user_cfg.to_dict(),
-                    "resolved_config": cfg.to_dict(), "world_origin": trainer.world_origin, "model_id": model_id})
+                    "resolved_config": cfg.to_dict(), "world_origin": trainer.world_origin, "model_id": model_id,
+                    **({"test_views": trainer.test_names} if trainer.test_names else {})})
     return summary

@@ -108,6 +108,7 @@ class Trainer:
         self.near = float(scene.train[0].camera.near) if scene.train else None  # the scene's (loader.near_plane)
         self.num_sfm_points = len(scene.points)
         self.world_origin = [float(x) for x in getattr(scene, "origin", (0.0, 0.0, 0.0))]  # saved with the model
+        self.test_names = scene.meta.get("test_names")  # the scene's listed test views (test_views.txt), else None
         train_views = make_views(scene.train, device)
         test_views = make_views(scene.test, device)
         if not train_views:
