@@ -2,7 +2,7 @@
 
 Trains the content-aware method (the `fast` preset, two seeds) and, on the same preset, the baselines and the
 paper's two experiments (2dgs, fixed_texture, higher_tau_ds, lower_tau_tr) on a demo scene, then measures
-per surface kind (ctgs.train.routines.allocation.allocation_measures): the world-space texel size (median over
+per surface kind (benchmarks/measures/allocation.py): the world-space texel size (median over
 primitives and over texels), parameters and texels per unit area. Claims (issue: evidence):
   1. content-aware allocation: flat texels >= MIN_TEXEL_SIZE_RATIO x larger than photo texels (median over
      primitives, mean of the two seeds), and photo surfaces hold >= MIN_PARAMS_RATIO x the parameters per unit
@@ -76,7 +76,7 @@ def main() -> int:
 
 def table_rows(work: str, scene: str) -> dict:
     from ctgs.runs import load_run
-    from ctgs.train.routines.allocation import allocation_measures
+    from measures.allocation import allocation_measures
 
     meta = json.load(open(os.path.join(scene, "demo_meta.json")))
     rows = {}

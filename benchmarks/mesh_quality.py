@@ -6,7 +6,7 @@ the exact surfaces on the demo scene, and a picture of each mesh beside a photo.
 
 Each run is meshed once per --resolution by `ctgs mesh` in its own process (its wall time, user + system CPU seconds
 and peak resident memory from wait4). On a demo scene (demo_meta.json) every mesh is scored by
-ctgs.fusion.accuracy (Chamfer distance, normal consistency, F-score against the true rectangles, seen from the
+measures/mesh_accuracy.py (Chamfer distance, normal consistency, F-score against the true rectangles, seen from the
 training cameras), and so is what the meshes are fused from: the points of each run's rendered depth maps (every
 training view, as `ctgs mesh` renders them), by their distance to the true surfaces. --pictures N: the scene's N-th
 test view, as photographed, as the model renders it, and each mesh (at the first resolution) shaded and in its
@@ -61,9 +61,9 @@ def mesh_once(run_dir: str, out: str, extra: list[str]) -> dict:
 
 def accuracy(mesh_path: str, scene_dir: str) -> dict:
     from ctgs.formats.mesh import read_mesh
-    from ctgs.fusion.accuracy import mesh_accuracy
-    from ctgs.scene.demo import load_demo_meta
     from ctgs.scene.loader import load_scene
+    from measures.demo_surfaces import load_demo_meta
+    from measures.mesh_accuracy import mesh_accuracy
 
     v, f, _ = read_mesh(mesh_path)
     cams = [view.camera for view in load_scene(scene_dir, load_images=False).train]
@@ -75,11 +75,11 @@ def depth_accuracy(run_dir: str) -> dict:
     unprojected: distances of its points to the demo scene's true surfaces (world units)."""
     import torch
 
-    from ctgs.fusion.accuracy import distance_to_surfaces
     from ctgs.fusion.pipeline import view_maps
     from ctgs.runs import load_run
-    from ctgs.scene.demo import load_demo_meta
     from ctgs.scene.loader import load_scene
+    from measures.demo_surfaces import load_demo_meta
+    from measures.mesh_accuracy import distance_to_surfaces
 
     run = load_run(run_dir)
     views = load_scene(run.scene_dir, images=run.images, holdout=run.holdout, load_images=False).train
@@ -161,8 +161,8 @@ def markdown(r: dict) -> str:
         lines.append(row)
     lines += ["", "Wall time depends on the machine's load (CPU seconds less so). "]
     if demo:
-        lines += ["Accuracy: ctgs/fusion/accuracy.py (world units ~ metres; the true surfaces seen from the training "
-                  "cameras; completeness to mesh samples spaced as `mesh_sample_spacing` in the JSON)."]
+        lines += ["Accuracy: benchmarks/measures/mesh_accuracy.py (world units ~ metres; the true surfaces seen from "
+                  "the training cameras; completeness to mesh samples spaced as `mesh_sample_spacing` in the JSON)."]
     if r.get("depth"):
         lines += ["", "What the meshes are fused from: each run's rendered depth over its training views, the distance "
                   "of its points to the true surfaces:", "",

@@ -46,7 +46,7 @@ sys.path.insert(0, os.path.join(REPO, "benchmarks"))
 import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.errors import UserError  # noqa: E402
-from ctgs.scene.align import align_cameras, camera_poses, rotation_vectors  # noqa: E402
+from measures.align import align_cameras, camera_poses, rotation_vectors  # noqa: E402
 from ctgs.scene.colmap import find_model_dir, read_colmap_model  # noqa: E402
 from ctgs.scene.sfm import read_report  # noqa: E402
 
@@ -229,7 +229,7 @@ def evaluate(args) -> dict:
         "registered_with_gt": len(names), "not_registered": sorted(set(gt) - set(by_name)), "no_gt": no_gt,
         "sfm_report": {k: v for k, v in vars(report).items()} if report else None,
         "alignment": {
-            "method": "Umeyama similarity (with scale) on camera centres, estimated -> GT (ctgs.scene.align)",
+            "method": "Umeyama similarity (with scale) on camera centres, estimated -> GT (benchmarks/measures/align.py)",
             "scale_est_to_gt": result.similarity.scale,
             "spread_radius_gt": result.spread_radius, "spread_diameter_gt": result.spread_diameter,
             "center_error_mean_gt": float(ce.mean()), "center_error_median_gt": float(np.median(ce)),

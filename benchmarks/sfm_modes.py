@@ -35,7 +35,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 sys.path.insert(0, os.path.join(REPO, "benchmarks"))
 
-from ctgs.scene.align import align_cameras, camera_poses  # noqa: E402
+from measures.align import align_cameras, camera_poses  # noqa: E402
 from ctgs.scene.sfm import read_report  # noqa: E402
 from sfm_accuracy import machine_info, read_gt_dir, write_atomic  # noqa: E402
 

@@ -124,7 +124,7 @@ def per_view(metrics: dict) -> dict:
 
 def allocation(run: str, scene_dir: str) -> dict:
     from ctgs.runs import load_run
-    from ctgs.train.routines.allocation import allocation_measures
+    from measures.allocation import allocation_measures
 
     model = load_run(run).model
     meta = json.load(open(os.path.join(scene_dir, "demo_meta.json")))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ast
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -47,6 +48,32 @@ def test_an_upward_import_breaks_them(tmp_path, lower, upper):
     assert out.returncode != 0, out.stdout
     module = lower[:-3].replace("/", ".")
     assert f"{module} -> {upper}" in out.stdout, out.stdout
+
+
+@pytest.mark.parametrize("planted", ["measures.allocation", "benchmarks.measures.align"])
+def test_a_package_module_importing_study_code_breaks_them(tmp_path, planted):
+    """The measures of benchmarks/ stay outside the package, as the tests do: a module of ctgs that imports one
+    (by either name it is reachable under) breaks the last contract."""
+    shutil.copytree(os.path.join(ROOT, "ctgs"), tmp_path / "ctgs", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(os.path.join(ROOT, "pyproject.toml"), tmp_path)
+    with open(tmp_path / "ctgs/scene/demo.py", "a") as f:
+        f.write(f"\n\ndef _planted():\n    import {planted}  # noqa: F401\n")
+    out = _lint(str(tmp_path))
+    assert out.returncode != 0, out.stdout
+    assert f"ctgs.scene.demo -> {planted.split('.')[0]}" in out.stdout, out.stdout
+
+
+def test_kernel_comments_cite_no_benchmark_record():
+    """A kernel comment says why; how much is the record's to say (the docs cite records, kernels/ does not)."""
+    record = re.compile(r"benchmarks/results/|results/\w+/|\w+_[0-9a-f]{7}\.(md|json|txt|log)\b")
+    found = []
+    for folder, _, files in os.walk(os.path.join(ROOT, "kernels")):
+        for name in files:
+            if name.endswith((".h", ".cpp", ".cu", ".cuh")):
+                path = os.path.join(folder, name)
+                with open(path, encoding="utf-8") as f:
+                    found += [f"{os.path.relpath(path, ROOT)}:{i}" for i, line in enumerate(f, 1) if record.search(line)]
+    assert not found, f"kernel comments citing benchmark records (keep the reason, drop the record): {found}"
 
 
 def _late_imports():

@@ -2,5 +2,5 @@
 
 `domain` (where the voxels lie: a box from the cameras, or contracted space for unbounded captures), `volume` (the
 block-sparse TSDF and its fusion of depth maps), `extract` (marching cubes over the blocks, welding, the largest
-pieces), `pipeline` (a model and its cameras -> a coloured mesh), `accuracy` (a mesh against exact surfaces).
+pieces), `pipeline` (a model and its cameras -> a coloured mesh).
 """

@@ -299,17 +299,6 @@ def _legacy_demo(names: list[str]) -> bool:
     return META_NAME in names and all(n in ("images", "sparse", META_NAME) or _level(n) for n in names)
 
 
-def load_demo_meta(scene_dir: str) -> dict:
-    """demo_meta.json of a demo scene (surfaces: id, kind, center, normal, u, v, half_extents, area)."""
-    path = os.path.join(scene_dir, META_NAME)
-    if not os.path.isfile(path):
-        raise UserError(f"{path}: not a demo scene (no {META_NAME}); run `ctgs demo-scene {scene_dir}`")
-    meta = _read_meta(path)
-    if "surfaces" not in meta:
-        raise UserError(f"{path}: damaged or not a demo scene's {META_NAME}; run `ctgs demo-scene {scene_dir} --force`")
-    return meta
-
-
 def _read_meta(path: str) -> dict:
     """demo_meta.json as a dict, {} when it cannot be parsed (a damaged file)."""
     try:
@@ -318,20 +307,3 @@ def _read_meta(path: str) -> dict:
     except ValueError:
         return {}
     return meta if isinstance(meta, dict) else {}
-
-
-def surface_of(points: np.ndarray, meta: dict, tol: float = 0.02) -> np.ndarray:
-    """Index into meta["surfaces"] of the surface each point [N, 3] lies on (within `tol` world units of
-    its plane and inside its extents grown by `tol`), the nearest plane winning; -1 for none."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    best = np.full(len(pts), -1, dtype=np.int64)
-    best_dist = np.full(len(pts), np.inf)
-    for k, s in enumerate(meta["surfaces"]):
-        rel = pts - np.asarray(s["center"])
-        dist = np.abs(rel @ np.asarray(s["normal"]))
-        inside = (np.abs(rel @ np.asarray(s["u"])) <= s["half_extents"][0] + tol) & \
-                 (np.abs(rel @ np.asarray(s["v"])) <= s["half_extents"][1] + tol)
-        better = inside & (dist <= tol) & (dist < best_dist)
-        best = np.where(better, k, best)
-        best_dist = np.where(better, dist, best_dist)
-    return best

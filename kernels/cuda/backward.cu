@@ -77,11 +77,11 @@ __device__ inline void atomic_add_grad(const BackwardOut<S>& out, int i, const S
 
 // Adds val[0..2] to the texel row `row` (-1: nothing) of every lane, with one atomic per run of consecutive
 // lanes that share a row instead of one per lane. A warp is 2 rows of 16 pixels; where texels span several
-// pixels, neighbouring lanes read the same taps and their atomics on one address serialise: on herzjesu25 at
-// 1.5 Mpx the backward kernel took 11.3 ms of a 26 ms training step with one atomic per lane and tap, 3.0 ms
-// with this (benchmarks/results/gpu_train_probe/memory_after_ba45e3f.md, texagg_ba45e3f.md; docs/guide/gpu.md). Segmented suffix sum over each run (Hillis-Steele with shuffles, bounded by the
-// run's last lane from a ballot); the run's first lane adds the run's total. Lanes equal but not adjacent form
-// separate runs: more atomics, never a wrong sum. All 32 lanes must call it (warp-uniform control flow).
+// pixels, neighbouring lanes read the same taps and their atomics on one address serialise: with one atomic per
+// lane and tap the backward kernel was several times slower on textured scenes (docs/guide/gpu.md). Segmented
+// suffix sum over each run (Hillis-Steele with shuffles, bounded by the run's last lane from a ballot); the run's
+// first lane adds the run's total. Lanes equal but not adjacent form separate runs: more atomics, never a wrong
+// sum. All 32 lanes must call it (warp-uniform control flow).
 template <typename S>
 __device__ inline void scatter_texel_grad(S* v_textures, long long row, const S val[3], int lane) {
   const long long next = __shfl_down_sync(FULL_MASK, row, 1);
@@ -225,12 +225,10 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
   }
 }
 
-// Blocks per SM the float kernel is compiled for: 3 by default (at most 80 registers: more warps to hide latency;
-// 0.91-1.00x the uncapped kernel's time in benchmarks/results/bench_cuda/1920x1080_variants_ba45e3f.md, 0.96x in training in
-// gpu_train_probe/texagg_ba45e3f.md; the GPU agreement tests pass with it, gpu_tests/pytest_mb3_d47581f.log), or from
-// CTGS_CUDA_BWD_MIN_BLOCKS: 1 (no register cap; 91 registers and 34 KB of shared memory per block allowed 2
-// blocks, 25% occupancy on an H200, benchmarks/results/bench_cuda/ncu_before_1M_f0ac038.txt), 3, or 4 (at most 64 registers).
-// Read at every launch so that one process can compare them (benchmarks/bench_cuda.py --bwd-min-blocks).
+// Blocks per SM the float kernel is compiled for: 3 by default (at most 80 registers: more warps to hide the
+// latency of its loads and atomics; uncapped, its registers and shared memory left room for 2 blocks per SM), or
+// from CTGS_CUDA_BWD_MIN_BLOCKS: 1 (no register cap), 3, or 4 (at most 64 registers). Read at every launch so
+// that one process can compare them (benchmarks/bench_cuda.py --bwd-min-blocks).
 inline int backward_min_blocks() {
   const char* v = std::getenv("CTGS_CUDA_BWD_MIN_BLOCKS");
   const int b = v ? std::atoi(v) : 3;

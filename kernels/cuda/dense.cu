@@ -1,8 +1,7 @@
 // Per-primitive preprocessing of the CUDA backend, one thread per primitive: world -> camera space and the
 // view-dependent SH colour, forward and backward (the math: kernels/include/ctgs/preprocess.h, shared with
 // the CPU backend's kernels/cpu/camera.cpp and sh.cpp). In PyTorch these were ~150 small kernels per
-// training step and ~11 of 17 ms of a 1M-primitive 1080p forward+backward on an H200
-// (benchmarks/results/bench_cuda/).
+// training step, whose launches took most of a large forward+backward (benchmarks/bench_cuda.py measures it).
 #include <cstdlib>
 
 #include "common.cuh"

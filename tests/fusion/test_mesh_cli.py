@@ -14,9 +14,9 @@ from surface_model import demo_scene, surface_model, write_run
 
 from ctgs.cli import main
 from ctgs.formats.mesh import read_mesh
-from ctgs.fusion.accuracy import mesh_accuracy
-from ctgs.scene.demo import load_demo_meta
 from ctgs.scene.loader import load_scene
+from measures.demo_surfaces import load_demo_meta
+from measures.mesh_accuracy import mesh_accuracy
 
 RESOLUTION = "192"  # voxels across the scene extent (5.6 world units): 2.9 cm voxels on a 5 m room
 

@@ -1,11 +1,11 @@
-"""Umeyama alignment and camera errors (ctgs.scene.align) on synthetic cameras with known answers."""
+"""Umeyama alignment and camera errors (benchmarks/measures/align.py) on synthetic cameras with known answers."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ctgs.scene.align import align_cameras, camera_poses, rotation_angle_deg, rotation_vectors, umeyama
+from measures.align import align_cameras, camera_poses, rotation_angle_deg, rotation_vectors, umeyama
 
 # float64 round-off through an SVD and a few products, on coordinates of size ~10-1000: observed ~1e-13.
 TIGHT = 1e-9

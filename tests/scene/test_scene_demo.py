@@ -68,7 +68,7 @@ def test_metadata_describes_surfaces_and_points_lie_on_them(tiny_demo_master):
 
 def test_surface_of_classifies_points_by_surface(tiny_demo_master):
     from ctgs.scene.colmap import read_colmap_model
-    from ctgs.scene.demo import load_demo_meta, surface_of
+    from measures.demo_surfaces import load_demo_meta, surface_of
 
     meta = load_demo_meta(tiny_demo_master)
     points = read_colmap_model(os.path.join(tiny_demo_master, "sparse", "0")).points

@@ -18,7 +18,7 @@ from ctgs.scene.colmap import read_colmap_model
 from ctgs.scene.demo import make_demo_scene
 from ctgs.scene import sfm
 from ctgs.scene.sfm import markers, pipeline, steps, supervise
-from ctgs.scene.sfm import umeyama
+from measures.align import umeyama
 
 VIEWS, WIDTH, HEIGHT = 24, 256, 192
 # Aligned centre error bound, as a fraction of the camera spread. Observed: ~0.1% (2 mm over 2.5 m).

@@ -1,4 +1,4 @@
-"""The texels-per-area measure behind the content-aware allocation test, on hand-built cases."""
+"""The texels-per-area measure of the benchmarks (benchmarks/measures/allocation.py), on hand-built cases."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ctgs.train.routines.allocation import allocation_measures, texel_density_by_kind, texel_position_density_by_kind
+from measures.allocation import allocation_measures, texel_density_by_kind, texel_position_density_by_kind
 from train_helpers import model
 
 # Two unit squares in the plane z = 2 (normal z, facing the helpers' identity-rotation surfels):

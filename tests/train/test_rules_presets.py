@@ -11,7 +11,8 @@ import pytest
 from ctgs.errors import UserError
 from ctgs.train.config import schedule
 from ctgs.train.config import PRESETS, TrainConfig, describe_keys, load_config, parse_set
-from ctgs.train.config.rules import resolve, rule_table
+from ctgs.train.config.rules import resolve
+from rule_table import rule_table
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -22,7 +22,6 @@ import importlib
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ctgs.scene.align import umeyama
     from ctgs.scene.sfm.markers import STEPS
     from ctgs.scene.sfm.options import (DEFAULT_MAX_FEATURES, EXHAUSTIVE_MAX_IMAGES, GLOBAL_MIN_IMAGES,
                                         LARGE_CAPTURE_MAX_FEATURES, LOOP_NEIGHBOURS, MAPPERS, MATCHERS, MIN_IMAGES,
@@ -50,7 +49,6 @@ _MODULES = {
     "ctgs.scene.sfm.progress": ("ProgressFn", "GLOBAL_PHASES"),
     "ctgs.scene.sfm.steps": ("build_pyramid",),
     "ctgs.scene.sfm.supervise": ("SfmStopped", "LOW_SPACE_BYTES"),
-    "ctgs.scene.align": ("umeyama",),  # it lived here once; kept importable from here
 }
 _EXPORTS = {name: module for module, names in _MODULES.items() for name in names}
 __all__ = list(_EXPORTS)

@@ -52,7 +52,7 @@ import math
 from dataclasses import dataclass, replace
 
 from ctgs.model import surfels
-from ctgs.train.config import TrainConfig, schedule
+from ctgs.train.config import TrainConfig
 
 PAPER_PIXELS = 1.0e6  # "about 1 Mpx": M360 images_4 1237x822 (1.02 Mpx), Deep Blending 1332x876 (1.17 Mpx)
 PAPER_ITERATIONS = 30000
@@ -136,36 +136,6 @@ def init_point_cap(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> in
     caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels * coverage)),
                         primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)) if c > 0]
     return min(caps) if caps else 0
-
-
-def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: dict[str, int]) -> list[dict]:
-    """Rows (setting, rule, value per named image size / run length) for docs and benchmarks.
-
-    sizes: {"label": (width, height)}; iterations: {"label": iterations}.
-    """
-    rows = []
-    for key, rule in (("tau_tr_start", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
-                      ("tau_tr_end", "x (HW / 1e6) ** tau_tr_pixel_exponent (0: none, texels are >= 2 px already)"),
-                      ("max_texture_res", f"x sqrt(HW / 1e6), next power of two, >= {MIN_TEXTURE_CAP}"),
-                      ("lambda_texture", "x 1e6 / HW"),
-                      ("max_primitives", "min(max_primitives, primitives_per_pixel x HW x coverage, max_params / "
-                                         "(params per primitive + 3 x smallest texture)); 0 = no cap"),
-                      ("error_views", "min(error_views, error_pixels / HW), at least 1, when error_pixels > 0; "
-                                      "0 = every view")):
-        vals = {label: getattr(resolve(cfg, w * h), key) for label, (w, h) in sizes.items()}
-        unit = {"lambda_texture": "per texel", "max_primitives": "primitives", "error_views": "views"}.get(key, "texels")
-        rows.append({"setting": key, "unit": unit,
-                     "rule": rule, "paper": getattr(cfg, key), "values": vals})
-    # the relative size budget: per training view (the budget is this times the number of training views)
-    vals = {label: with_size_budget(replace(cfg, max_params=0), 3 * w * h).max_params for label, (w, h) in sizes.items()}
-    rows.append({"setting": "max_params (from max_params_per_value)", "unit": "params per training view",
-                 "rule": "max_params_per_value x 3 H W x training views, unless max_params is given; 0 = no budget",
-                 "paper": cfg.max_params_per_value, "values": vals})
-    for key in ITERATION_KEYS:
-        vals = {label: schedule.at(replace(cfg, iterations=n), getattr(cfg, key)) for label, n in iterations.items()}
-        rows.append({"setting": key, "unit": "iterations", "rule": "x iterations / 30000",
-                     "paper": getattr(cfg, key), "values": vals})
-    return rows
 
 
 # --max-params: primitives capped where even the smallest textures would fill the budget (the texels are kept within
