@@ -1,7 +1,11 @@
 """The documentation site renders as written: every page of docs/ through Python-Markdown with the extensions of
 mkdocs.yml (what `make docs` builds with), and no table cell holds raw Markdown. A heading or a list written right
 under a table, with no blank line between, is taken into the table as one more row: the strict build passes, the
-page shows "## ..." in a cell, and the heading leaves the table of contents. The home page lists every page."""
+page shows "## ..." in a cell, and the heading leaves the table of contents. Likewise a list right under a line of
+a paragraph is more of that paragraph ("Payload: - raw: ... - codebook: ..." on one line), and a heading right under
+a line of text is one only by the grace of the renderer (inside a list item it becomes the item's). No table row is
+longer than MAX_ROW_CHARS, and no cell shows the backslash of a pipe escaped inside code. The home page lists every
+page."""
 
 from __future__ import annotations
 
@@ -19,6 +23,15 @@ PAGES = sorted(os.path.relpath(os.path.join(d, f), ROOT) for d, _, files in os.w
                if f.endswith(".md"))
 # What Markdown would have made a heading or a list item, left as text in a cell.
 RAW_MARKDOWN = re.compile(r"^(#{1,6}\s|[-*+]\s|\d+[.)]\s)")
+# A source line that starts a list item or a heading (indented 4 or more, it is a code block or an item's own text).
+LIST_ITEM = re.compile(r"^ {0,3}([-*+]|\d+[.)])\s")
+HEADING = re.compile(r"^ {0,3}#{1,6}\s")
+FENCE = re.compile(r"^\s*(```|~~~)")
+# A table row is read across, cell by cell. The site's content column holds about 110 characters of text a line at a
+# laptop's width, shared by the row's cells: at 1,000 characters the widest cell already wraps to some 15 lines and the
+# row's other cells are out of sight. Prose that long belongs below the table, in a paragraph or a list the row points
+# to.
+MAX_ROW_CHARS = 1000
 
 
 def site_config() -> dict:
@@ -60,10 +73,86 @@ class _Cells(HTMLParser):
 
 
 def raw_markdown_in_cells(text: str) -> list[str]:
+    return [cell.strip() for cell in cell_texts(text) if RAW_MARKDOWN.match(cell.strip())]
+
+
+def cell_texts(text: str) -> list[str]:
     names, configs = site_extensions()
     parser = _Cells()
     parser.feed(markdown.markdown(text, extensions=names, extension_configs=configs))
-    return [cell.strip() for cell in parser.cells if RAW_MARKDOWN.match(cell.strip())]
+    return parser.cells
+
+
+def unbroken_lines(text: str) -> list[str]:
+    """'line N: ...' of every list item that follows a paragraph line, and every heading that follows any line,
+    with no blank line between (outside fenced code). A list's own lines may follow each other."""
+    found, fenced, block = [], False, None  # block: how the current block began (None: after a blank line)
+    for n, line in enumerate(text.splitlines(), 1):
+        if FENCE.match(line):
+            fenced, block = not fenced, "code"
+            continue
+        if fenced:
+            continue
+        if not line.strip():
+            block = None
+        elif HEADING.match(line):
+            if block is not None:
+                found.append(f"line {n}: {line.strip()[:60]}")
+            block = None  # a heading is a block of its own: a list or a paragraph may follow it
+        elif LIST_ITEM.match(line):
+            if block == "paragraph":
+                found.append(f"line {n}: {line.strip()[:60]}")  # the list's first item: the rest follow it
+            if block in (None, "paragraph"):
+                block = "list"
+        elif block is None:
+            block = "table" if line.lstrip().startswith("|") else "paragraph"
+    return found
+
+
+def long_rows(text: str) -> list[str]:
+    return [f"line {n}: {len(line)} characters" for n, line in enumerate(text.splitlines(), 1)
+            if line.lstrip().startswith("|") and len(line) > MAX_ROW_CHARS]
+
+
+def visible_backslashes(text: str) -> list[str]:
+    """Cells that show a backslash before a pipe: inside a code span Markdown keeps the `\\|` GitHub would hide."""
+    return [cell.strip() for cell in cell_texts(text) if "\\|" in cell]
+
+
+def _page(page: str) -> str:
+    with open(os.path.join(ROOT, page), encoding="utf-8") as f:
+        return f.read()
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_lists_and_headings_start_after_a_blank_line(page):
+    found = unbroken_lines(_page(page))
+    assert not found, (f"{page}: a list or heading right under a line of text renders as part of it; put a blank line "
+                       f"before it: {found}")
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_no_table_row_is_prose(page):
+    found = long_rows(_page(page))
+    assert not found, (f"{page}: table rows over {MAX_ROW_CHARS} characters; keep the cell short and move the rest "
+                       f"below the table: {found}")
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_no_cell_shows_an_escaped_pipe(page):
+    found = visible_backslashes(_page(page))
+    assert not found, f"{page}: cells show a backslash (a pipe escaped inside code); write the values apart: {found}"
+
+
+def test_the_checks_see_what_they_look_for():
+    assert unbroken_lines("Payload:\n- raw\n- codebook\n\ntext\n## Next\n") == ["line 2: - raw", "line 6: ## Next"]
+    assert unbroken_lines("Payload:\n\n- raw\n  more\n- codebook\n\n## Next\ntext\n1. one\n") == ["line 9: 1. one"]
+    assert unbroken_lines("```\ntext\n- not a list\n# nor a heading\n```\n") == []
+    assert long_rows("| a |\n| " + "x" * MAX_ROW_CHARS + " |\n") == ["line 2: 1004 characters"]
+    assert long_rows("| a |\n| " + "x" * (MAX_ROW_CHARS - 4) + " |\n") == []
+    table = "| a | b |\n| --- | --- |\n| `N=1\\|3` | y |\n"
+    assert visible_backslashes(table) == ["N=1\\|3"]
+    assert visible_backslashes(table.replace("`N=1\\|3`", "N=1\\|3")) == []  # outside code the escape hides
 
 
 @pytest.mark.parametrize("page", PAGES)
