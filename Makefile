@@ -42,8 +42,10 @@ wheel-check: $(STAMP)
 # A re-run redoes only what is missing; `make -j4 all SCENES="bicycle garden"` runs scenes in parallel.
 # The dataset, image folder and holdout of a scene come from data_manifests/ (ctgs/scene/scene_vars.py).
 # The paper's tables: the authors' recipe exactly (--preset paper); CONFIG adds an overlay (e.g. 2dgs).
-# A scene already on disk: DATA_ROOT holding <dataset>/<scene>/ (the layout `ctgs fetch` writes), or one folder per
-# scene, SCENE_DIR_<scene>=PATH (e.g. SCENE_DIR_bonsai=../shared/data/bonsai252); neither downloads anything.
+# A scene already on disk: DATA_ROOT holding <dataset>/<scene>/ (the layout `ctgs fetch` writes) or laid out as the
+# dataset's own archive (the manifest's path: db/playroom, bonsai, tandt/truck), or one folder per scene,
+# SCENE_DIR_<scene>=PATH (e.g. SCENE_DIR_bonsai=../shared/data/bonsai252); none of these downloads anything. A scene
+# folder holding test_views.txt names its own test views (ctgs.scene.loader) instead of every holdout-th.
 # IMAGES replaces the manifest's image folder (e.g. images_4 on a CPU; a missing images_N is made from images/).
 PRESET ?= paper
 CONFIG ?=
@@ -77,9 +79,10 @@ $(LPIPS_WEIGHTS): | $(STAMP)
 lpips-weights: $(LPIPS_WEIGHTS)
 
 $(RUNS)/%/model.pt: | $(STAMP)
-	set -e; read dataset images holdout < <($(PY) -m ctgs.scene.scene_vars $*); \
+	set -e; read dataset images holdout path < <($(PY) -m ctgs.scene.scene_vars $*); \
 	scene=$(or $(SCENE_DIR_$*),$(DATA_ROOT)/$$dataset/$*); \
 	if [ -n "$(SCENE_DIR_$*)" ]; then test -d $$scene || { echo "SCENE_DIR_$*=$$scene: no such folder" >&2; exit 2; }; \
+	elif [ ! -d $$scene ] && [ -d $(DATA_ROOT)/$$path ]; then scene=$(DATA_ROOT)/$$path; \
 	else test -d $$scene || $(CTGS) fetch $$dataset $* --root $(DATA_ROOT) --quiet; fi; \
 	resume=$$($(PY) -m ctgs.runs.checkpoint $(RUNS)/$*); \
 	$(CTGS) train $$scene -o $(RUNS)/$* --images $(or $(IMAGES),$$images) --set holdout=$$holdout $(TRAIN_OPTS) $$resume
@@ -96,12 +99,12 @@ $(RUNS)/%/model.pt: | $(STAMP)
 	$(CTGS) export $* --format spz --bake-textures -o $@
 
 $(RUNS)/%/eval/metrics.json: $(RUNS)/%/model/manifest.json | $(LPIPS_WEIGHTS)
-	set -e; read dataset images holdout < <($(PY) -m ctgs.scene.scene_vars $*); \
+	set -e; read dataset images holdout path < <($(PY) -m ctgs.scene.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model -o $(RUNS)/$*/eval --dataset $$dataset --scene-name $* \
 		--backend $(BACKEND)
 
 $(RUNS)/%/eval-compressed/metrics.json: $(RUNS)/%/model-compressed/manifest.json | $(LPIPS_WEIGHTS)
-	set -e; read dataset images holdout < <($(PY) -m ctgs.scene.scene_vars $*); \
+	set -e; read dataset images holdout path < <($(PY) -m ctgs.scene.scene_vars $*); \
 	$(CTGS) eval $(RUNS)/$* --model $(RUNS)/$*/model-compressed -o $(RUNS)/$*/eval-compressed \
 		--dataset $$dataset --scene-name $* --backend $(BACKEND)
 

@@ -68,3 +68,32 @@ def test_a_scene_dir_that_does_not_exist_is_named(tmp_path):
                         f"{tmp_path}/runs/bonsai/model.pt", f"SCENE_DIR_bonsai={tmp_path}/nowhere", f"RUNS={tmp_path}/runs",
                         f"VENV={venv}"], capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and f"SCENE_DIR_bonsai={tmp_path}/nowhere: no such folder" in r.stderr
+
+
+@pytest.mark.slow
+def test_a_data_root_laid_out_as_the_archive_and_a_scene_list_of_test_views(tmp_path):
+    """DATA_ROOT holding the scene where the dataset's archive puts it (the manifest's path, e.g. db/playroom), with
+    its own test_views.txt: `make` trains it from there, on those test views, and downloads nothing."""
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    import torch
+
+    from ctgs.scene.demo import make_demo_scene
+
+    root = tmp_path / "data"
+    scene = make_demo_scene(str(root / "db" / "tiny"), num_views=8, width=64, height=48, points=300)
+    with open(os.path.join(scene, "test_views.txt"), "w") as f:
+        f.write("001.png\n006.png\nnot_registered.png\n")
+    manifests = tmp_path / "manifests"
+    manifests.mkdir()
+    (manifests / "tinyset.toml").write_text(MANIFEST.replace('archive = "none"\n', 'archive = "none"\npath = "db/tiny"\n'))
+    venv = os.path.dirname(os.path.dirname(sys.executable))
+    runs = tmp_path / "runs"
+    env = {**os.environ, "CTGS_MANIFEST_DIR": str(manifests), "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(["make", "--no-print-directory", "-C", ROOT, "-o", f"{venv}/.installed", f"{runs}/tiny/model.pt",
+                        f"DATA_ROOT={root}", "ITERATIONS=20", "PRESET=fast", f"RUNS={runs}", f"VENV={venv}",
+                        "BACKEND=cpu", "IMAGES=images"], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "2 test views from test_views.txt, 6 training views" in r.stderr, r.stderr[-2000:]
+    ckpt = torch.load(runs / "tiny" / "model.pt", weights_only=True)
+    assert ckpt["scene_dir"] == scene and ckpt["test_views"] == ["001.png", "006.png"]

@@ -1,4 +1,5 @@
-"""Make helper: `python -m ctgs.scene.scene_vars SCENE` prints `DATASET IMAGES HOLDOUT` for a scene.
+"""Make helper: `python -m ctgs.scene.scene_vars SCENE` prints `DATASET IMAGES HOLDOUT PATH` for a scene (PATH: the
+scene's folder inside the dataset's archive, e.g. db/playroom, where a data root laid out as the archive holds it).
 
 The Makefile's per-scene rules read the dataset, image folder and holdout from data_manifests/ through
 this, so the facts live in one place (ctgs.scene.manifests parses and validates the manifests). A scene
@@ -16,6 +17,11 @@ from ctgs.scene.manifests import available, load_manifest, manifest_dir
 
 def scene_vars(scene: str, manifests: str | None = None) -> tuple[str, str, int]:
     """(dataset, image folder, holdout) of `scene`; UserError if no manifest (or more than one) lists it."""
+    return scene_facts(scene, manifests)[:3]
+
+
+def scene_facts(scene: str, manifests: str | None = None) -> tuple[str, str, int, str]:
+    """(dataset, image folder, holdout, folder inside the dataset's archive) of `scene`; UserError as scene_vars."""
     known: dict[str, list[str]] = {}  # scene -> datasets listing it
     found = []
     for name in available(manifests):
@@ -23,7 +29,7 @@ def scene_vars(scene: str, manifests: str | None = None) -> tuple[str, str, int]
         for sname, info in manifest["scenes"].items():
             known.setdefault(sname, []).append(manifest["name"])
             if sname == scene:
-                found.append((manifest["name"], info["images"], int(info["holdout"])))
+                found.append((manifest["name"], info["images"], int(info["holdout"]), info["path"]))
     folder = manifest_dir(manifests)
     if not found:
         listing = ", ".join(sorted(known)) or "none"
@@ -40,7 +46,7 @@ def main(argv: list[str]) -> int:
         print("usage: python -m ctgs.scene.scene_vars SCENE", file=sys.stderr)
         return 2
     try:
-        print(*scene_vars(argv[0]))
+        print(*scene_facts(argv[0]))
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code

@@ -23,7 +23,7 @@ def test_known_scenes_come_from_the_manifests():
     assert scene_vars("room") == ("mipnerf360", "images_2", 8)
     assert scene_vars("truck") == ("tandt", "images", 8)
     r = _run("drjohnson")
-    assert r.returncode == 0 and r.stdout.split() == ["deepblending", "images", "8"]
+    assert r.returncode == 0 and r.stdout.split() == ["deepblending", "images", "8", "db/drjohnson"]
 
 
 def test_unknown_scene_is_one_error_listing_the_known_scenes():
