@@ -27,11 +27,12 @@ from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.psnr import gain_matched_psnr, masked_psnr, psnr
 from ctgs.metrics.ssim import masked_ssim, ssim
 from ctgs.render import render
+from ctgs.render.texel_map import render_map
 from ctgs.runs import load_run, run_scene, with_scene
 from ctgs.scene.loader import check_same_frame, validation_split
 
 LPIPS_CONVENTION = "LPIPS VGG v0.1, inputs in [0, 1] fed without rescaling to [-1, 1] (3DGS/2DGS convention)"
-NUM_STRIPS = 2  # worst and best views (by PSNR) that get a gt | render | error strip each
+NUM_STRIPS = 2  # worst and best views (by PSNR) that get a gt | render | error (| texel size) strip each
 
 
 @dataclass
@@ -117,7 +118,8 @@ def evaluate(run_dir: str, opts: EvalOptions) -> dict:
     # Everything is written into a temporary sibling that becomes opts.out_dir only when complete: a
     # failure (here or in a later view) leaves no half-written eval folder, and an earlier one intact.
     with lock.inside_run(opts.out_dir), owner.owned_dir(opts.out_dir, "eval") as out:
-        rows, strips = _write_views(out, views, renders, alphas, times, veils, net, device)
+        rows, strips = _write_views(out, views, renders, alphas, times, veils, net, device,
+                                    _texel_maps(scored.model, backend, device))
         metrics = _metrics(run, opts, scored, rows, strips, times, renders, net is not None, status, backend,
                            device, peak)
         write_metrics_json(os.path.join(out, "metrics.json"), metrics)
@@ -238,9 +240,24 @@ def _metrics(run, opts: EvalOptions, scored: _Scored, rows: list, strips: list, 
     }
 
 
+def _texel_maps(model, backend: str, device: torch.device):
+    """view -> [H, W, 3] the texel-size map of a textured model (the strips' fourth panel), None for a model without
+    textures (2DGS, an exported Gaussian file)."""
+    if model.texture_mode == "none" or not model.num_texels:
+        return None
+    inputs = model.render_inputs()
+
+    def texel_map(view) -> np.ndarray:
+        with torch.no_grad():
+            return render_map(inputs, view.camera.to(device), "texel_size", backend).float().cpu().numpy()
+
+    return texel_map
+
+
 def _write_views(out: str, views: list, renders: list, alphas: list, times: list, veils: list, net,
-                 device) -> tuple[list[ImageMetrics], list[str]]:
-    """Per-view metrics, out/renders/*.png, out/strips/*.png and out/per_image.csv; returns (rows, strip names)."""
+                 device, texel_map=None) -> tuple[list[ImageMetrics], list[str]]:
+    """Per-view metrics, out/renders/*.png, out/strips/*.png and out/per_image.csv; returns (rows, strip names).
+    texel_map: view -> its texel-size picture, the strips' fourth panel (_texel_maps), or None."""
     os.makedirs(os.path.join(out, "renders"))
     os.makedirs(os.path.join(out, "strips"))
     rows: list[ImageMetrics] = []
@@ -273,7 +290,8 @@ def _write_views(out: str, views: list, renders: list, alphas: list, times: list
     strips = []
     for rank, i in [("worst", i) for i in worst] + [("best", i) for i in best]:
         name = f"{rank}_{os.path.splitext(rows[i].name)[0]}.png"
-        images.write_image(os.path.join(out, "strips", name), strip(gts[i].numpy(), renders[i].numpy()))
+        texels = texel_map(views[i]) if texel_map is not None else None
+        images.write_image(os.path.join(out, "strips", name), strip(gts[i].numpy(), renders[i].numpy(), texels))
         strips.append(name)
     write_per_image_csv(os.path.join(out, "per_image.csv"), rows)
 

@@ -77,10 +77,12 @@ def write_per_image_csv(path: str, rows: list[ImageMetrics]) -> None:
     atomic.write_text(path, buf.getvalue())
 
 
-def strip(gt: np.ndarray, render: np.ndarray) -> np.ndarray:
-    """[H, 3W, 3] side-by-side ground truth | render | ERROR_GAIN * |gt - render|, values in [0, 1]."""
+def strip(gt: np.ndarray, render: np.ndarray, texels: np.ndarray | None = None) -> np.ndarray:
+    """[H, 3W, 3] side-by-side ground truth | render | ERROR_GAIN * |gt - render|, values in [0, 1]; with `texels`
+    (a textured model's texel-size map, ctgs.render.texel_map), [H, 4W, 3] with it on the right."""
     err = np.clip(ERROR_GAIN * np.abs(gt - render), 0.0, 1.0)
-    return np.concatenate([gt, np.clip(render, 0.0, 1.0), err], axis=1).astype(np.float32)
+    panels = [gt, np.clip(render, 0.0, 1.0), err] + ([np.clip(texels, 0.0, 1.0)] if texels is not None else [])
+    return np.concatenate(panels, axis=1).astype(np.float32)
 
 
 # ---- table ---------------------------------------------------------------------------------------

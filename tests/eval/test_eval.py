@@ -62,7 +62,7 @@ def test_eval_writes_schema_and_artifacts(run_dir):
     from ctgs.io.images import read_image
 
     s = read_image(os.path.join(out, strips[0]))
-    assert s.shape[:2] == (32, 3 * 40)  # gt | render | error side by side
+    assert s.shape[:2] == (32, 4 * 40)  # gt | render | error | texel size side by side (a textured model)
 
 
 def test_eval_on_the_training_views(run_dir, tmp_path):
