@@ -1,4 +1,5 @@
-"""`ctgs view MODEL_DIR [--scene SCENE_DIR] [--mesh MESH] [--port N] [--no-browser]`: the WebGL2 viewer on 127.0.0.1."""
+"""`ctgs view MODEL_DIR|RUN_DIR [--scene SCENE_DIR] [--mesh MESH] [--port N] [--no-browser]`: the WebGL2 viewer on
+127.0.0.1; a run folder is followed while it trains (ctgs.viewer.live)."""
 
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ def resolve_bundle(model_dir: str, scene_dir: str | None, tmp_root: str) -> tupl
 
 
 @click.command(name="view")
-@click.argument("model_dir", type=click.Path(file_okay=False))
+@click.argument("model_dir", metavar="MODEL_DIR|RUN_DIR", type=click.Path(file_okay=False))
 @click.option("--scene", "scene_dir", default=None, type=click.Path(file_okay=False),
               help="Scene folder whose training and test cameras the viewer can jump to "
                    "(default: the cameras stored in the bundle, i.e. of the scene the model was trained on).")
@@ -56,26 +57,44 @@ def resolve_bundle(model_dir: str, scene_dir: str | None, tmp_root: str) -> tupl
               help="Port on 127.0.0.1 (0 = any free port).")
 @click.option("--no-browser", is_flag=True, help="Only serve; do not open a browser window.")
 def command(model_dir: str, scene_dir: str | None, mesh_path: str | None, port: int, no_browser: bool) -> None:
-    """Serve MODEL_DIR's web viewer on http://127.0.0.1:PORT/ (WebGL2; every script ships with ctgs)."""
+    """Serve MODEL_DIR's web viewer on http://127.0.0.1:PORT/ (WebGL2; every script ships with ctgs). RUN_DIR, a
+    run folder of `ctgs train`, training or finished: its newest model, reloaded as checkpoints land, and its progress
+    (iteration, loss, test PSNR, time left) from its log."""
     import webbrowser
 
     from ctgs.errors import UserError
+    from ctgs.viewer.live import LiveRun, is_run_folder
     from ctgs.viewer.server import ViewerServer
 
     if not os.path.isdir(model_dir):
-        raise UserError(f"{model_dir}: model folder not found; write one with `ctgs export RUN_DIR --format web`")
+        raise UserError(f"{model_dir}: model folder not found; write one with `ctgs export RUN_DIR --format web`, or "
+                        "pass a run folder of `ctgs train`")
+    live = is_run_folder(model_dir)
+    if live and mesh_path:
+        raise UserError(f"{model_dir}: a run folder is shown as it trains, without a mesh; pass the model folder "
+                        "`ctgs export` wrote with --mesh")
     mesh = None
     if mesh_path:
         from ctgs.formats.mesh import read_mesh, viewer_mesh
 
         mesh = viewer_mesh(*read_mesh(mesh_path))
     with tempfile.TemporaryDirectory(prefix="ctgs-view-") as tmp:
-        bundle_dir, cameras, how = resolve_bundle(model_dir, scene_dir, tmp)
+        if live:
+            from ctgs.formats.web_bundle import scene_cameras
+
+            run = LiveRun(model_dir, tmp, scene_cameras(scene_dir) if scene_dir else None)
         try:
-            server = ViewerServer(bundle_dir, port=port, cameras=cameras, quiet=True, mesh=mesh)
+            if live:
+                server = ViewerServer(port=port, quiet=True, live=run)
+                bundle_dir, how = model_dir, "a run folder, followed as it trains"
+            else:
+                bundle_dir, cameras, how = resolve_bundle(model_dir, scene_dir, tmp)
+                server = ViewerServer(bundle_dir, port=port, cameras=cameras, quiet=True, mesh=mesh)
         except OSError as exc:
             raise UserError(f"127.0.0.1:{port}: cannot listen ({exc.strerror}); pass another --port "
                             "(0 = any free port)") from exc
+        for note in run.notes if live else ():
+            click.echo(f"note: {note}", err=True)
         click.echo(f"serving {bundle_dir} ({how}) at {server.url}  (Ctrl-C stops)")
         if not no_browser:
             webbrowser.open(server.url)

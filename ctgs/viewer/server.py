@@ -6,6 +6,9 @@ ctgs/viewer/static.
 URL layout: /  -> static/index.html and its assets; /bundle/<file> -> the web bundle folder, with
 bundle.json's cameras replaced when the server was given other cameras (`ctgs view --scene`), and a mesh to show
 beside the surfels (`ctgs view --mesh`) as /bundle/mesh.bin, from memory (bundle.json's `mesh` entry describes it).
+A run folder followed while it trains (ctgs.viewer.live) instead: /live/status.json -> the run's progress and the
+version of the newest model, /live/<version>/<file> -> that model's bundle; /bundle/ then answers 404, and in a bundle's
+viewer /live/ does.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import json
 import mimetypes
 import os
+import re
 import sys
 import threading
 from functools import partial
@@ -34,12 +38,16 @@ CSP = ("default-src 'self'; script-src 'self'; connect-src 'self'; img-src 'self
        "object-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 
 
+_LIVE_FILE = re.compile(r"^/live/(\d{1,9})/([^/]+)$")
+
+
 class _Handler(SimpleHTTPRequestHandler):
-    def __init__(self, *args, bundle_dir: str, bundle_json: bytes, quiet: bool, mesh_bin: bytes | None = None,
-                 **kwargs):
+    def __init__(self, *args, bundle_dir: str | None, bundle_json: bytes | None, quiet: bool,
+                 mesh_bin: bytes | None = None, live=None, **kwargs):
         self.bundle_dir = bundle_dir
         self.bundle_json = bundle_json
         self.mesh_bin = mesh_bin
+        self.live = live  # ctgs.viewer.live.LiveRun, or None
         self.quiet = quiet
         super().__init__(*args, directory=STATIC_DIR, **kwargs)
 
@@ -78,13 +86,13 @@ class _Handler(SimpleHTTPRequestHandler):
     def translate_path(self, path):
         rel = unquote(urlsplit(path).path)
         if rel.startswith("/bundle/"):
-            name = rel[len("/bundle/"):]
-            target = os.path.join(self.bundle_dir, name)
-            # the bundle is flat: its own files only, never a listing, a hidden file, or a link leading out of it
-            if not name or "/" in name or name.startswith(".") or not os.path.isfile(target) or \
-                    os.path.dirname(os.path.realpath(target)) != os.path.realpath(self.bundle_dir):
-                return os.path.join(self.bundle_dir, ".invalid")
-            return target
+            if self.bundle_dir is None:
+                return os.path.join(STATIC_DIR, ".invalid")  # a run folder's viewer serves its models under /live/
+            return _bundle_file(self.bundle_dir, rel[len("/bundle/"):])
+        if rel.startswith("/live/"):
+            m = _LIVE_FILE.match(rel)
+            folder = self.live.bundle_dir(int(m.group(1))) if self.live is not None and m else None
+            return _bundle_file(folder, m.group(2)) if folder else os.path.join(STATIC_DIR, ".invalid")
         return super().translate_path(path)
 
     def list_directory(self, path):
@@ -100,7 +108,15 @@ class _Handler(SimpleHTTPRequestHandler):
         if self._refused():
             return
         path = urlsplit(self.path).path
-        if path == "/bundle/" + BUNDLE_JSON or (path == "/bundle/" + VIEWER_MESH_BIN and self.mesh_bin is not None):
+        if path == "/live/status.json" and self.live is not None:
+            data = json.dumps(self.live.status()).encode()
+            self.send_response(HTTPStatus.OK)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+            return
+        if self.bundle_dir is not None and path == "/bundle/" + BUNDLE_JSON or (path == "/bundle/" + VIEWER_MESH_BIN and self.mesh_bin is not None):
             data, kind = ((self.bundle_json, "application/json") if path.endswith(BUNDLE_JSON)
                           else (self.mesh_bin, "application/octet-stream"))
             self.send_response(HTTPStatus.OK)
@@ -116,6 +132,16 @@ class _Handler(SimpleHTTPRequestHandler):
             super().log_message(format, *args)
 
 
+def _bundle_file(folder: str, name: str) -> str:
+    """folder/name when it is one of the bundle's own files; a name that serves 404 otherwise. A bundle is flat: its
+    own files only, never a listing, a hidden file, or a link leading out of it."""
+    target = os.path.join(folder, name)
+    if not name or "/" in name or name.startswith(".") or not os.path.isfile(target) or \
+            os.path.dirname(os.path.realpath(target)) != os.path.realpath(folder):
+        return os.path.join(folder, ".invalid")
+    return target
+
+
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
 
@@ -126,18 +152,24 @@ class _Server(ThreadingHTTPServer):
 
 
 class ViewerServer:
-    """Serves the viewer for one bundle folder. port=0 picks a free port. Use as a context manager or
-    call serve_forever(); `url` is the page's address."""
+    """Serves the viewer for one bundle folder, or for a run folder followed while it trains (live: a
+    ctgs.viewer.live.LiveRun; bundle_dir None). port=0 picks a free port. Use as a context manager or call
+    serve_forever(); `url` is the page's address."""
 
-    def __init__(self, bundle_dir: str, *, port: int = 0, cameras: list[dict] | None = None, quiet: bool = True,
-                 mesh: tuple[dict, bytes] | None = None):
-        bundle = read_bundle_json(bundle_dir)  # UserError naming the file when the bundle is damaged
-        if cameras is not None:
-            bundle["cameras"] = cameras
-        if mesh is not None:  # (ctgs.formats.mesh.viewer_mesh)
-            bundle["mesh"] = mesh[0]
-        handler = partial(_Handler, bundle_dir=os.path.abspath(bundle_dir), bundle_json=json.dumps(bundle).encode(),
-                          quiet=quiet, mesh_bin=None if mesh is None else mesh[1])
+    def __init__(self, bundle_dir: str | None = None, *, port: int = 0, cameras: list[dict] | None = None,
+                 quiet: bool = True, mesh: tuple[dict, bytes] | None = None, live=None):
+        if (bundle_dir is None) == (live is None):
+            raise ValueError("serve a bundle folder or a live run, one of them")
+        bundle_json = None
+        if bundle_dir is not None:
+            bundle = read_bundle_json(bundle_dir)  # UserError naming the file when the bundle is damaged
+            if cameras is not None:
+                bundle["cameras"] = cameras
+            if mesh is not None:  # (ctgs.formats.mesh.viewer_mesh)
+                bundle["mesh"] = mesh[0]
+            bundle_dir, bundle_json = os.path.abspath(bundle_dir), json.dumps(bundle).encode()
+        handler = partial(_Handler, bundle_dir=bundle_dir, bundle_json=bundle_json, quiet=quiet,
+                          mesh_bin=None if mesh is None else mesh[1], live=live)
         self.httpd = _Server((HOST, port), handler)
         self.httpd.daemon_threads = True
         self.port = self.httpd.server_address[1]

@@ -22,7 +22,8 @@ from ctgs.viewer.server import STATIC_DIR, ViewerServer
 from viewer_models import textured_model
 
 STATIC_FILES = ("index.html", "viewer.css", "viewer.js", "renderer.js", "camera.js", "bundle.js",
-                "sort_worker.js", "surfel.vert", "surfel.frag", "composite.vert", "composite.frag")
+                "sort_worker.js", "surfel.vert", "surfel.frag", "composite.vert", "composite.frag", "camera_path.js",
+                "live.js")
 
 
 def _get(url: str) -> tuple[int, bytes, str]:
@@ -83,6 +84,28 @@ def test_shader_constants_equal_the_renderer_constants():
                 seen[key] = eval(value.replace("(", "").replace(")", ""), {})  # numeric literals only
                 assert seen[key] == pytest.approx(expected[key], rel=1e-12), (name, key)
     assert set(seen) == set(expected)
+
+
+def test_the_texel_map_scales_and_colours_of_the_shaders_are_the_renderers():
+    from ctgs.render import texel_map
+
+    expected = {"TEXEL_PX_LOG2_LO": texel_map.TEXEL_PX_LOG2[0], "TEXEL_PX_LOG2_HI": texel_map.TEXEL_PX_LOG2[1],
+                "TEXRES_LOG2_LO": texel_map.TEXRES_LOG2[0], "TEXRES_LOG2_HI": texel_map.TEXRES_LOG2[1],
+                "UNTEXTURED": texel_map.UNTEXTURED, "MIN_WEIGHT": texel_map.MIN_WEIGHT}
+    seen = {}
+    for name in ("surfel.vert", "composite.frag"):
+        for key, value in re.findall(r"^#define (\w+) (\S+)", open(os.path.join(STATIC_DIR, name)).read(), flags=re.M):
+            if key in expected:
+                seen[key] = float(value)
+                assert seen[key] == expected[key], (name, key)
+    assert set(seen) == set(expected)
+    frag = open(os.path.join(STATIC_DIR, "composite.frag")).read()
+    table = re.search(r"TURBO\[(\d+)\] = vec3\[\d+\]\((.*?)\);", frag, flags=re.S)
+    rows = [[float(v) for v in row.split(",")] for row in re.findall(r"vec3\(([^)]*)\)", table.group(2))]
+    assert int(table.group(1)) == len(texel_map.TURBO) and rows == texel_map.TURBO.astype(float).round(3).tolist()
+    legend = open(os.path.join(STATIC_DIR, "live.js")).read()  # the legend's gradient: the same table
+    js = re.search(r"const TURBO = \[(.*?)\];", legend, flags=re.S).group(1)
+    assert [[float(v) for v in row.split(",")] for row in re.findall(r"\[([^\[\]]*)\]", js)] == rows
 
 
 def test_resolve_bundle_builds_one_for_a_plain_model_folder(tmp_path):

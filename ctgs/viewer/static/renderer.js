@@ -63,6 +63,17 @@ export class Renderer {
     const gl = this.gl;
     this.surfel = program(gl, shaders.surfelVert, shaders.surfelFrag, ["surfel.vert", "surfel.frag"]);
     this.composite = program(gl, shaders.compositeVert, shaders.compositeFrag, ["composite.vert", "composite.frag"]);
+    this.emptyVao = gl.createVertexArray();
+    this.setData(bundle, arrays, pages);
+  }
+
+  // Upload a bundle's surfels and atlas, replacing (and freeing) those drawn so far: a run's newer model.
+  setData(bundle, arrays, pages) {
+    const gl = this.gl;
+    for (const t of [this.geomTex, this.layoutTex, this.shTex, this.atlasTex]) if (t) gl.deleteTexture(t);
+    if (this.indexBuffer) gl.deleteBuffer(this.indexBuffer);
+    if (this.vao) gl.deleteVertexArray(this.vao);
+    this.count = 0;
     const n = bundle.num_surfels;
     this.n = n;
     this.shDegree = bundle.sh_degree;
@@ -117,7 +128,6 @@ export class Renderer {
     gl.vertexAttribIPointer(0, 1, gl.UNSIGNED_INT, 0, 0);
     gl.vertexAttribDivisor(0, 1);
     gl.bindVertexArray(null);
-    this.emptyVao = gl.createVertexArray();
   }
 
   uploadAtlas(atlas, pages) {
@@ -165,8 +175,9 @@ export class Renderer {
     this.accum = {tex, fbo, width, height};
   }
 
-  // cam: {viewmat (16, row-major world->camera), campos, fx, fy, cx, cy, width, height, near}
-  draw(cam, textures) {
+  // cam: {viewmat (16, row-major world->camera), campos, fx, fy, cx, cy, width, height, near}; map: 0 the image,
+  // 1 texel size, 2 texture resolution (ctgs/render/texel_map.py)
+  draw(cam, textures, map = 0) {
     const gl = this.gl, W = cam.width, H = cam.height;
     this.ensureAccum(W, H);
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.accum.fbo);
@@ -190,6 +201,7 @@ export class Renderer {
     gl.uniform1i(u.u_sh_degree, this.shDegree);
     gl.uniform1i(u.u_textures, textures ? 1 : 0);
     gl.uniform1i(u.u_tight, this.tightQuads ? 1 : 0);
+    gl.uniform1i(u.u_map, map);
     const bind = (unit, target, tex, loc) => {
       gl.activeTexture(gl.TEXTURE0 + unit);
       gl.bindTexture(target, tex);
@@ -210,6 +222,7 @@ export class Renderer {
     gl.useProgram(c.p);
     bind(0, gl.TEXTURE_2D, this.accum.tex, c.u.u_accum);
     gl.uniform3fv(c.u.u_background, this.background);
+    gl.uniform1i(c.u.u_map, map);
     gl.bindVertexArray(this.emptyVao);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     gl.bindVertexArray(null);

@@ -18,6 +18,7 @@ uniform bool u_textures;         // false: render as if every surfel had no text
 uniform vec4 u_intr;             // fx, fy, cx, cy (pixels)
 uniform vec2 u_size;             // W, H (pixels)
 uniform float u_near;
+uniform int u_map;               // > 0: a map of ctgs/render/texel_map.py instead of the image
 
 flat in vec4 v_mu_op;
 flat in vec4 v_u_sx;
@@ -26,6 +27,7 @@ flat in vec4 v_n_nmu;
 flat in vec4 v_col_ku;
 flat in vec4 v_m_kv;
 flat in uvec4 v_tex;
+flat in vec2 v_map;
 
 out vec4 o_color;
 
@@ -65,6 +67,10 @@ void main() {
   float a = v_mu_op.w * G;
   float alpha = a < MAX_ALPHA ? a : MAX_ALPHA;
   if (alpha < MIN_ALPHA) discard;
+  if (u_map > 0) {  // the map's colour (t h, h, 0), blended with the same weights (composite.frag makes the picture)
+    o_color = vec4(alpha * v_map.x * v_map.y, alpha * v_map.y, 0.0, alpha);
+    return;
+  }
   // 5. texture, only where the 3D Gaussian won
   vec3 tex = vec3(0.0);
   ivec2 res = ivec2(v_tex.xy);

@@ -12,6 +12,11 @@ precision highp usampler2D;
 #define CUTOFF_RHO 9.0
 #define FILTER_INV_SQUARE 2.0
 #define MAX_SH_TEXELS 12  // 16 coefficients x 3 channels / 4 per texel
+// ctgs/render/texel_map.py (tests/viewer checks these stay equal): the maps' log2 scales
+#define TEXEL_PX_LOG2_LO -1.0
+#define TEXEL_PX_LOG2_HI 7.0
+#define TEXRES_LOG2_LO 0.0
+#define TEXRES_LOG2_HI 16.0
 
 uniform sampler2D u_geom;     // RGBA32F, 3 texels per surfel: (mean, opacity), unit quat (w,x,y,z), (sx, sy, ku, kv)
 uniform usampler2D u_layout;  // RGBA32UI, 1 texel per surfel: res_u, res_v, atlas x | y << 16, page
@@ -24,6 +29,7 @@ uniform vec4 u_intr;          // fx, fy, cx, cy (pixels)
 uniform vec2 u_size;          // W, H (pixels)
 uniform float u_near;
 uniform bool u_tight;         // false: bounds.h's pixel boxes throughout (to measure what the tight quads save)
+uniform int u_map;            // 0: the image; 1: texel size in pixels; 2: texture resolution (ctgs/render/texel_map.py)
 
 layout(location = 0) in uint a_index;  // surfel to draw (instanced, back to front)
 
@@ -34,6 +40,7 @@ flat out vec4 v_n_nmu;   // normal, n . mu_c
 flat out vec4 v_col_ku;  // SH colour + 0.5 (unclamped), texel size along u
 flat out vec4 v_m_kv;    // projected centre (pixels), texel size along v, unused
 flat out uvec4 v_tex;    // res_u, res_v, atlas x | y << 16, page
+flat out vec2 v_map;     // u_map > 0: the surfel's value t on the map's scale, 1 if it is textured (else 0)
 
 const float SH_C0 = 0.28209479177387814;
 const float SH_C1 = 0.4886025119029199;
@@ -194,4 +201,12 @@ void main() {
   v_col_ku = vec4(sh_color(i, dir), g2.z);
   v_m_kv = vec4(m, g2.w, 0.0);
   v_tex = texelFetch(u_layout, texel_of(i, textureSize(u_layout, 0).x), 0);
+  if (u_map > 0) {  // texel_map.surfel_values
+    float value = u_map == 1 ? log2(max(0.5 * (g2.z + g2.w) * fx / mu.z, 1e-30))
+                             : log2(max(float(v_tex.x * v_tex.y), 1.0));
+    float lo = u_map == 1 ? TEXEL_PX_LOG2_LO : TEXRES_LOG2_LO, hi = u_map == 1 ? TEXEL_PX_LOG2_HI : TEXRES_LOG2_HI;
+    v_map = vec2(clamp((value - lo) / (hi - lo), 0.0, 1.0), v_tex.x > 0u && v_tex.y > 0u ? 1.0 : 0.0);
+  } else {
+    v_map = vec2(0.0);
+  }
 }

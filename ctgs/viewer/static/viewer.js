@@ -1,17 +1,23 @@
 // ctgs viewer: UI, camera state, the sort worker and the render loop. `window.viewer` is also the
-// scripting interface the tests use (ready, show, benchmark, info).
+// scripting interface the tests use (ready, show, benchmark, info, cameraPath). Served for a run folder
+// (`ctgs view RUN_DIR`), it polls the run's status and shows each newer model as it lands (live.js).
 
 import {loadBundle} from "./bundle.js";
 import {Controls, MOVE_CODES, typesText, lookAt, poseFromViewmat, sceneUp, viewmatFromPose, add, sub, scale, norm,
   column} from "./camera.js";
 import {Renderer, program} from "./renderer.js";
 import {loadMesh, MeshLayer} from "./mesh.js";
+import {cameraPathJson, splinePoses} from "./camera_path.js";
+import {liveStatus, RunPanel, drawLegend, POLL_MS} from "./live.js";
 
 const $ = (id) => document.getElementById(id);
 const SHADERS = {surfelVert: "surfel.vert", surfelFrag: "surfel.frag", compositeVert: "composite.vert",
   compositeFrag: "composite.frag"};
 // Smoothing of the frame-time readout (exponential moving average weight of a new frame).
 const READOUT_EMA = 0.2;
+// What the surfels show (renderer.draw's map): the image, or a map of ctgs/render/texel_map.py.
+const MAPS = ["image", "texel_size", "texture_res"];
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 // `?bundle=` names a folder on this server only: the page runs on 127.0.0.1 next to the user's files, so a link
 // must not make it load (and display) a bundle from anywhere else.
@@ -49,6 +55,10 @@ class Viewer {
     this.sortWaiters = [];
     this.readout = {frame: null, sort: null};  // ms
     this.pendingFences = [];
+    this.map = Math.max(0, MAPS.indexOf(this.params.get("map") || "image"));
+    this.gen = 0;  // the model's generation: a sort of an earlier model is not applied to a newer one
+    this.modelVersion = 0;  // a run folder's: the version of the model shown
+    this.keyframes = [];  // the user's camera path
     this.ready = this.start().catch((err) => { this.fail(err); throw err; });
   }
 
@@ -60,12 +70,27 @@ class Viewer {
   }
 
   async start() {
-    const bundleBase = sameOriginBase(this.params.get("bundle") || "bundle");
     const canvas = $("canvas");
     this.renderer = new Renderer(canvas, this.params.get("accum") || "auto");
     const status = (s) => { $("status").textContent = s; };
-    const [loaded, ...sources] = await Promise.all([
-      loadBundle(bundleBase, status), ...Object.values(SHADERS).map(fetchText)]);
+    const shaderSources = Promise.all(Object.values(SHADERS).map(fetchText));
+    let bundleBase;
+    this.live = await liveStatus();  // null: the viewer of one bundle
+    if (this.live) {
+      this.runPanel = new RunPanel();
+      this.runPanel.show(this.live);
+      while (!this.live.model) {  // a run that has written no checkpoint yet
+        status("waiting for the run's first checkpoint");
+        await sleep(POLL_MS);
+        this.live = (await liveStatus()) || this.live;
+        this.runPanel.show(this.live);
+      }
+      bundleBase = `live/${this.live.model.version}`;
+      this.modelVersion = this.live.model.version;
+    } else {
+      bundleBase = sameOriginBase(this.params.get("bundle") || "bundle");
+    }
+    const [loaded, sources] = await Promise.all([loadBundle(bundleBase, status), shaderSources]);
     const shaders = Object.fromEntries(Object.keys(SHADERS).map((k, i) => [k, sources[i]]));
     const {bundle, arrays, pages} = loaded;
     this.bundle = bundle;
@@ -99,6 +124,50 @@ class Viewer {
     this.renderer.finish();
     this.last = performance.now();
     requestAnimationFrame((t) => this.loop(t));
+    if (this.live) setTimeout(() => this.poll(), POLL_MS);
+  }
+
+  // ---- a run folder: its status, and its newer models -----------------------------------------------
+  async poll() {
+    try {
+      const st = await liveStatus();
+      if (st) {
+        this.live = st;
+        this.runPanel.show(st);
+        if (st.model && st.model.version > this.modelVersion && !this.reloading) await this.reload(st.model.version);
+      }
+    } catch (err) {  // the server stopped (Ctrl-C) or a poll failed: said; the page and the model shown stay
+      this.runPanel.note(`status: ${err.message}`);
+    } finally {
+      setTimeout(() => this.poll(), POLL_MS);
+    }
+  }
+
+  // Show model `version` of the run in place of the one shown; the camera stays where it is.
+  async reload(version) {
+    this.reloading = true;
+    try {
+      const {bundle, arrays, pages} = await loadBundle(`live/${version}`, () => {});
+      this.renderer.setData(bundle, arrays, pages);
+      this.bundle = bundle;
+      this.gen += 1;
+      this.worker.postMessage({type: "init", means: arrays.means.slice()});
+      this.sortedKey = null;
+      this.modelVersion = version;
+      this.renderStats();
+      this.dirty = true;
+    } catch (err) {  // a bundle replaced meanwhile by a newer one (the next poll loads that): said
+      this.runPanel.note(`model ${version}: ${err.message}`);
+    } finally {
+      this.reloading = false;
+    }
+  }
+
+  // Resolves once a model newer than `version` is drawn (tests: a run that goes on training).
+  async waitModel(version) {
+    while (this.modelVersion <= version || this.reloading) await sleep(100);
+    await this.waitSorted(this.key(this.currentCam()));
+    return this.modelVersion;
   }
 
   sceneRadius(means) {
@@ -163,13 +232,17 @@ class Viewer {
   requestSort(cam) {
     const key = this.key(cam);
     if (this.sortInFlight) { this.sortWanted = true; return; }
-    this.sortInFlight = {id: ++this.sortId, key};
+    this.sortInFlight = {id: ++this.sortId, key, gen: this.gen};
     this.worker.postMessage({type: "sort", id: this.sortId, view: new Float64Array(cam.viewmat), near: cam.near});
   }
 
   onSorted(msg) {
     const job = this.sortInFlight;
     this.sortInFlight = null;
+    if (job.gen !== this.gen) {  // the order of the model before a reload: sort the new one
+      this.requestSort(this.currentCam());
+      return;
+    }
     this.renderer.setOrder(msg.order, msg.count);
     this.sortedKey = job.key;
     this.readout.sort = msg.ms;
@@ -205,7 +278,7 @@ class Viewer {
     canvas.style.width = `${cam.width / dpr}px`;
     canvas.style.height = `${cam.height / dpr}px`;
     if (this.showMesh && this.mesh) this.mesh.draw(cam, this.shadeMesh);
-    else this.renderer.draw(cam, this.textures);
+    else this.renderer.draw(cam, this.textures, this.map);
     return cam;
   }
 
@@ -214,6 +287,7 @@ class Viewer {
     const dt = Math.min(0.1, (now - this.last) / 1000);
     this.last = now;
     this.controls.update(dt);
+    if (this.playing) this.playStep(now);
     this.pollFences(now);
     if (!this.dirty || this.holdLoop) return;
     const cam = this.currentCam();
@@ -247,14 +321,15 @@ class Viewer {
     const r = this.renderer;
     return {glRenderer: r.glRenderer, accumFormat: r.accumFormat.name, numSurfels: this.bundle.num_surfels,
       numTexels: this.bundle.num_texels, texelFormat: this.bundle.atlas.texel_format, cameras: this.cameras.length,
-      meshTriangles: this.mesh ? this.mesh.count / 3 : 0, webgl2: true};
+      meshTriangles: this.mesh ? this.mesh.count / 3 : 0, webgl2: true, live: !!this.live,
+      modelVersion: this.modelVersion, modelIteration: this.bundle.live ? this.bundle.live.iteration : null};
   }
 
   // Render recorded camera i exactly (fit: its image size and intrinsics, or resized to size = [W, H]
   // with the intrinsics scaled; fit = false: the view's size), wait until the GPU is done, and return
   // the canvas rectangle in CSS pixels for a screenshot. mesh: the mesh instead of the surfels (shade: lit from the
-  // camera).
-  async show({camera, textures = true, size = null, fit = true, mesh = false, shade = true}) {
+  // camera). map: "image", or the map "texel_size" or "texture_res" (ctgs/render/texel_map.py).
+  async show({camera, textures = true, size = null, fit = true, mesh = false, shade = true, map = "image"}) {
     await this.ready;
     if (mesh && !this.mesh) throw new Error("no mesh to show: start the viewer with ctgs view --mesh FILE");
     const held = this.holdLoop;
@@ -263,6 +338,7 @@ class Viewer {
       this.showMesh = mesh;
       this.shadeMesh = shade;
       if (this.mesh) { $("mesh").checked = mesh; $("shade").checked = shade; }
+      this.setMap(Math.max(0, MAPS.indexOf(map)));
       return await this.showHeld({camera, textures, size, fit});
     } finally {
       this.holdLoop = held;
@@ -362,6 +438,13 @@ class Viewer {
       r.checked = r.value === (this.params.get("mode") || "orbit");
     }
     this.controls.mode = this.params.get("mode") === "fly" ? "fly" : "orbit";
+    $("colour").onchange = (e) => this.setMap(Math.max(0, MAPS.indexOf(e.target.value)));
+    this.setMap(this.map);
+    $("key-add").onclick = () => this.addKeyframe();
+    $("key-clear").onclick = () => { this.keyframes = []; this.stopPath(); this.showPathInfo(); };
+    $("path-play").onclick = () => (this.playing ? this.stopPath() : this.playPath());
+    $("path-save").onclick = () => this.saveCameraPath();
+    this.showPathInfo();
     // Shortcuts work wherever the focus is (a clicked checkbox, the camera list), except in a text field; Shift
     // does not change them. Handled keys do nothing else (the camera list would jump to an option's first letter).
     window.addEventListener("keydown", (e) => {
@@ -370,6 +453,8 @@ class Viewer {
       if (key === "t") $("textures").click();
       else if (key === "m" && this.mesh) $("mesh").click();
       else if (key === "l" && this.mesh) $("shade").click();
+      else if (key === "x") this.setMap((this.map + 1) % MAPS.length);
+      else if (key === "k") this.addKeyframe();
       else if (key === "f") {
         const next = this.controls.mode === "orbit" ? "fly" : "orbit";
         document.querySelector(`input[name=mode][value=${next}]`).click();
@@ -378,7 +463,12 @@ class Viewer {
       else if (!(this.controls.mode === "fly" && MOVE_CODES.has(e.code))) return;
       e.preventDefault();
     });
-    // Every value from bundle.json goes in as text, never as HTML: a crafted bundle cannot run script here.
+    this.renderStats();
+  }
+
+  // Every value from bundle.json goes in as text, never as HTML: a crafted bundle cannot run script here.
+  renderStats() {
+    const b = this.bundle;
     const mb = (x) => (Number(x) / 1e6).toFixed(1);
     const stats = $("stats"), dim = document.createElement("span");
     dim.className = "dim";
@@ -394,6 +484,72 @@ class Viewer {
       ...(b.mesh ? [`mesh ${count(b.mesh.triangles)} triangles · ${mb(b.mesh.bytes)} MB`] : []), ""]);
     lines(dim, [String(this.renderer.glRenderer), `accumulation ${this.renderer.accumFormat.name}`]);
     stats.appendChild(dim);
+  }
+
+  // ---- the maps of texel size and texture resolution ------------------------------------------------------
+  setMap(i) {
+    this.map = i;
+    $("colour").value = MAPS[i];
+    drawLegend($("legend"), MAPS[i]);
+    this.dirty = true;
+  }
+
+  // ---- the user's camera path (saved as nerfstudio's camera_path.json; `ctgs render --path FILE`) ---------
+  addKeyframe() {
+    this.keyframes.push({rot: this.pose.rot.slice(), pos: this.pose.pos.slice()});
+    this.showPathInfo();
+  }
+
+  showPathInfo() {
+    const n = this.keyframes.length;
+    $("path-info").textContent = n ? `${n} keyframe${n > 1 ? "s" : ""}` : "no keyframes: add views (K)";
+    $("path-play").disabled = $("path-save").disabled = n < 2;
+    $("path-play").textContent = this.playing ? "Stop" : "Play";
+  }
+
+  // The camera path file of the keyframes: the reference camera's image size and the view's vertical field of view.
+  cameraPath() {
+    if (this.keyframes.length < 2) throw new Error("a camera path needs two keyframes or more (K adds the view)");
+    const c = this.refCam, intr = this.intrinsics();
+    const fovDeg = 2 * Math.atan(0.5 * intr.height / intr.fy) * 180 / Math.PI;
+    const num = (id, lo, hi, dflt) => {
+      const v = Number($(id).value);
+      return Number.isFinite(v) && v >= lo && v <= hi ? v : dflt;
+    };
+    return cameraPathJson({keyframes: this.keyframes, fovDeg, width: c.width, height: c.height,
+      fps: num("path-fps", 1, 120, 30), seconds: num("path-seconds", 0.1, 3600, 4)});
+  }
+
+  saveCameraPath() {
+    const blob = new Blob([JSON.stringify(this.cameraPath(), null, 1)], {type: "application/json"});
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(blob);
+    a.download = "camera_path.json";
+    document.body.appendChild(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(a.href), 1000);
+  }
+
+  playPath() {
+    const path = this.cameraPath();
+    this.playing = {poses: splinePoses(this.keyframes, path.camera_path.length), fps: path.fps, t0: null};
+    this.showPathInfo();
+  }
+
+  playStep(now) {
+    const p = this.playing;
+    if (p.t0 === null) p.t0 = now;
+    const i = Math.floor((now - p.t0) / 1000 * p.fps);
+    if (i >= p.poses.length) { this.stopPath(); return; }
+    this.pose = {rot: p.poses[i].rot.slice(), pos: p.poses[i].pos.slice()};
+    if (this.camIndex >= 0) { this.camIndex = -1; $("camera").value = "-1"; }
+    this.dirty = true;
+  }
+
+  stopPath() {
+    this.playing = null;
+    this.showPathInfo();
   }
 }
 
