@@ -66,7 +66,9 @@ def resolve_config(scene_dir, run_dir, config, iterations, sets, images, resume,
 
 
 # Without --preset/--config, a --time-budget run on a CPU whose first plan makes fewer passes over the training views
-# than budget.FEW_PASSES trains this config instead: in every CPU run measured at equal time (bonsai252 and
+# than budget.FEW_PASSES trains this config instead, on the default preset (`fast`'s baseline: its densification
+# every 2500 paper-scale iterations, the baseline every equal-time comparison measured; the bare 2dgs overlay would take
+# the paper's 30k schedule, compressed into the budget): in every CPU run measured at equal time (bonsai252 and
 # herzjesu25, 25 to 100 passes) the 2DGS baseline ended ahead of the content-aware presets; at 230 passes (herzjesu25,
 # 20 minutes) `fast` led (docs/results.md).
 BUDGET_FALLBACK = "2dgs"
@@ -155,7 +157,7 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
             print(line, file=sys.stderr)
             trainer = None
             cfg = resolve_config(scene_dir, run_dir, BUDGET_FALLBACK, iterations, sets, images, resume, backend, seed,
-                                 None, time_budget, max_params, backgrounds=backgrounds)
+                                 preset, time_budget, max_params, backgrounds=backgrounds)
             trainer = Trainer(cfg, scene, run_dir, resume=resume, start_time=start_time)
         if not quiet and cfg.max_params == 0 and trainer.cfg.max_params > 0:
             print(f"ctgs train: size budget {trainer.cfg.max_params} params ({cfg.max_params_per_value:g} per observed "

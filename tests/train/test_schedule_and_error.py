@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 import torch
 
 from ctgs.metrics.ssim import ssim, ssim_map
@@ -152,3 +154,22 @@ def test_content_opacity_reset_follows_a_full_routine_up_to_densify_until():
     # A re-planned run's shifted calendar: still once per reset period, at a full routine.
     shifted = [i for i in range(1, 3000) if schedule.content_opacity_reset(on, i, shift=37.0)]
     assert len(shifted) == 2 and all(schedule.routine_kind(on, i, 37.0) == "full" for i in shifted)
+
+
+def test_densifications_keep_their_spacing_in_a_short_run():
+    """However short the run, densifications are densify_min_steps steps apart (the paper's 100) and the opacity resets
+    keep their ratio to them; at 30k, and where the scaled period is already longer, the calendar is the paper's."""
+    paper = TrainConfig(method="2dgs")
+    assert schedule.densify_stretch(paper) == 1.0
+    assert [i for i in range(1, 1000) if schedule.densify_active(paper, i)] == [600, 700, 800, 900]
+    assert [i for i in range(1, 10000) if schedule.opacity_reset(paper, i)] == [3000, 6000, 9000]
+    # 1,055 planned steps (a 10-minute budget): scaled alone, densify every 3.5 steps from 18 to 527 (145 of them)
+    short = TrainConfig(method="2dgs", iterations=1055)
+    bare = TrainConfig(method="2dgs", iterations=1055, densify_min_steps=0)
+    assert sum(schedule.densify_active(bare, i) for i in range(1, 1056)) == 145
+    fired = [i for i in range(1, 1056) if schedule.densify_active(short, i)]
+    assert fired == [100, 200, 300, 400, 500] and schedule.densify_stretch(short) == pytest.approx(100 / 3.5166, 1e-3)
+    assert [i for i in range(1, 1056) if schedule.opacity_reset(short, i)] == []  # 30 densifications apart: none
+    # `fast`'s baseline (densify every 2500 paper-scale) at 3000 steps: 250 apart, unchanged
+    fast = TrainConfig(method="2dgs", iterations=3000, densify_every=2500, opacity_reset_every=7500)
+    assert schedule.densify_stretch(fast) == 1.0 and [i for i in range(1, 3001) if schedule.opacity_reset(fast, i)] == [750, 1500]

@@ -208,6 +208,10 @@ class TrainConfig:
     densify_grad_threshold: float = _f(0.0002, "view-space positional gradient threshold (3DGS NDC units)")
     percent_dense: float = _f(0.01, "clone if max scale <= this * extent, else split")
     opacity_reset_every: int = _f(3000, "iterations between opacity resets (paper scale)")
+    densify_min_steps: int = _f(100, "fewest training steps between densifications, however short the run: a "
+                                "shorter scaled period stretches densify_every and opacity_reset_every alike, so the "
+                                "gradient statistic spans as many views and the model as many steps to answer as in "
+                                "the paper's 30k (100: its own period; 0 = a pure fraction of the run)")
     prune_opacity_2dgs: float = _f(0.05, "baseline prune threshold (2DGS's opacity_cull, also gsplat's 2DGS "
                                    "trainer; 3DGS prunes at 0.005)")
     # ---- logging / checkpoints ----
@@ -297,7 +301,7 @@ _RANGES = [
     ("texture_trim", lambda v: 0 <= v < 1, "in [0, 1) (activated texel units)"),
     ("densify_from", _ge(0), ">= 0"), ("densify_until", _ge(0), ">= 0"), ("densify_every", _gt(0), "> 0"),
     ("densify_grad_threshold", _gt(0), "> 0"), ("percent_dense", _gt(0), "> 0"),
-    ("opacity_reset_every", _gt(0), "> 0"), ("prune_opacity_2dgs", _prob, "in [0, 1)"),
+    ("opacity_reset_every", _gt(0), "> 0"), ("densify_min_steps", _ge(0), ">= 0"), ("prune_opacity_2dgs", _prob, "in [0, 1)"),
     ("log_every", _ge(1), ">= 1"), ("test_every", _ge(0), ">= 0 (0 = only at the end)"),
     ("checkpoint_every", _ge(0), ">= 0 (0 = only at the end)"), ("checkpoint_first_s", _ge(0), ">= 0 (0 = off)"),
     ("checkpoint_every_s", _ge(0), ">= 0 (0 = off)"), ("debug_nan_at", _ge(0), ">= 0"),

@@ -43,7 +43,7 @@ class Densify(Strategy):
     def step_end(self, st, it: int):
         cfg, shift = st.cfg, st.calendar.shift
         if schedule.densify_active(cfg, it, shift):
-            prune_big = it > schedule.at(cfg, cfg.opacity_reset_every)
+            prune_big = it > schedule.at(cfg, schedule.opacity_reset_period(cfg))
             recovered = self.last_reset is None or it - self.last_reset >= RESET_RECOVERY_STEPS
             yield Routine(it, "densify", densify_and_prune(st.model, st.opt, self.acc, cfg, st.extent, st.gen,
                                                            prune_big, prune_faint=recovered))
