@@ -35,7 +35,7 @@ pytestmark = pytest.mark.skipif(
     reason="no Chromium to drive (Debian: apt-get install -y chromium, which .ci/run does; or set CTGS_CHROMIUM)")
 
 DEMO_SCENE = ["--width", "64", "--height", "48", "--views", "16", "--points", "800"]
-ITERATIONS = "500"
+ITERATIONS = "800"
 # Browser against `ctgs render`, per view (tests/viewer/test_browser.py's goal), for images and maps alike.
 MIN_VIEW_PSNR = 35.0
 # Two models of the run a few hundred iterations apart draw visibly different images (mean |difference| per channel).
@@ -73,7 +73,8 @@ def session(tmp_path_factory):
         _wait("the run folder", lambda: (run / "config.toml").exists(), STARTUP_S)
         with ViewerServer(live=LiveRun(str(run), str(work))) as server, Browser() as browser:
             browser.page("Log.enable")  # Content-Security-Policy violations come as log entries
-            page = ViewerPage(browser, server.url)  # ready once the first checkpoint is drawn
+            # at the cameras' image size (?fit=1): small draws, so the page draws each newer model soon (viewer.js pace())
+            page = ViewerPage(browser, server.url + "?fit=1")  # ready once the first checkpoint is drawn
             yield {"run": str(run), "proc": proc, "page": page, "browser": browser, "root": root}
     finally:
         if proc.poll() is None:

@@ -110,6 +110,7 @@ export class Controls {
     window.addEventListener("keydown", (e) => {
       if (typesText(e.target) || e.ctrlKey || e.metaKey || e.altKey || !MOVE_CODES.has(e.code)) return;
       this.keys.add(MOVE_CODES.get(e.code));
+      this.viewer.wake();  // (the render loop sleeps while nothing moves)
     });
     window.addEventListener("keyup", (e) => { if (MOVE_CODES.has(e.code)) this.keys.delete(MOVE_CODES.get(e.code)); });
     window.addEventListener("blur", () => this.keys.clear());

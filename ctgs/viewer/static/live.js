@@ -42,6 +42,12 @@ export class RunPanel {
     this.render();
   }
 
+  // A newer model (of iteration `it`) is there, drawn in `seconds` (the page paces its drawing: viewer.js pace()).
+  waiting(it, seconds) {
+    this.extra = `newer: iteration ${it.toLocaleString()}, drawn in ${Math.max(0, Math.ceil(seconds))} s`;
+    this.render();
+  }
+
   render() {
     const st = this.st;
     if (!st) return;

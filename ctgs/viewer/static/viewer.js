@@ -17,6 +17,8 @@ const SHADERS = {surfelVert: "surfel.vert", surfelFrag: "surfel.frag", composite
 const READOUT_EMA = 0.2;
 // What the surfels show (renderer.draw's map): the image, or a map of ctgs/render/texel_map.py.
 const MAPS = ["image", "texel_size", "texture_res"];
+// The most of its time the page spends loading and drawing a run's newer models (see pace()).
+const RELOAD_SHARE = 0.05;
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 // `?bundle=` names a folder on this server only: the page runs on 127.0.0.1 next to the user's files, so a link
@@ -58,6 +60,7 @@ class Viewer {
     this.map = Math.max(0, MAPS.indexOf(this.params.get("map") || "image"));
     this.gen = 0;  // the model's generation: a sort of an earlier model is not applied to a newer one
     this.modelVersion = 0;  // a run folder's: the version of the model shown
+    this.reloadAfter = 0;  // performance.now() before which no newer model is loaded (pace())
     this.keyframes = [];  // the user's camera path
     this.ready = this.start().catch((err) => { this.fail(err); throw err; });
   }
@@ -123,7 +126,8 @@ class Viewer {
     this.drawNow();
     this.renderer.finish();
     this.last = performance.now();
-    requestAnimationFrame((t) => this.loop(t));
+    this.asleep = true;
+    this.wake();
     if (this.live) setTimeout(() => this.poll(), POLL_MS);
   }
 
@@ -134,7 +138,9 @@ class Viewer {
       if (st) {
         this.live = st;
         this.runPanel.show(st);
-        if (st.model && st.model.version > this.modelVersion && !this.reloading) await this.reload(st.model.version);
+        const newer = st.model && st.model.version > this.modelVersion;
+        if (newer && !this.reloading && performance.now() >= this.reloadAfter) await this.reload(st.model.version);
+        else if (newer) this.runPanel.waiting(st.model.iteration, (this.reloadAfter - performance.now()) / 1000);
       }
     } catch (err) {  // the server stopped (Ctrl-C) or a poll failed: said; the page and the model shown stay
       this.runPanel.note(`status: ${err.message}`);
@@ -143,9 +149,18 @@ class Viewer {
     }
   }
 
+  // A newer model is drawn once RELOAD_SHARE of the time since the last one went to loading and drawing it: at once
+  // with a GPU (tens of ms), and without one (software GL, seconds for a big model at a large canvas) seldom enough
+  // that the page takes little CPU from the training beside it. (The first model's draw, which also compiles the
+  // shaders, sets no pace: the first newer one is drawn as it lands.)
+  pace(ms) {
+    this.reloadAfter = performance.now() + ms * (1 / RELOAD_SHARE - 1);
+  }
+
   // Show model `version` of the run in place of the one shown; the camera stays where it is.
   async reload(version) {
     this.reloading = true;
+    const t0 = performance.now();
     try {
       const {bundle, arrays, pages} = await loadBundle(`live/${version}`, () => {});
       this.renderer.setData(bundle, arrays, pages);
@@ -156,6 +171,13 @@ class Viewer {
       this.modelVersion = version;
       this.renderStats();
       this.dirty = true;
+      await this.waitSorted(this.key(this.currentCam()));
+      if (!this.holdLoop) {  // drawn here, to time it (a test's show() draws on its own)
+        this.drawNow();
+        this.renderer.finish();
+        this.dirty = false;
+      }
+      this.pace(performance.now() - t0);
     } catch (err) {  // a bundle replaced meanwhile by a newer one (the next poll loads that): said
       this.runPanel.note(`model ${version}: ${err.message}`);
     } finally {
@@ -282,23 +304,42 @@ class Viewer {
     return cam;
   }
 
-  loop(now) {
+  // The animation-frame loop runs while something changes (the camera, a draw or a sort pending, fly keys held, a
+  // path playing) and sleeps otherwise: an idle page takes no CPU (in software GL the CPU draws it, beside a training).
+  get dirty() { return this._dirty; }
+
+  set dirty(v) {
+    this._dirty = v;
+    if (v) this.wake();
+  }
+
+  wake() {
+    if (this.frameRequested || this.last === undefined) return;  // (before start() ends: it draws the first frame)
+    this.frameRequested = true;
     requestAnimationFrame((t) => this.loop(t));
-    const dt = Math.min(0.1, (now - this.last) / 1000);
+  }
+
+  loop(now) {
+    this.frameRequested = false;
+    const dt = this.asleep ? 0 : Math.min(0.1, (now - this.last) / 1000);
+    this.asleep = false;
     this.last = now;
     this.controls.update(dt);
     if (this.playing) this.playStep(now);
     this.pollFences(now);
-    if (!this.dirty || this.holdLoop) return;
-    const cam = this.currentCam();
-    const key = this.key(cam);
-    if (key !== this.sortedKey) this.requestSort(cam);
-    const gl = this.renderer.gl;
-    const t0 = performance.now();
-    this.drawNow();
-    this.pendingFences.push({sync: gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0), t0});
-    gl.flush();
-    this.dirty = key !== this.sortedKey;
+    if (this.dirty && !this.holdLoop) {
+      const cam = this.currentCam();
+      const key = this.key(cam);
+      if (key !== this.sortedKey) this.requestSort(cam);
+      const gl = this.renderer.gl;
+      const t0 = performance.now();
+      this.drawNow();
+      this.pendingFences.push({sync: gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0), t0});
+      gl.flush();
+      this._dirty = key !== this.sortedKey;  // (the sort's answer wakes the loop again)
+    }
+    if (this._dirty || this.pendingFences.length || this.controls.moving() || this.playing) this.wake();
+    else this.asleep = true;
   }
 
   // Frame time = from issuing the draw to the GPU signalling its fence (resolution: one animation frame).
@@ -313,7 +354,10 @@ class Viewer {
       this.readout.frame = this.readout.frame === null ? ms : (1 - READOUT_EMA) * this.readout.frame + READOUT_EMA * ms;
     }
     const fmt = (v) => (v === null ? "-" : `${v.toFixed(1)} ms`);
-    $("frametime").textContent = `frame ${fmt(this.readout.frame)} · sort ${fmt(this.readout.sort)} (worker)`;
+    const text = `frame ${fmt(this.readout.frame)} · sort ${fmt(this.readout.sort)} (worker)`;
+    // Only a change touches the page: a repaint every animation frame would keep a CPU busy while nothing moves
+    // (half a core in software GL), taken from a training beside it.
+    if (text !== this.readoutText) $("frametime").textContent = this.readoutText = text;
   }
 
   // ---- scripting interface (tests, benchmarks) ---------------------------------------------------------
@@ -535,6 +579,7 @@ class Viewer {
     const path = this.cameraPath();
     this.playing = {poses: splinePoses(this.keyframes, path.camera_path.length), fps: path.fps, t0: null};
     this.showPathInfo();
+    this.wake();
   }
 
   playStep(now) {
