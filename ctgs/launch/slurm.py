@@ -411,7 +411,11 @@ def resumed(run_dir: str) -> int:
     # Imported here: a checkpoint needs torch, which `make status` and submitting on a login node do not.
     from ctgs.runs.checkpoint import readable_checkpoint
 
-    found = readable_checkpoint(run_dir)
+    try:
+        found = readable_checkpoint(run_dir)
+    except UserError as exc:  # a checkpoint ctgs will not unpickle: the training says so too, and stops
+        print(f"{MARK} {exc}")
+        return 0
     if found is None:
         print(f"{MARK} no readable checkpoint in {run_dir}/checkpoints: the training starts over")
     else:

@@ -84,7 +84,7 @@ def test_eval_on_the_training_views(run_dir, tmp_path):
     # A validation run (validation_holdout = 3: training views 1, 4, 7 of the 7 held out) is scored on the other 4.
     val = tmp_path / "valrun"
     shutil.copytree(run_dir, val, ignore=shutil.ignore_patterns("eval*"))
-    ckpt = torch.load(val / "model.pt", weights_only=False)
+    ckpt = torch.load(val / "model.pt", weights_only=True)
     ckpt["config"] = {**ckpt["config"], "validation_holdout": 3}
     torch.save(ckpt, val / "model.pt")
     _eval(str(val), "--split", "train", "--backend", "reference", "--no-lpips")
@@ -226,7 +226,7 @@ def test_a_model_that_covers_nothing_is_all_open_and_says_so(run_dir, tmp_path):
 
     run = str(tmp_path / "transparent")
     shutil.copytree(run_dir, run)
-    state = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    state = torch.load(os.path.join(run, "model.pt"), weights_only=True)
     state["model"]["opacity_logits"] = torch.full_like(state["model"]["opacity_logits"], -30.0)
     torch.save(state, os.path.join(run, "model.pt"))
     res = _eval(run, "--backend", "reference", "--no-lpips", "-o", str(tmp_path / "e"))
@@ -288,7 +288,7 @@ def test_a_run_trained_on_a_gpu_evaluates_where_there_is_none(run_dir, tmp_path)
         pytest.skip("checks the machine without a GPU")
     run = str(tmp_path / "gpu_run")
     shutil.copytree(run_dir, run)
-    state = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    state = torch.load(os.path.join(run, "model.pt"), weights_only=True)
     state["config"]["backend"] = "cuda"
     torch.save(state, os.path.join(run, "model.pt"))
     _eval(run, "--no-lpips", "-o", str(tmp_path / "e"))
@@ -306,7 +306,7 @@ def test_a_moved_run_names_its_missing_scene_and_takes_scene(run_dir, tmp_path):
 
     run = str(tmp_path / "moved")
     shutil.copytree(run_dir, run)
-    state = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    state = torch.load(os.path.join(run, "model.pt"), weights_only=True)
     here = state["scene_dir"]
     state["scene_dir"] = "/nonexistent/gpu-server/scenes/demo"
     torch.save(state, os.path.join(run, "model.pt"))

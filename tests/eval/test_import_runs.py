@@ -19,7 +19,7 @@ SCRIPT = os.path.join(ROOT, "benchmarks", "device", "import_runs.py")
 
 def _device_tgz(run: str, files: str, name: str) -> str:
     """The fixture run as the device returns it: its scene named by a path that does not exist here."""
-    state = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    state = torch.load(os.path.join(run, "model.pt"), weights_only=True)
     state["scene_dir"] = "/root/device/.gpu/scenes/demo"
     state["config"] = {"backend": "cuda", "scene_dir": "/root/device/.gpu/scenes/demo"}
     torch.save(state, os.path.join(run, "model.pt"))
@@ -37,7 +37,7 @@ def _device_tgz(run: str, files: str, name: str) -> str:
 
 def test_a_device_run_is_imported_and_recorded(tmp_path):
     run = make_run(str(tmp_path / "fixture"))
-    scene = torch.load(os.path.join(run, "model.pt"), weights_only=False)["scene_dir"]
+    scene = torch.load(os.path.join(run, "model.pt"), weights_only=True)["scene_dir"]
     files = str(tmp_path / "files")
     _device_tgz(run, files, "fast_s3")
     status = {"jobs": {"fast_s3": {"state": "done", "wall_s": 77.0, "args": ["SCENE", "--preset", "fast"]}}}

@@ -10,6 +10,7 @@ import random
 import shutil
 
 import pytest
+import torch
 
 from fault_helpers import GAUSSIAN_FILES, SCENE_OPTS, TRAIN_OPTS, assert_nothing_half_written, assert_one_line_failure, cli
 
@@ -160,6 +161,34 @@ def test_resume_with_no_readable_checkpoint_is_one_line(pipeline, tmp_path):
     line = assert_one_line_failure(result, codes=(2,), needles=("last.pt", "prev.pt", "without --resume"))
     assert "Traceback" not in line
     assert not os.path.exists(os.path.join(run, "model.pt"))
+
+
+class _CreatesAFile:
+    """Unpickled, creates `path`: a pickle may call any function it names, here `open`."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+    def __reduce__(self):
+        return open, (self.path, "w")
+
+
+def test_resume_refuses_a_checkpoint_that_would_run_code(pipeline, tmp_path):
+    """A run folder from someone else: its last.pt, unpickled, would create a file. --resume refuses it in one line,
+    runs nothing of it, and does not quietly start from prev.pt instead (tests/runs/test_checkpoint_pickles.py)."""
+    run = _stopped_run(pipeline, str(tmp_path / "run"))
+    last = os.path.join(run, "checkpoints", "last.pt")
+    state = torch.load(last, weights_only=True)
+    control, marker = tmp_path / "control.pt", tmp_path / "ran"
+    torch.save(state | {"rng": state["rng"] | {"extra": _CreatesAFile(str(tmp_path / "control_ran"))}}, control)
+    torch.load(control, weights_only=False)  # the payload works: unpickled as-is, it creates its file
+    assert (tmp_path / "control_ran").exists()
+    torch.save(state | {"rng": state["rng"] | {"extra": _CreatesAFile(str(marker))}}, last)
+
+    result = cli(["train", pipeline["scene"], "-o", run, *TRAIN_OPTS, "--resume"])
+    assert_one_line_failure(result, codes=(2,), needles=("last.pt", "io.open", "nothing of it was run"))
+    assert not marker.exists()
+    assert not os.path.exists(os.path.join(run, "model.pt")) and os.path.exists(last)
 
 
 def test_a_model_of_random_bytes_is_named(pipeline, tmp_path):

@@ -167,7 +167,7 @@ def test_checkpoints_keep_the_one_before_and_fall_back_to_it(tmp_path, capsys):
     assert ckpt.load_checkpoint(run) is None and not ckpt.has_checkpoint(run)
     for it in (10, 20, 30):
         ckpt.save_checkpoint(run, {"iteration": it, "model": {"x": torch.arange(it)}})
-    assert torch.load(ckpt.previous_path(run), weights_only=False)["iteration"] == 20
+    assert torch.load(ckpt.previous_path(run), weights_only=True)["iteration"] == 20
     assert ckpt.load_checkpoint(run)["iteration"] == 30 and capsys.readouterr().err == ""
     with open(ckpt.checkpoint_path(run), "r+b") as f:
         f.truncate(64)
@@ -176,7 +176,7 @@ def test_checkpoints_keep_the_one_before_and_fall_back_to_it(tmp_path, capsys):
     # the damaged last.pt is set aside, so the next save keeps the good prev.pt as the one before
     assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["last.pt.unreadable", "prev.pt"]
     ckpt.save_checkpoint(run, {"iteration": 21, "model": {}})
-    assert torch.load(ckpt.previous_path(run), weights_only=False)["iteration"] == 20
+    assert torch.load(ckpt.previous_path(run), weights_only=True)["iteration"] == 20
     os.remove(ckpt.checkpoint_path(run))  # killed between the two renames: prev.pt alone
     assert ckpt.has_checkpoint(run) and ckpt.load_checkpoint(run)["iteration"] == 20
     with open(ckpt.previous_path(run), "wb") as f:

@@ -93,7 +93,7 @@ def test_checkpoints_by_the_clock(first_s, every_s, prev_it, pipeline, tmp_path)
     if prev_it is None:
         assert not os.path.exists(prev)
     else:
-        assert torch.load(prev, weights_only=False)["iteration"] == prev_it
+        assert torch.load(prev, weights_only=True)["iteration"] == prev_it
 
 
 def test_a_term_while_the_interpreter_exits_is_not_a_traceback(tmp_path):

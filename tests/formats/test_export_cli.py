@@ -109,7 +109,7 @@ def test_the_validator_catches_a_broken_glb(tmp_path, gltf_validator):
 def test_formats_without_an_origin_field_say_where_it_lies(tmp_path, fmt):
     """A run on a recentred (far) scene: .splat and .spz cannot hold its origin, so the export line says it."""
     run = _run_dir(tmp_path)
-    ckpt = torch.load(os.path.join(run, "model.pt"), weights_only=False)
+    ckpt = torch.load(os.path.join(run, "model.pt"), weights_only=True)
     ckpt["world_origin"] = [120000.0, 0.0, -5.0]
     torch.save(ckpt, os.path.join(run, "model.pt"))
     out = _export(run, "--format", {"SOG": "sog"}.get(fmt, fmt))

@@ -138,7 +138,7 @@ def test_a_job_signalled_before_its_time_limit_requeues_and_resumes(slurm, work,
     import torch
 
     def shapes(path):
-        model = torch.load(path, map_location="cpu", weights_only=False)["model"]
+        model = torch.load(path, map_location="cpu", weights_only=True)["model"]
         return {k: tuple(v.shape) for k, v in model.items() if hasattr(v, "shape")}
 
     whole = sweep[0] / "tinya"

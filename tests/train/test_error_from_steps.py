@@ -99,7 +99,7 @@ def test_a_resumed_run_with_step_errors_ends_at_the_same_model(scene, tmp_path):
         if isinstance(ev, Step) and ev.it == 36:
             break
     gen.close()
-    assert torch.load(f"{run}/checkpoints/last.pt", weights_only=False)["step_errors"]["steps"] == 30
+    assert torch.load(f"{run}/checkpoints/last.pt", weights_only=True)["step_errors"]["steps"] == 30
     train_main(scene, run, resume=True, quiet=True)
     a, b = load_run(run).model.state_dict(), load_run(whole).model.state_dict()
     for k, v in a.items():

@@ -67,7 +67,7 @@ def test_resume_across_a_full_routine_is_bit_identical(scene, reference_run, tmp
         if isinstance(ev, Step) and ev.it == ROUTINE_AT + 5:
             break
     gen.close()
-    state = torch.load(os.path.join(run, "checkpoints", "last.pt"), weights_only=False)
+    state = torch.load(os.path.join(run, "checkpoints", "last.pt"), weights_only=True)
     assert state["iteration"] < ROUTINE_AT and not os.path.exists(os.path.join(run, "model.pt"))
     train_main(scene, run, resume=True, quiet=True)
     a, b = load_run(run), load_run(reference_run)
@@ -111,7 +111,7 @@ def test_nan_guard_stops_and_keeps_last_checkpoint(scene, tmp_path):
     assert not os.path.exists(os.path.join(run, "model.pt"))
     with pytest.raises(UserError, match="no finished model"):
         load_run(run)
-    state = torch.load(os.path.join(run, "checkpoints", "last.pt"), weights_only=False)
+    state = torch.load(os.path.join(run, "checkpoints", "last.pt"), weights_only=True)
     assert state["iteration"] == 30
     assert all(torch.isfinite(v).all() for v in state["model"].values() if torch.is_tensor(v) and v.is_floating_point())
     # The CLI prints one line and exits non-zero.
@@ -198,7 +198,7 @@ def test_sigterm_mid_run_checkpoints_the_last_whole_step(scene, tmp_path):
     code, err = _train_then_terminate(scene, run, lambda r: _logged_steps(r) >= 8,
                                       sets=("iterations=100000", "checkpoint_every=100000"))
     assert code == 143 and "Traceback" not in err, err
-    state = torch.load(os.path.join(run, "checkpoints", "last.pt"), map_location="cpu", weights_only=False)
+    state = torch.load(os.path.join(run, "checkpoints", "last.pt"), map_location="cpu", weights_only=True)
     assert state["iteration"] >= 8, state["iteration"]  # no periodic checkpoint was due: this is the stop's
     assert state["iteration"] >= _logged_steps(run)  # the step under way finished before it was written
     from ctgs.runs import training_scene

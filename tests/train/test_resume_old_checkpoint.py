@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from ctgs.runs import load_run, write_config
+from ctgs.runs.checkpoint import read_checkpoint
 from ctgs.scene.demo import make_demo_scene
 from ctgs.stages.train import resolve_config, train_main
 from train_helpers import run_log
@@ -50,7 +51,7 @@ def test_a_checkpoint_of_the_earlier_trainer_resumes(scene, tmp_path, method):
     run = str(tmp_path / "resumed")
     shutil.copytree(os.path.join(FIXTURES, method), run)
     write_config(run, resolve_config(scene, run, None, None, sets, None, False, None, None, preset="fast").to_dict())
-    old = torch.load(os.path.join(run, "checkpoints", "last.pt"), map_location="cpu", weights_only=False)
+    old = read_checkpoint(os.path.join(run, "checkpoints", "last.pt"))  # numpy's random state as an array
     assert old["iteration"] == CHECKPOINT_AT and "acc" in old and "textures_started" in old
 
     train_main(scene, run, resume=True, quiet=True)
@@ -60,7 +61,7 @@ def test_a_checkpoint_of_the_earlier_trainer_resumes(scene, tmp_path, method):
     assert [r["it"] for r in log if r["type"] == "step"] == list(range(1, 61))
     # The whole run's checkpoint at iteration 30 (kept as prev.pt after the final one): where this machine computes
     # the first 30 iterations as the writer's did, everything after must be bit-identical too.
-    mine = torch.load(os.path.join(reference, "checkpoints", "prev.pt"), map_location="cpu", weights_only=False)
+    mine = torch.load(os.path.join(reference, "checkpoints", "prev.pt"), map_location="cpu", weights_only=True)
     assert mine["iteration"] == CHECKPOINT_AT
     if _same_state(old["model"], mine["model"]):
         # the strategy's state is kept under the keys it had (content-aware: textures_started; 2dgs: the gradient
