@@ -58,6 +58,10 @@ class TrainConfig:
     max_init_points: int = _f(0, "farthest-point subsample SfM points above this count (0 = keep all)")
     primitives_per_pixel: float = _f(0.0, "> 0: at most this many primitives per pixel of a training image, at "
                                      "initialisation and through splits (caps max_primitives; 0 = no cap, the paper)")
+    baseline_primitives_per_pixel: float = _f(0.0, "the baselines' (2dgs, fixed_texture) primitives_per_pixel: > 0, "
+                                              "their densification stops at this many primitives per pixel of a "
+                                              "training image (x the capture's view coverage) and their initial "
+                                              "points are subsampled to it (0 = no cap, the paper)")
     init_opacity: float = _f(0.1, "initial opacity")
     random_rotation: bool = _f(True, "random initial rotations (else identity)")
     init_shell: int = _f(0, "> 0: add up to this many initial points on a far shell, in directions the training "
@@ -270,7 +274,7 @@ def _prob(v):
 _RANGES = [
     ("iterations", _ge(1), ">= 1"), ("schedule_scale", _ge(0), ">= 0 (0 = iterations / 30000)"),
     ("time_budget", _ge(0), ">= 0 minutes (0 = none)"), ("holdout", _ge(0), ">= 0"), ("validation_holdout", _ge(0), ">= 0"), ("init_shell", _ge(0), ">= 0"), ("threads", _ge(0), ">= 0"),
-    ("max_init_points", _ge(0), ">= 0"), ("primitives_per_pixel", _ge(0), ">= 0 (0 = no cap)"), ("init_opacity", lambda v: 0 < v < 1, "in (0, 1)"),
+    ("max_init_points", _ge(0), ">= 0"), ("primitives_per_pixel", _ge(0), ">= 0 (0 = no cap)"), ("baseline_primitives_per_pixel", _ge(0), ">= 0 (0 = no cap)"), ("init_opacity", lambda v: 0 < v < 1, "in (0, 1)"),
     ("max_sh_degree", lambda v: 0 <= v <= 3, "in 0..3"), ("sh_every", _gt(0), "> 0"),
     ("lr_position_init", _ge(0), ">= 0"), ("lr_position_final", _gt(0), "> 0 (exponential decay)"),
     ("lr_sh_dc", _ge(0), ">= 0"), ("lr_sh_rest", _ge(0), ">= 0"), ("lr_opacity", _ge(0), ">= 0"),

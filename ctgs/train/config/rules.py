@@ -31,7 +31,9 @@ recipe is reproduced exactly; elsewhere:
   fraction of the density (bonsai at 200x133: 10.6k primitives for the whole room, open pixels in test views).
   SfM points are found at the photos' full resolution: on downsampled images they are far denser than a pixel
   (herzjesu25: 18.5k points, 0.75 per pixel of a 192x128 image; the paper's Mip-NeRF 360 models hold 0.1-0.3
-  primitives per pixel);
+  primitives per pixel). The baselines take baseline_primitives_per_pixel instead: 2DGS densifies by a gradient
+  threshold in NDC units, blind to the image size, so on downsampled images it grows towards the count it would
+  reach at full size;
 - the views E is computed from (error_views, a random subset of the training views per full routine): at most
   error_pixels / pixels views (at least 1), when error_pixels > 0. E renders every view it uses, so the routines'
   cost grows with the image size while the step's budget does not: with 64 views at 399x266 (bonsai252, `fast`,
@@ -75,6 +77,12 @@ class Scale:
     area: float  # pixels / PAPER_PIXELS, 1 when the pixel rules are off
 
 
+def primitives_per_pixel(cfg: TrainConfig) -> float:
+    """The cap per pixel (x coverage) this run's method takes: primitives_per_pixel for the content-aware method,
+    baseline_primitives_per_pixel for the densifying baselines (0 = none)."""
+    return cfg.primitives_per_pixel if cfg.method == "content_aware" else cfg.baseline_primitives_per_pixel
+
+
 def scale_of(cfg: TrainConfig, pixels: float) -> Scale:
     if not cfg.scale_rules:
         return Scale(pixels=pixels, linear=1.0, area=1.0)
@@ -94,7 +102,8 @@ def resolve(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> TrainConf
     (which `--time-budget` may change while training).
     """
     s = scale_of(cfg, pixels)
-    cap = int(round(cfg.primitives_per_pixel * pixels * coverage)) if cfg.primitives_per_pixel > 0 else 0
+    ppp = primitives_per_pixel(cfg)
+    cap = int(round(ppp * pixels * coverage)) if ppp > 0 else 0
     # --max-params: no more primitives than the budget holds with the smallest textures (size_budget)
     budget_cap = primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)
     caps = [c for c in (cfg.max_primitives, cap, budget_cap) if c > 0]
@@ -133,7 +142,7 @@ def for_scene(cfg: TrainConfig, observed_values: int, pixels: float, coverage: f
 def init_point_cap(cfg: TrainConfig, pixels: float, coverage: float = 1.0) -> int:
     """Initial primitives: max_init_points, at most primitives_per_pixel per pixel of a typical view (x coverage, as
     in `resolve`), and no more than a --max-params budget holds (primitive_cap); 0 = all."""
-    caps = [c for c in (cfg.max_init_points, int(round(cfg.primitives_per_pixel * pixels * coverage)),
+    caps = [c for c in (cfg.max_init_points, int(round(primitives_per_pixel(cfg) * pixels * coverage)),
                         primitive_cap(cfg.method, cfg.max_sh_degree, cfg.max_params, cfg.fixed_texture_res)) if c > 0]
     return min(caps) if caps else 0
 

@@ -117,7 +117,7 @@ class Trainer:
         self.pixels = float(np.median([v.camera.width * v.camera.height for v in train_views]))
         # views' worth of scene in the capture (the primitive cap is per pixel of a typical view: config.rules)
         self.coverage = (view_coverage(torch.from_numpy(np.asarray(scene.points, np.float32)), cameras)
-                         if cfg.primitives_per_pixel > 0 else 1.0)
+                         if rules.primitives_per_pixel(cfg) > 0 else 1.0)
         # the config resolved for the scene (max_params_per_value: the size budget from the observed values, an
         # explicit max_params wins) and the cap on the initial points
         resolved, init_cap = rules.for_scene(cfg, observed_values(train_views), self.pixels, self.coverage)
