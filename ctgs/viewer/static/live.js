@@ -51,7 +51,8 @@ export class RunPanel {
   render() {
     const st = this.st;
     if (!st) return;
-    $("run-state").textContent = `${st.run}: ${STATES[st.state] || st.state}`;
+    const state = `${st.run}: ${STATES[st.state] || st.state}`;
+    if ($("run-state").textContent !== state) $("run-state").textContent = state;
     const count = (x) => (typeof x === "number" ? x.toLocaleString() : "-");
     const last = st.test.length ? st.test[st.test.length - 1] : null;
     const lines = [
@@ -63,13 +64,22 @@ export class RunPanel {
       st.model ? `shown: iteration ${count(st.model.iteration)} (${st.model.source})` : "shown: nothing yet",
       ...st.notes, ...(this.extra ? [this.extra] : []),
     ];
-    const el = $("run-stats");
-    el.replaceChildren();
-    lines.forEach((t, i) => {
-      if (i) el.appendChild(document.createElement("br"));
-      el.appendChild(document.createTextNode(String(t)));
-    });
-    this.chart(st);
+    // Only what changed is written: every change repaints the page (in software GL a cost taken from the training).
+    const text = lines.join("\n");
+    if (text !== this.text) {
+      this.text = text;
+      const el = $("run-stats");
+      el.replaceChildren();
+      lines.forEach((t, i) => {
+        if (i) el.appendChild(document.createElement("br"));
+        el.appendChild(document.createTextNode(String(t)));
+      });
+    }
+    const curve = JSON.stringify([st.planned, st.test, st.loss_curve.length, st.loss_curve[st.loss_curve.length - 1]]);
+    if (curve !== this.curve) {
+      this.curve = curve;
+      this.chart(st);
+    }
   }
 
   // Test PSNR (dots, its scale on the left) over the loss (grey, log scale), against the iteration.

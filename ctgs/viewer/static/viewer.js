@@ -128,11 +128,20 @@ class Viewer {
     this.last = performance.now();
     this.asleep = true;
     this.wake();
-    if (this.live) setTimeout(() => this.poll(), POLL_MS);
+    if (this.live) {
+      this.pollTimer = setTimeout(() => this.poll(), POLL_MS);
+      document.addEventListener("visibilitychange", () => {
+        if (!document.hidden && this.pollTimer === null) this.poll();
+      });
+    }
   }
 
   // ---- a run folder: its status, and its newer models -----------------------------------------------
   async poll() {
+    if (document.hidden) {  // a tab in the background asks for nothing; it catches up when shown (visibilitychange)
+      this.pollTimer = null;
+      return;
+    }
     try {
       const st = await liveStatus();
       if (st) {
@@ -145,7 +154,7 @@ class Viewer {
     } catch (err) {  // the server stopped (Ctrl-C) or a poll failed: said; the page and the model shown stay
       this.runPanel.note(`status: ${err.message}`);
     } finally {
-      setTimeout(() => this.poll(), POLL_MS);
+      this.pollTimer = setTimeout(() => this.poll(), POLL_MS);
     }
   }
 
