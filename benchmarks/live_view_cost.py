@@ -124,6 +124,8 @@ def one_round(args, k: int, watched: str | None) -> dict:
     if watched:
         other = "b" if watched == "a" else "a"
         out["viewer"] = seen
+        # the most the viewer can have taken from the two trainings: its CPU over the machine's while the run went on
+        out["viewer_share"] = (seen["server_cpu_s"] + seen["browser_cpu_s"]) / (ends[watched] * os.cpu_count())
         for key in ("train_seconds", "wall_seconds"):
             out[f"{key}_ratio"] = out[watched][key] / out[other][key]
     else:
@@ -154,8 +156,8 @@ def markdown(r: dict) -> str:
              f"page open in headless Chromium (SwiftShader: the CPU draws the page, the worst case; "
              f"800x600 image area), polling every 2 s and drawing each checkpoint as it lands.", "",
              "| round | watched | train s (watched / other) | ratio | wall s (watched / other) | ratio | "
-             "models drawn | viewer CPU s (server + browser) |",
-             "| --- | --- | --- | ---: | --- | ---: | ---: | ---: |"]
+             "models drawn | viewer CPU s (server + browser) | viewer's share of the machine |",
+             "| --- | --- | --- | ---: | --- | ---: | ---: | ---: | ---: |"]
     for k, rd in enumerate(r["rounds"], 1):
         w = rd["watched"]
         if w:
@@ -164,17 +166,22 @@ def markdown(r: dict) -> str:
             lines.append(f"| {k} | {w} | {rd[w]['train_seconds']:.1f} / {rd[o]['train_seconds']:.1f} | "
                          f"{rd['train_seconds_ratio']:.3f} | {rd[w]['wall_seconds']:.1f} / "
                          f"{rd[o]['wall_seconds']:.1f} | {rd['wall_seconds_ratio']:.3f} | {v['models_drawn']} | "
-                         f"{v['server_cpu_s']:.1f} + {v['browser_cpu_s']:.1f} |")
+                         f"{v['server_cpu_s']:.1f} + {v['browser_cpu_s']:.1f} | {100 * rd['viewer_share']:.1f}% |")
         else:
             lines.append(f"| {k} | none (control: a / b) | {rd['a']['train_seconds']:.1f} / "
                          f"{rd['b']['train_seconds']:.1f} | {rd['train_seconds_ratio']:.3f} | "
                          f"{rd['a']['wall_seconds']:.1f} / {rd['b']['wall_seconds']:.1f} | "
-                         f"{rd['wall_seconds_ratio']:.3f} | - | - |")
+                         f"{rd['wall_seconds_ratio']:.3f} | - | - | - |")
     lines += ["", f"Slowdown of the watched training, mean over the rounds with a viewer: train seconds "
               f"**{100 * (r['mean_train_ratio'] - 1):+.1f}%**, wall seconds **{100 * (r['mean_wall_ratio'] - 1):+.1f}%**"
               + (f"; the control rounds (no viewer on either side) differ by "
                  f"{', '.join(f'{100 * (x - 1):+.1f}%' for x in r['control_train_ratios'])} (train seconds)."
-                 if r["control_train_ratios"] else "."), ""]
+                 if r["control_train_ratios"] else "."),
+              "", "The viewer's CPU (server and browser) is taken from both trainings alike, so the ratio of the two "
+              "sides shows what it costs the watched run beyond the other; its share of the machine's CPU while the "
+              f"run went on bounds what it takes from both: **{100 * r['mean_viewer_share']:.1f}%** (mean over the "
+              "rounds; CPU seconds over wall seconds times cores). With a GPU the browser's drawing leaves the CPU.",
+              ""]
     return "\n".join(lines)
 
 
@@ -205,6 +212,7 @@ def main() -> None:
               "mean_train_ratio": sum(rd["train_seconds_ratio"] for rd in watched) / len(watched),
               "mean_wall_ratio": sum(rd["wall_seconds_ratio"] for rd in watched) / len(watched),
               "control_train_ratios": [rd["train_seconds_ratio"] for rd in rounds if not rd["watched"]],
+              "mean_viewer_share": sum(rd["viewer_share"] for rd in watched) / len(watched),
               "commit": record.commit(), "machine": machine(), "loadavg_start": start,
               "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
               "command": " ".join([os.path.relpath(sys.executable, REPO)] + sys.argv)}
