@@ -65,6 +65,12 @@ def surfel_values(inputs: SurfelInputs, camera, which: str) -> tuple[torch.Tenso
 
 def render_map(inputs: SurfelInputs, camera, which: str, backend: str = "auto") -> torch.Tensor:
     """[H, W, 3] the picture of map `which` (MAPS) from `camera`, values in [0, 1] (see the module's docstring)."""
+    return compose(*blend(inputs, camera, which, backend))
+
+
+def blend(inputs: SurfelInputs, camera, which: str, backend: str = "auto") -> tuple[torch.Tensor, ...]:
+    """(R, G, A), each [H, W]: the blended sum w t h, sum w h and alpha of map `which` (MAPS) from `camera`. R / G is
+    the weighted mean of t over a pixel's textured surfels (`value_of` turns it back into pixels or texels)."""
     t, textured = surfel_values(inputs, camera, which)
     h = textured.to(t.dtype)
     colour = torch.stack([t * h, h, torch.zeros_like(h)], -1)  # what each surfel blends
@@ -73,7 +79,14 @@ def render_map(inputs: SurfelInputs, camera, which: str, backend: str = "auto") 
                          sh=sh, texel_size=inputs.texel_size, textures=inputs.textures[:0],
                          tex_res=torch.zeros_like(inputs.tex_res), tex_offset=torch.zeros_like(inputs.tex_offset))
     out = render(plain, camera, backend=backend, sh_degree=0, background=inputs.means.new_zeros(3))
-    return compose(out.rgb[..., 0], out.rgb[..., 1], out.alpha)
+    return out.rgb[..., 0], out.rgb[..., 1], out.alpha
+
+
+def value_of(t: torch.Tensor, which: str) -> torch.Tensor:
+    """A map's t in [0, 1] as what it measures: the texel size in pixels, or the texels per surfel (a mean of t is a
+    geometric mean of these)."""
+    lo, hi = TEXEL_PX_LOG2 if which == "texel_size" else TEXRES_LOG2
+    return torch.exp2(lo + t * (hi - lo))
 
 
 def compose(r: torch.Tensor, g: torch.Tensor, a: torch.Tensor) -> torch.Tensor:

@@ -140,3 +140,14 @@ def test_a_failure_part_way_leaves_no_video(run_dir, tmp_path, monkeypatch):
     res = _invoke("render", run_dir, "--path", "spiral", "--frames", 8, "-o", tmp_path / "v.mp4", "--backend", "cpu")
     assert res.exit_code != 0 and len(written) == 4
     assert os.listdir(tmp_path) == []
+
+
+def test_views_render_at_any_size_with_their_maps(run_dir, tmp_path):
+    res = _invoke("render", run_dir, "-o", tmp_path / "v", "--size", "80x64", "--maps", "rgb,texels",
+                  "--backend", "cpu")
+    assert res.exit_code == 0, res.output
+    names = sorted(os.listdir(tmp_path / "v"))
+    pngs = [n for n in names if n.endswith(".png")]
+    assert len(pngs) == 3 * 2 and any(n.endswith(".texels.png") for n in pngs)  # 2 test views, 3 pictures each
+    for name in pngs:
+        assert read_rgb(str(tmp_path / "v" / name)).shape == (64, 80, 3), name

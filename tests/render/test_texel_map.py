@@ -12,8 +12,8 @@ import torch
 from ctgs.model.surfels import jagged_offsets
 from ctgs.render import render
 from ctgs.render.camera import Camera
-from ctgs.render.texel_map import (TEXEL_PX_LOG2, TEXRES_LOG2, TURBO, UNTEXTURED, compose, render_map, surfel_values,
-                                   turbo)
+from ctgs.render.texel_map import (TEXEL_PX_LOG2, TEXRES_LOG2, TURBO, UNTEXTURED, blend, compose, render_map,
+                                   surfel_values, turbo, value_of)
 from ctgs.render.types import SurfelInputs
 
 W, H, F, DEPTH = 96, 48, 48.0, 4.0
@@ -120,3 +120,11 @@ def test_cpu_backend_draws_the_same_map_as_the_reference():
     ref = render_map(inputs, cam, "texel_size", backend="reference")
     cpu = render_map(inputs, cam, "texel_size", backend="cpu")
     assert (ref - cpu).abs().max() < 1e-4
+
+
+def test_the_blended_mean_reads_back_as_pixels_and_texels():
+    inputs, cam = three_surfels(), camera()
+    for which, want in (("texel_size", (32.0, 1.0)), ("texture_res", (256.0, 4.0))):
+        r, g, _ = blend(inputs, cam, which, backend="reference")
+        for (y, x), v in zip(centre_pixels()[:2], want):
+            assert float(value_of(r[y, x] / g[y, x], which)) == pytest.approx(v, rel=1e-4), which
