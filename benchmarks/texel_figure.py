@@ -31,6 +31,7 @@ from ctgs.runs import load_run, run_scene  # noqa: E402
 DETAIL_WINDOW = 9  # pixels
 MIN_COVER = 0.5  # pixels where the textured surfels' blended weight is at least this are scored
 HEADER_PX = 22
+GAP_PX = 8
 
 
 def _ranks(x: np.ndarray) -> np.ndarray:
@@ -48,8 +49,9 @@ def detail(photo: np.ndarray) -> np.ndarray:
 
 def _panel(img: np.ndarray, title: str, zoom: int, under: np.ndarray | None = None) -> np.ndarray:
     big = cv2.resize(img, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
-    head = np.zeros((HEADER_PX, big.shape[1], 3), np.float32)
-    cv2.putText(head, title, (4, HEADER_PX - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (1.0, 1.0, 1.0), 1, cv2.LINE_AA)
+    head = np.zeros((HEADER_PX, big.shape[1], 3), np.uint8)  # (OpenCV writes text into 8-bit images only)
+    cv2.putText(head, title, (4, HEADER_PX - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    head = head.astype(np.float32) / 255.0
     parts = [head, big] + ([under] if under is not None else [np.zeros((28, big.shape[1], 3), np.float32)])
     return np.concatenate(parts, 0)
 
@@ -97,10 +99,11 @@ def main() -> None:
         "command": " ".join([os.path.relpath(sys.executable, record.ROOT)] + sys.argv),
     }
     w = cam.width * args.zoom
-    figure = np.concatenate([
-        _panel(photo, "photo", args.zoom), _panel(rgb, "render", args.zoom),
-        _panel(maps["texel_size"], "texel size (pixels)", args.zoom, legend("texel_size", w)),
-        _panel(maps["texture_res"], "texels per surfel", args.zoom, legend("texture_res", w))], 1)
+    panels = [_panel(photo, "photo", args.zoom), _panel(rgb, "render", args.zoom),
+              _panel(maps["texel_size"], "texel size (pixels)", args.zoom, legend("texel_size", w)),
+              _panel(maps["texture_res"], "texels per surfel", args.zoom, legend("texture_res", w))]
+    gap = np.zeros((panels[0].shape[0], GAP_PX, 3), np.float32)
+    figure = np.concatenate([x for p in panels for x in (p, gap)][:-1], 1)
     stem = record.stem("texel_figure", args.name)
     write_image(stem + ".png", figure)
     result["figure"] = os.path.relpath(stem + ".png", record.ROOT)

@@ -104,8 +104,8 @@ def legend(which: str, width: int, height: int = 28) -> np.ndarray:
 
     x = torch.linspace(0.0, 1.0, width)
     bar = turbo(x)[None].expand(height // 2, width, 3).numpy()
-    img = np.zeros((height, width, 3), np.float32)
-    img[: height // 2] = bar
+    img = np.zeros((height, width, 3), np.uint8)  # (OpenCV writes text into 8-bit images only)
+    img[: height // 2] = np.rint(bar * 255.0).astype(np.uint8)
     lo, hi = TEXEL_PX_LOG2 if which == "texel_size" else TEXRES_LOG2
     labels = ([(0.0, f"{2 ** lo:g} px"), (0.5, f"{2 ** ((lo + hi) / 2):g} px"), (1.0, f"{2 ** hi:g} px per texel")]
               if which == "texel_size" else
@@ -113,5 +113,5 @@ def legend(which: str, width: int, height: int = 28) -> np.ndarray:
     for pos, text in labels:
         (tw, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)
         x0 = int(min(max(pos * width - tw / 2, 0), width - tw))
-        cv2.putText(img, text, (x0, height - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (1.0, 1.0, 1.0), 1, cv2.LINE_AA)
-    return img
+        cv2.putText(img, text, (x0, height - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+    return img.astype(np.float32) / 255.0

@@ -12,8 +12,8 @@ import torch
 from ctgs.model.surfels import jagged_offsets
 from ctgs.render import render
 from ctgs.render.camera import Camera
-from ctgs.render.texel_map import (TEXEL_PX_LOG2, TEXRES_LOG2, TURBO, UNTEXTURED, blend, compose, render_map,
-                                   surfel_values, turbo, value_of)
+from ctgs.render.texel_map import (TEXEL_PX_LOG2, TEXRES_LOG2, TURBO, UNTEXTURED, blend, compose, legend,
+                                   render_map, surfel_values, turbo, value_of)
 from ctgs.render.types import SurfelInputs
 
 W, H, F, DEPTH = 96, 48, 48.0, 4.0
@@ -128,3 +128,11 @@ def test_the_blended_mean_reads_back_as_pixels_and_texels():
         r, g, _ = blend(inputs, cam, which, backend="reference")
         for (y, x), v in zip(centre_pixels()[:2], want):
             assert float(value_of(r[y, x] / g[y, x], which)) == pytest.approx(v, rel=1e-4), which
+
+
+@pytest.mark.parametrize("which", ["texel_size", "texture_res"])
+def test_the_legend_is_the_scale_with_its_values_written_under_it(which):
+    img = legend(which, 300, 28)
+    assert img.shape == (28, 300, 3) and img.dtype == np.float32
+    assert np.abs(img[2, 0] - TURBO[0]).max() < 0.01 and np.abs(img[2, -1] - TURBO[-1]).max() < 0.01
+    assert img[14:].max() > 0.9  # white text under the bar
