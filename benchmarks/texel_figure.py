@@ -89,6 +89,8 @@ def main() -> None:
     result = {
         "run": os.path.abspath(args.run),
         "scene": os.path.basename(scene.root), "view": view.name, "size": [cam.width, cam.height],
+        "trained": {k: run.config.get(k) for k in ("preset", "method", "images", "time_budget", "threads", "seed")},
+        "train_seconds": (run.summary or {}).get("train_seconds"), "test_psnr": (run.summary or {}).get("final_test_psnr"),
         "iterations": run.iteration, "primitives": run.model.num_primitives, "texels": int(run.model.num_texels),
         "pixels_scored": int(keep.sum()), "pixels": int(keep.size),
         "texel_px_flat": gmean(px[flat]), "texel_px_detailed": gmean(px[busy]),
@@ -112,7 +114,9 @@ def main() -> None:
         return "\n".join([
             f"# Where the texels went: {r['scene']}, test view {r['view']} ({r['size'][0]}x{r['size'][1]})", "",
             f"Written by benchmarks/texel_figure.py on {r['date']} at commit {r['commit']}. Command: `{r['command']}`",
-            "", f"Model: {r['iterations']} iterations, {r['primitives']:,} surfels, {r['texels']:,} texels. Figure: "
+            "", f"Model: {r['iterations']} iterations, {r['primitives']:,} surfels, {r['texels']:,} texels, test PSNR "
+            f"{r['test_psnr']:.2f} dB; trained with {', '.join(f'{k} {v}' for k, v in r['trained'].items())} "
+            f"({r['train_seconds']:.0f} s of steps). Figure: "
             f"`{r['figure']}` (photo, render, texel size in pixels, texels per surfel).", "",
             f"Over the {r['pixels_scored']:,} of {r['pixels']:,} pixels the textured surfels cover (blended weight >= "
             f"{MIN_COVER}), by the photo's detail (gradient magnitude over {DETAIL_WINDOW}x{DETAIL_WINDOW} pixels):",
