@@ -19,15 +19,16 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
-# pytest exit code 5 (no tests collected) must fail, not pass silently.
+# pytest exit code 5 (no tests collected) must fail, not pass silently. Where nvcc exists the suite compiles the CUDA
+# sources itself (tests/render/test_cuda_backend.py runs kernels/check_cuda_build.py), so cuda-check is not run twice.
 test: $(STAMP) lpips-weights
-	$(MAKE) --no-print-directory cuda-check
 	$(PY) -m pytest -q -ra tests; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 1; fi; exit $$rc
 
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -ra -m "not slow" tests
 
-# Compile (not run) the CUDA sources when nvcc is present, so CUDA code that does not build fails CI.
+# Compile (not run) the CUDA sources when nvcc is present, so CUDA code that does not build fails CI (`make test` does
+# the same through its test).
 cuda-check: $(STAMP)
 	@if command -v nvcc >/dev/null 2>&1; then \
 		$(PY) kernels/check_cuda_build.py; \

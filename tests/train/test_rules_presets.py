@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 
 import pytest
+from click.testing import CliRunner
 
+from ctgs.cli import main
 from ctgs.errors import UserError
 from ctgs.train.config import schedule
 from ctgs.train.config import PRESETS, TrainConfig, describe_keys, load_config, parse_set
@@ -93,7 +93,7 @@ def test_unknown_key_suggests_the_closest():
 
 
 def test_list_keys_prints_every_key():
-    r = subprocess.run([sys.executable, "-m", "ctgs", "train", "--list-keys"], capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode == 0, r.stderr
+    r = CliRunner().invoke(main, ["train", "--list-keys"])
+    assert r.exit_code == 0, r.stderr
     for key, default, _ in describe_keys():
         assert f"{key} = {default!r}" in r.stdout

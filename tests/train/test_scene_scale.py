@@ -14,13 +14,14 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 
 import numpy as np
 import pycolmap
 import pytest
 import torch
+from click.testing import CliRunner
 
+from ctgs.cli import main
 from ctgs.scene.demo import make_demo_scene
 from ctgs.scene.loader import NEAR_FRACTION, load_scene
 from ctgs.stages.train import train_main
@@ -120,8 +121,9 @@ def test_a_far_scene_is_recentred_and_a_near_one_is_not(scenes):
 
 
 def _ctgs(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "ctgs", *args], capture_output=True, text=True,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    """`ctgs ARGS` in this process (what each stage writes and prints, without a new interpreter's start-up)."""
+    r = CliRunner().invoke(main, list(args))
+    return subprocess.CompletedProcess(["ctgs", *args], r.exit_code, r.stdout, r.stderr)
 
 
 @pytest.mark.slow
