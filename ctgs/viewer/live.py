@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ctgs.formats.web_bundle import scene_cameras, write_web_bundle
+from ctgs.io import owner
 from ctgs.io.atomic import pid_alive
 from ctgs.io.lock import LOCK_NAME
 from ctgs.model.surfels import SurfelModel
@@ -40,6 +41,7 @@ from ctgs.runs.folder import CHECKPOINTS, CONFIG_FILE, LOG_FILE, MODEL_FILE
 
 # Points of the loss curve the page gets (every record up to this many, then every other one, and so on).
 MAX_CURVE = 400
+RUN_KIND = "run"  # the marker `ctgs train` puts in its run folder (ctgs.io.owner; ctgs.stages.train RUN_KIND)
 # Bundles kept besides the newest: a page may still be fetching the one before.
 KEEP_BUNDLES = 2
 # Recent step records the time left of a run without a time budget is extrapolated from.
@@ -52,9 +54,11 @@ _ARRAY_GLOBALS = [np.ndarray, np.dtype, type(np.dtype(np.uint32)),
 
 
 def is_run_folder(folder: str) -> bool:
-    """Whether `folder` is a run folder of `ctgs train` (its config, with a log, checkpoints or a model)."""
+    """Whether `folder` is a run folder of `ctgs train`: marked as one (from its first moment), or its config with a
+    log, checkpoints or a model (a run from before folders were marked)."""
     names = set(os.listdir(folder)) if os.path.isdir(folder) else set()
-    return CONFIG_FILE in names and bool(names & {LOG_FILE, CHECKPOINTS, MODEL_FILE})
+    return owner.kind_of(folder) == RUN_KIND or (CONFIG_FILE in names and bool(names & {LOG_FILE, CHECKPOINTS,
+                                                                                           MODEL_FILE}))
 
 
 class LiveRun:
@@ -68,7 +72,9 @@ class LiveRun:
         self.name = os.path.basename(self.run_dir)
         self.config = self._config()
         self.notes: list[str] = []
-        self.cameras = self._cameras() if cameras is None else cameras
+        self.find_cameras = cameras is None
+        self.cameras = cameras or []
+        self._config_read()
         self.lock = threading.Lock()
         self.log = _LogTail(self.path(LOG_FILE))
         self.version = 0
@@ -93,6 +99,15 @@ class LiveRun:
                 return tomllib.load(f)
         except (TypeError, OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
             return {}
+
+    def _config_read(self) -> None:
+        """The config and, unless given, the scene's cameras, once config.toml is there (a run that just started may
+        not have written it yet: asked again at every status)."""
+        if not self.config:
+            self.config = self._config()
+        if self.config and self.find_cameras:
+            self.find_cameras = False
+            self.cameras = self._cameras()
 
     def _cameras(self) -> list[dict]:
         scene = self.config.get("scene_dir")
@@ -171,6 +186,7 @@ class LiveRun:
         what is in the run folder: a problem is said in `problems`."""
         with self.lock:
             problems = []
+            self._config_read()
             try:
                 self.log.read()
             except Exception as exc:  # noqa: BLE001 - a log that cannot be read: said, the rest still shown

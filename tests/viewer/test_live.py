@@ -232,3 +232,20 @@ def test_ctgs_view_follows_a_run_folder(run, tmp_path, monkeypatch):
     res = CliRunner().invoke(main, ["view", run, "--mesh", str(tmp_path / "m.ply"), "--no-browser"])
     assert res.exit_code == 2 and "without a mesh" in res.output and len(res.output.strip().splitlines()) == 1
     shutil.rmtree(run)
+
+
+def test_a_run_folder_that_just_started_is_followed_once_its_config_lands(tmp_path):
+    from ctgs.io import owner
+    from ctgs.scene.demo import make_demo_scene
+
+    run = tmp_path / "run"
+    run.mkdir()
+    owner.mark(str(run), "run")  # what `ctgs train` writes first
+    assert is_run_folder(str(run))
+    live = _live(str(run), tmp_path)
+    st = live.status()
+    assert st["model"] is None and st["iteration"] is None and live.cameras == []
+    scene = make_demo_scene(str(tmp_path / "scene"), num_views=9, width=40, height=32, points=200, supersample=1)
+    (run / "config.toml").write_text(f'scene_dir = "{scene}"\nimages = "images"\nholdout = 8\n')
+    live.status()
+    assert len(live.cameras) == 9 and not any("not on this machine" in n for n in live.status()["notes"])

@@ -18,7 +18,7 @@ const READOUT_EMA = 0.2;
 // What the surfels show (renderer.draw's map): the image, or a map of ctgs/render/texel_map.py.
 const MAPS = ["image", "texel_size", "texture_res"];
 // The most of its time the page spends loading and drawing a run's newer models (see pace()).
-const RELOAD_SHARE = 0.05;
+const RELOAD_SHARE = 0.02;
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 // `?bundle=` names a folder on this server only: the page runs on 127.0.0.1 next to the user's files, so a link
@@ -179,12 +179,14 @@ class Viewer {
       this.sortedKey = null;
       this.modelVersion = version;
       this.renderStats();
-      this.dirty = true;
+      // (the loop draws nothing meanwhile: the new surfels have no order yet, the old picture stays up)
       await this.waitSorted(this.key(this.currentCam()));
       if (!this.holdLoop) {  // drawn here, to time it (a test's show() draws on its own)
         this.drawNow();
         this.renderer.finish();
         this.dirty = false;
+      } else {
+        this.dirty = true;
       }
       this.pace(performance.now() - t0);
     } catch (err) {  // a bundle replaced meanwhile by a newer one (the next poll loads that): said
@@ -336,7 +338,7 @@ class Viewer {
     this.controls.update(dt);
     if (this.playing) this.playStep(now);
     this.pollFences(now);
-    if (this.dirty && !this.holdLoop) {
+    if (this.dirty && !this.holdLoop && !this.reloading) {
       const cam = this.currentCam();
       const key = this.key(cam);
       if (key !== this.sortedKey) this.requestSort(cam);
