@@ -8,9 +8,10 @@ Both runs are `ctgs train` folders trained with `--set test_lpips=true` (every p
 PSNR, SSIM and LPIPS); finished or still running (the record covers the iterations both have reached, and says so).
 The record (benchmarks/results/parity/NAME_<commit>.{md,json,png}) holds, at every common evaluation: test PSNR, SSIM,
 LPIPS, primitives, texels, texels per primitive and parameters of both runs, their differences, and the paper's
-relative figures beside the last common one (Mip-NeRF 360 average: method - 2DGS* = -0.18 dB PSNR, -0.019 LPIPS,
-0.10x the primitives, 1.27x the parameters; bonsai: 30.8 texels per primitive). The method's parameters beside the
-paper's count the texels as the authors' save crops them (texels_active), as the paper's do.
+relative figures beside the last common one, for --dataset mipnerf360 (the default; method - 2DGS* = -0.18 dB PSNR,
+-0.019 LPIPS, 0.10x the primitives, 1.27x the parameters; bonsai: 30.8 texels per primitive) or deepblending (+0.51 dB,
+-0.021, 0.15x, 0.93x; playroom: 147.7 texels per primitive). The method's parameters beside the paper's count the
+texels as the authors' save crops them (texels_active), as the paper's do.
 """
 
 from __future__ import annotations
@@ -25,7 +26,14 @@ from datetime import datetime, timezone
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import record  # noqa: E402
 
-PAPER = {"d_psnr": -0.18, "d_lpips": -0.019, "prim_ratio": 0.10, "params_ratio": 1.27, "texels_per_prim_bonsai": 30.8}
+# The paper's trade against 2DGS* in its own pipeline, by dataset (method - 2DGS*; ratios method / 2DGS*), and the texels
+# per primitive of one of the dataset's scenes (its per-scene table).
+PAPERS = {
+    "mipnerf360": {"dataset": "Mip-NeRF 360", "d_psnr": -0.18, "d_lpips": -0.019, "prim_ratio": 0.10,
+                   "params_ratio": 1.27, "texels_per_prim": 30.8, "scene": "bonsai"},
+    "deepblending": {"dataset": "Deep Blending", "d_psnr": 0.51, "d_lpips": -0.021, "prim_ratio": 0.15,
+                     "params_ratio": 0.93, "texels_per_prim": 147.7, "scene": "playroom"},
+}
 PARAMS_PER_PRIM = {0: 14, 1: 23, 2: 38, 3: 59}  # 3 + 2 + 4 + 1 + 3 (SH coefficients) + texel exponent, by SH degree
 
 
@@ -110,7 +118,8 @@ def plot(res: dict, path: str) -> None:
         if key not in ("texels", "texels_per_primitive"):
             ax.plot(its, [x["b"][key] for x in r], "s-", color="tab:blue", label=res["baseline_label"], ms=3)
         if key == "texels_per_primitive":
-            ax.axhline(PAPER["texels_per_prim_bonsai"], color="grey", ls=":", label="paper (bonsai)")
+            paper = res["paper"]
+            ax.axhline(paper["texels_per_prim"], color="grey", ls=":", label=f"paper ({paper['scene']})")
             ax.legend(fontsize=8)
         ax.set_xlabel("iteration")
         ax.set_title(label)
@@ -149,20 +158,21 @@ def markdown(res: dict) -> str:
                      f"{a['texels'] / max(a['primitives'], 1):.1f} | {a['params'] / 1e6:.2f}M | {b['params'] / 1e6:.2f}M |")
     if last:
         a, b = last["a"], last["b"]
+        paper = res["paper"]
         dl = None if a["lpips"] is None or b["lpips"] is None else a["lpips"] - b["lpips"]
         lines += ["", f"Beside the paper at the last common evaluation (iteration {last['it']}):", "",
                   "| figure | here | paper |", "| --- | ---: | ---: |",
-                  f"| PSNR, method - 2DGS* | {a['psnr'] - b['psnr']:+.2f} dB | {PAPER['d_psnr']:+.2f} dB (Mip-NeRF 360, 30k) |",
-                  f"| LPIPS, method - 2DGS* | {'-' if dl is None else f'{dl:+.3f}'} | {PAPER['d_lpips']:+.3f} |",
+                  f"| PSNR, method - 2DGS* | {a['psnr'] - b['psnr']:+.2f} dB | {paper['d_psnr']:+.2f} dB ({paper['dataset']}, 30k) |",
+                  f"| LPIPS, method - 2DGS* | {'-' if dl is None else f'{dl:+.3f}'} | {paper['d_lpips']:+.3f} |",
                   f"| primitives, method / 2DGS* | {a['primitives'] / max(b['primitives'], 1):.2f}x | "
-                  f"{PAPER['prim_ratio']:.2f}x |",
+                  f"{paper['prim_ratio']:.2f}x |",
                   "| parameters, method (texels as saved) / 2DGS* | "
                   + ("-" if a.get("params_saved") is None else f"{a['params_saved'] / max(b['params'], 1):.2f}x")
-                  + f" | {PAPER['params_ratio']:.2f}x (Mip-NeRF 360) |",
+                  + f" | {paper['params_ratio']:.2f}x ({paper['dataset']}) |",
                   f"| texels per primitive (method), as allocated | {a['texels'] / max(a['primitives'], 1):.1f} | - |",
                   "| texels per primitive (method), inside the active extents (the authors' saved models) | "
                   + ("-" if a.get("texels_active") is None else f"{a['texels_active'] / max(a['primitives'], 1):.1f}")
-                  + f" | {PAPER['texels_per_prim_bonsai']} (bonsai) |"]
+                  + f" | {paper['texels_per_prim']} ({paper['scene']}) |"]
     lines += ["", "![curves](" + os.path.basename(res["png"]) + ")", ""]
     return "\n".join(lines)
 
@@ -175,6 +185,7 @@ def main() -> None:
     ap.add_argument("--method-label", default="content-aware (paper)")
     ap.add_argument("--baseline-label", default="2DGS*")
     ap.add_argument("--note", default="")
+    ap.add_argument("--dataset", choices=sorted(PAPERS), default="mipnerf360", help="the paper's trade to set beside")
     args = ap.parse_args()
     a, b = read_run(args.method), read_run(args.baseline)
     stem = record.stem("parity", args.name)
@@ -182,7 +193,8 @@ def main() -> None:
            "method_label": args.method_label, "baseline_label": args.baseline_label, "note": args.note,
            "method_run": record.portable(a["run"]), "baseline_run": record.portable(b["run"]),
            "rows": rows(a, b), "final_a": final(a), "final_b": final(b),
-           "reached_a": max(a["steps"], default=0), "reached_b": max(b["steps"], default=0), "paper": PAPER,
+           "reached_a": max(a["steps"], default=0), "reached_b": max(b["steps"], default=0),
+           "paper": PAPERS[args.dataset],
            "commit": record.commit(), "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
            "command": " ".join([os.path.relpath(sys.executable, record.ROOT)] + sys.argv), "png": stem + ".png"}

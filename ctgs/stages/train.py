@@ -162,6 +162,12 @@ def train_main(scene_dir, run_dir, config=None, iterations=None, sets=(), images
         if not quiet and cfg.max_params == 0 and trainer.cfg.max_params > 0:
             print(f"ctgs train: size budget {trainer.cfg.max_params} params ({cfg.max_params_per_value:g} per observed "
                   "value; --set max_params_per_value=0 for none, --max-params N for another)", file=sys.stderr)
+        if trainer.cfg.test_lpips:
+            from ctgs.metrics.lpips import load_lpips
+
+            if load_lpips()[0] is None:  # never a made-up number: the curves go without LPIPS, said once here
+                print(f"ctgs train: warning: test_lpips: LPIPS {load_lpips()[1].detail}; the test evaluations score PSNR "
+                      "and SSIM only", file=sys.stderr)
         write_config(run_dir, cfg.to_dict())
         return run_with_progress(trainer, quiet=quiet)
     except BaseException as exc:

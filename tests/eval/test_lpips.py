@@ -80,3 +80,19 @@ def test_unavailable_says_why(tmp_path, monkeypatch):
         assert found.state is None and "bad.pth" in found.source
     finally:
         lp._CACHE.clear()
+
+
+def test_test_lpips_without_weights_says_so_when_training_starts(tmp_path, capsys, monkeypatch):
+    """`--set test_lpips=true` with no VGG16 weights: the curves go without LPIPS, and the run says so once at the
+    start (a long run found with no LPIPS in its curves at the end is hours lost)."""
+    from ctgs.metrics import lpips as lpips_mod
+    from ctgs.scene.demo import make_demo_scene
+    from ctgs.stages.train import train_main
+
+    monkeypatch.setattr(lpips_mod, "load_lpips",
+                        lambda *a, **k: (None, lpips_mod.LpipsStatus(False, "unavailable: no VGG16 weights: tried x")))
+    scene = make_demo_scene(str(tmp_path / "demo"), num_views=5, width=32, height=24, points=100)
+    train_main(scene, str(tmp_path / "run"), preset="preview", iterations=4, quiet=True,
+               sets=("threads=1", "test_lpips=true"))
+    err = capsys.readouterr().err
+    assert err.count("warning: test_lpips: LPIPS unavailable: no VGG16 weights") == 1, err
