@@ -76,7 +76,7 @@ class Viewer:
         self.browser.close()
         self.proc.terminate()
         self.proc.wait()
-        return {**cpu, "models_drawn": self.versions, "page_errors": errors}
+        return {**cpu, "models_drawn": self.versions, "page_errors": errors}  # (the version of the last one drawn)
 
 
 def _summary(run: str, wall: float) -> dict:
@@ -156,7 +156,7 @@ def markdown(r: dict) -> str:
              f"page open in headless Chromium (SwiftShader: the CPU draws the page, the worst case; "
              f"800x600 image area), polling every 2 s and drawing each checkpoint as it lands.", "",
              "| round | watched | train s (watched / other) | ratio | wall s (watched / other) | ratio | "
-             "models drawn | viewer CPU s (server + browser) | viewer's share of the machine |",
+             "newest model drawn (its version) | viewer CPU s (server + browser) | viewer's share of the machine |",
              "| --- | --- | --- | ---: | --- | ---: | ---: | ---: | ---: |"]
     for k, rd in enumerate(r["rounds"], 1):
         w = rd["watched"]
