@@ -40,7 +40,8 @@ Tensor adopt_vector(std::vector<T>&& v, at::ScalarType dtype) {
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
 // [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (these three empty
 // unless error_image [H,W] is given), then setup_prims [bytes] uint8 and setup_spans int32 (ctgs::cpu::FrameSetup,
-// opaque: backward_cpu takes them back). With poison=true outputs start as NaN, so unwritten pixels show up.
+// opaque: backward_cpu takes them back), then median [H,W] (the median depth, no gradient) and depth2 [H,W] (sum of
+// w z^2). With poison=true outputs start as NaN, so unwritten pixels show up.
 std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
                                  Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
                                  Tensor background, double fx, double fy, double cx, double cy, int64_t width,
@@ -57,6 +58,7 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     return poison ? torch::full(sz, std::numeric_limits<double>::quiet_NaN(), fopt) : torch::empty(sz, fopt);
   };
   Tensor rgb = make({H, W, 3}), alpha = make({H, W}), depth = make({H, W}), final_T = make({H, W});
+  Tensor median = make({H, W}), depth2 = make({H, W});
   Tensor n_contrib = poison ? torch::full({H, W}, -1, fopt.dtype(at::kInt)) : torch::empty({H, W}, fopt.dtype(at::kInt));
   Tensor count = torch::zeros({stats ? N : 0}, fopt.dtype(at::kInt));
   Tensor contrib = torch::zeros({stats ? N : 0}, fopt), err = torch::zeros({stats ? N : 0}, fopt);
@@ -69,6 +71,8 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     o.rgb = rgb.data_ptr<scalar_t>();
     o.alpha = alpha.data_ptr<scalar_t>();
     o.depth = depth.data_ptr<scalar_t>();
+    o.median = median.data_ptr<scalar_t>();
+    o.depth2 = depth2.data_ptr<scalar_t>();
     o.final_T = final_T.data_ptr<scalar_t>();
     o.n_contrib = n_contrib.data_ptr<int32_t>();
     o.error_image = stats ? error_image->data_ptr<scalar_t>() : nullptr;
@@ -91,7 +95,7 @@ std::vector<Tensor> forward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   Tensor setup_prims = adopt_vector(std::move(setup.prims), at::kByte);
   Tensor setup_spans = adopt_vector(std::move(setup.span_xs), at::kInt);
   return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err, setup_prims,
-          setup_spans};
+          setup_spans, median, depth2};
 }
 
 std::vector<Tensor> forward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
@@ -116,14 +120,16 @@ std::vector<Tensor> forward_pairs_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Ten
 
 // Returns v_mu_c [N,3], v_Rc [N,3,3], v_scales [N,2], v_opacities [N], v_colors [N,3], v_texel_size [N,2],
 // v_textures [T,3], v_background [3]; with an error image [H, W] also contrib [N] and err [N], the error statistics
-// of the pixels blended (the forward's with that error image, up to rounding).
+// of the pixels blended (the forward's with that error image, up to rounding). v_depth2 [H, W]: the gradient of the
+// forward's depth2 (None: zero).
 std::vector<Tensor> backward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
                                   Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
                                   Tensor background, double fx, double fy, double cx, double cy, int64_t width,
                                   int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
                                   Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
                                   int64_t num_threads, c10::optional<Tensor> setup_prims,
-                                  c10::optional<Tensor> setup_spans, c10::optional<Tensor> error_image) {
+                                  c10::optional<Tensor> setup_spans, c10::optional<Tensor> error_image,
+                                  c10::optional<Tensor> v_depth2) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, fx, fy, cx, cy, width, height, near_plane, num_threads,
                               at::kCPU, "cpu");
@@ -138,6 +144,7 @@ std::vector<Tensor> backward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor 
   check_tensor(v_rgb, "v_rgb", "[H, W, 3]", {H, W, 3}, dt);
   check_tensor(v_alpha, "v_alpha", "[H, W]", {H, W}, dt);
   check_tensor(v_depth, "v_depth", "[H, W]", {H, W}, dt);
+  if (v_depth2.has_value()) check_tensor(*v_depth2, "v_depth2", "[H, W]", {H, W}, dt);
   // The forward's setup (forward_cpu's last two outputs), or None to recompute it.
   const bool reuse = setup_prims.has_value() && setup_spans.has_value();
   if (reuse) {
@@ -177,7 +184,8 @@ std::vector<Tensor> backward_impl(Tensor mu_c, Tensor Rc, Tensor scales, Tensor 
                                   reuse && setup_spans->numel() ? setup_spans->data_ptr<int32_t>() : nullptr,
                                   stats ? error_image->data_ptr<scalar_t>() : nullptr,
                                   stats ? contrib.data_ptr<scalar_t>() : nullptr,
-                                  stats ? err.data_ptr<scalar_t>() : nullptr);
+                                  stats ? err.data_ptr<scalar_t>() : nullptr,
+                                  v_depth2.has_value() ? v_depth2->data_ptr<scalar_t>() : nullptr);
   });
   if (stats) return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background, contrib, err};
   return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};
@@ -189,10 +197,10 @@ std::vector<Tensor> backward_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
                                  int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
                                  Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
                                  int64_t num_threads, c10::optional<Tensor> setup_prims,
-                                 c10::optional<Tensor> setup_spans) {
+                                 c10::optional<Tensor> setup_spans, c10::optional<Tensor> v_depth2) {
   return backward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, fx,
                        fy, cx, cy, width, height, near_plane, tile_offsets, tile_list, final_T, n_contrib, v_rgb,
-                       v_alpha, v_depth, num_threads, setup_prims, setup_spans, c10::nullopt);
+                       v_alpha, v_depth, num_threads, setup_prims, setup_spans, c10::nullopt, v_depth2);
 }
 
 // backward_cpu, and the error statistics of error_image [H, W] (contiguous, the scene's dtype) over the pixels blended.
@@ -202,10 +210,11 @@ std::vector<Tensor> backward_stats_cpu(Tensor mu_c, Tensor Rc, Tensor scales, Te
                                        int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
                                        Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
                                        int64_t num_threads, c10::optional<Tensor> setup_prims,
-                                       c10::optional<Tensor> setup_spans, Tensor error_image) {
+                                       c10::optional<Tensor> setup_spans, Tensor error_image,
+                                       c10::optional<Tensor> v_depth2) {
   return backward_impl(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset, background, fx,
                        fy, cx, cy, width, height, near_plane, tile_offsets, tile_list, final_T, n_contrib, v_rgb,
-                       v_alpha, v_depth, num_threads, setup_prims, setup_spans, error_image);
+                       v_alpha, v_depth, num_threads, setup_prims, setup_spans, error_image, v_depth2);
 }
 
 // Adam in place on p, m, v (all contiguous, same shape and dtype as g); lr: a float, or lr_tensor of p's

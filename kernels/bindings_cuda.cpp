@@ -50,7 +50,8 @@ struct TorchAllocators {
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], n_contrib [H,W] int32, tile_offsets
 // [tiles+1] int64, tile_list [pairs] int32, count [N] int32, contrib [N], err [N] (the last three empty
 // unless error_image [H,W] is given), then two empty tensors where the CPU kernel returns its opaque setup (one
-// schema for both: ctgs/ops/schemas.py). num_threads is part of that schema and ignored here.
+// schema for both: ctgs/ops/schemas.py), then median [H,W] (the median depth, no gradient) and depth2 [H,W] (sum of
+// w z^2). num_threads is part of that schema and ignored here.
 // With poison=true outputs start as NaN, so unwritten pixels show up.
 std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
                                  Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
@@ -68,6 +69,7 @@ std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     return poison ? torch::full(sz, std::numeric_limits<double>::quiet_NaN(), fopt) : torch::empty(sz, fopt);
   };
   Tensor rgb = make({H, W, 3}), alpha = make({H, W}), depth = make({H, W}), final_T = make({H, W});
+  Tensor median = make({H, W}), depth2 = make({H, W});
   const auto iopt = fopt.dtype(at::kInt);
   Tensor n_contrib = poison ? torch::full({H, W}, -1, iopt) : torch::empty({H, W}, iopt);
   const int64_t num_tiles = int64_t(ctgs::tiles_x(int(W))) * ctgs::tiles_y(int(H));
@@ -81,6 +83,8 @@ std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
     o.rgb = rgb.data_ptr<scalar_t>();
     o.alpha = alpha.data_ptr<scalar_t>();
     o.depth = depth.data_ptr<scalar_t>();
+    o.median = median.data_ptr<scalar_t>();
+    o.depth2 = depth2.data_ptr<scalar_t>();
     o.final_T = final_T.data_ptr<scalar_t>();
     o.n_contrib = n_contrib.data_ptr<int32_t>();
     o.tile_offsets = tile_offsets.data_ptr<int64_t>();
@@ -92,19 +96,19 @@ std::vector<Tensor> forward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor o
   });
   const Tensor no_setup = torch::empty({0}, fopt.dtype(at::kByte));
   return {rgb, alpha, depth, final_T, n_contrib, tile_offsets, alloc.tile_list, count, contrib, err,
-          no_setup, no_setup.to(at::kInt)};
+          no_setup, no_setup.to(at::kInt), median, depth2};
 }
 
 // Returns v_mu_c [N,3], v_Rc [N,3,3], v_scales [N,2], v_opacities [N], v_colors [N,3], v_texel_size [N,2],
 // v_textures [T,3], v_background [3]. The setup tensors (the CPU kernel's) are ignored: the kernels here
-// recompute what they need per tile.
+// recompute what they need per tile. v_depth2 [H, W]: the gradient of the forward's depth2 (None: zero).
 std::vector<Tensor> backward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor colors,
                                   Tensor texel_size, Tensor textures, Tensor tex_res, Tensor tex_offset,
                                   Tensor background, double fx, double fy, double cx, double cy, int64_t width,
                                   int64_t height, double near_plane, Tensor tile_offsets, Tensor tile_list,
                                   Tensor final_T, Tensor n_contrib, Tensor v_rgb, Tensor v_alpha, Tensor v_depth,
                                   int64_t num_threads, c10::optional<Tensor> /*setup_prims*/,
-                                  c10::optional<Tensor> /*setup_spans*/) {
+                                  c10::optional<Tensor> /*setup_spans*/, c10::optional<Tensor> v_depth2) {
   const Scene s = check_scene(mu_c, Rc, scales, opacities, colors, texel_size, textures, tex_res, tex_offset,
                               background, fx, fy, cx, cy, width, height, near_plane, 0, at::kCUDA, "cuda");
   const c10::cuda::CUDAGuard guard(mu_c.device());
@@ -120,6 +124,7 @@ std::vector<Tensor> backward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor 
   check_tensor(v_rgb, "v_rgb", "[H, W, 3]", {H, W, 3}, dt, dev);
   check_tensor(v_alpha, "v_alpha", "[H, W]", {H, W}, dt, dev);
   check_tensor(v_depth, "v_depth", "[H, W]", {H, W}, dt, dev);
+  if (v_depth2.has_value()) check_tensor(*v_depth2, "v_depth2", "[H, W]", {H, W}, dt, dev);
   Tensor v_mu_c = torch::empty_like(mu_c), v_Rc = torch::empty_like(Rc), v_scales = torch::empty_like(scales);
   Tensor v_opacities = torch::empty_like(opacities), v_colors = torch::empty_like(colors);
   Tensor v_texel_size = torch::empty_like(texel_size), v_textures = torch::empty_like(textures);
@@ -139,7 +144,8 @@ std::vector<Tensor> backward_cuda(Tensor mu_c, Tensor Rc, Tensor scales, Tensor 
     const ctgs::gpu::TileBinsView bins{tile_offsets.data_ptr<int64_t>(), tile_list.data_ptr<int32_t>()};
     ctgs::gpu::backward<scalar_t>(scene_args<scalar_t>(s), bins, final_T.data_ptr<scalar_t>(),
                                   n_contrib.data_ptr<int32_t>(), v_rgb.data_ptr<scalar_t>(),
-                                  v_alpha.data_ptr<scalar_t>(), v_depth.data_ptr<scalar_t>(), o,
+                                  v_alpha.data_ptr<scalar_t>(), v_depth.data_ptr<scalar_t>(),
+                                  v_depth2.has_value() ? v_depth2->data_ptr<scalar_t>() : nullptr, o,
                                   alloc.make(dev), stream);
   });
   return {v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background};

@@ -19,11 +19,14 @@ _SCENE = ("Tensor mu_c, Tensor Rc, Tensor scales, Tensor opacities, Tensor color
 # Ops with a CPU and a CUDA kernel.
 BOTH = (
     # rgb, alpha, depth, final_T, n_contrib, tile_offsets, tile_list, count, contrib, err (the last three empty
-    # without error_image), then the forward's setup for the backward: two opaque tensors on the CPU, empty on CUDA
+    # without error_image), then the forward's setup for the backward: two opaque tensors on the CPU, empty on CUDA,
+    # then the median depth [H, W] (no gradient) and depth2 [H, W] (sum of w z^2)
     f"rasterize_forward({_SCENE}, Tensor? error_image, int knob, bool poison) -> Tensor[]",
-    # v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background
+    # v_mu_c, v_Rc, v_scales, v_opacities, v_colors, v_texel_size, v_textures, v_background (v_depth2: depth2's
+    # gradient, None: zero)
     f"rasterize_backward({_SCENE}, Tensor tile_offsets, Tensor tile_list, Tensor final_T, Tensor n_contrib, "
-    "Tensor v_rgb, Tensor v_alpha, Tensor v_depth, int knob, Tensor? setup_prims, Tensor? setup_spans) -> Tensor[]",
+    "Tensor v_rgb, Tensor v_alpha, Tensor v_depth, int knob, Tensor? setup_prims, Tensor? setup_spans, "
+    "Tensor? v_depth2=None) -> Tensor[]",
     # {mu_c [N, 3], Rc [N, 3, 3]}: world -> camera space of the means and quaternions for view [4, 4]
     "camera_space(Tensor means, Tensor quats, Tensor view, int num_threads) -> Tensor[]",
     # {grad_means [N, 3], grad_quats [N, 4]} of camera_space for its upstream gradients
@@ -48,7 +51,7 @@ CPU_ONLY = (
     # pixels blended (the forward's with that error image, w from T recovered by division)
     f"rasterize_backward_stats({_SCENE}, Tensor tile_offsets, Tensor tile_list, Tensor final_T, Tensor n_contrib, "
     "Tensor v_rgb, Tensor v_alpha, Tensor v_depth, int knob, Tensor? setup_prims, Tensor? setup_spans, "
-    "Tensor error_image) -> Tensor[]",
+    "Tensor error_image, Tensor? v_depth2=None) -> Tensor[]",
     # rgb, alpha, depth, and every blended pair: pix (y * W + x) int32, prim int32, w
     f"rasterize_pairs({_SCENE}, int num_threads, bool poison) -> Tensor[]",
     # per-primitive count int32, contrib, err over a forward's blended pairs and an error image e [H, W]

@@ -246,4 +246,5 @@ def _render_error_fn(surfels: SurfelInputs, camera: Camera, backend: str, sh_deg
     check(e)
     stats = render(surfels, camera, backend=backend, sh_degree=sh_degree, background=background,
                    error_image=e.detach()).stats
-    return RenderOutput(rgb=first.rgb, alpha=first.alpha, depth=first.depth, stats=stats)
+    return RenderOutput(rgb=first.rgb, alpha=first.alpha, depth=first.depth, stats=stats,
+                        median_depth=first.median_depth, depth2=first.depth2)

@@ -183,7 +183,8 @@ def _texture(lx: torch.Tensor, ly: torch.Tensor, cand: torch.Tensor, p: _Prims,
 
 def _render_chunk(px: torch.Tensor, py: torch.Tensor, err: torch.Tensor | None, p: _Prims,
                   textures: torch.Tensor, background: torch.Tensor, camera: Camera, with_stats: bool):
-    """Pixels (px, py) [P] (column, row indices as floats) -> rgb [P, 3], T [P], depth [P], stats."""
+    """Pixels (px, py) [P] (column, row indices as floats) -> rgb [P, 3], T [P], depth [P], median depth [P]
+    (detached), depth2 [P] (sum of w z^2), stats."""
     fx, fy, cx, cy, near = camera.fx, camera.fy, camera.cx, camera.cy, camera.near
     dx, dy = (px + 0.5 - cx) / fx, (py + 0.5 - cy) / fy  # [P] ray d = (dx, dy, 1), camera space
     d = torch.stack([dx, dy, torch.ones_like(dx)], -1)  # [P, 3]
@@ -240,12 +241,16 @@ def _render_chunk(px: torch.Tensor, py: torch.Tensor, err: torch.Tensor | None, 
 
     rgb = (w[:, :, None] * color).sum(1) + trans[:, -1:] * background  # [P, 3]
     depth = (w * t).sum(1)  # [P]
+    with torch.no_grad():  # median depth: t of the last entry blended while T before it > 0.5 (0 if none)
+        before_half = alpha.gt(0) & (t_before > 0.5)
+        last = torch.where(before_half, torch.arange(t.shape[1], device=t.device), -1).amax(1)  # [P]
+        median = torch.where(last >= 0, t.gather(1, last.clamp_min(0)[:, None])[:, 0], torch.zeros_like(depth))
     stats = None
     if with_stats:
         with torch.no_grad():
             wd = w.detach()
             stats = (blended.sum(0).to(torch.int32), wd.sum(0), (err[:, None] * wd).sum(0))
-    return rgb, trans[:, -1], depth, stats
+    return rgb, trans[:, -1], depth, median.detach(), (w * t * t).sum(1), stats
 
 
 def render_reference(surfels: SurfelInputs, camera: Camera, *, sh_degree: int | None = None,
@@ -290,6 +295,8 @@ def render_reference(surfels: SurfelInputs, camera: Camera, *, sh_degree: int | 
         rgb = bg.expand(H * W, 3) + tie
         trans = torch.ones(H * W, dtype=dtype, device=device)
         depth = torch.zeros(H * W, dtype=dtype, device=device)
+        median = torch.zeros(H * W, dtype=dtype, device=device)
+        depth2 = torch.zeros(H * W, dtype=dtype, device=device)
     else:
         step = max(1, chunk_pairs // M)
         tensors = (p.mu, p.rot, p.scales, p.opacities, p.colors, p.texel_size, s.textures, bg)
@@ -308,15 +315,18 @@ def render_reference(surfels: SurfelInputs, camera: Camera, *, sh_degree: int | 
                 out = checkpoint(run, *tensors, use_reentrant=False, preserve_rng_state=False)
             else:
                 out = run(*tensors)
-            outs.append(out[:3])
+            outs.append(out[:5])
             if with_stats:
-                c, w_sum, e_sum = out[3]
+                c, w_sum, e_sum = out[5]
                 count.index_add_(0, p.index, c)
                 contrib.index_add_(0, p.index, w_sum)
                 err_sum.index_add_(0, p.index, e_sum)
         rgb = torch.cat([o[0] for o in outs]) + tie
         trans = torch.cat([o[1] for o in outs])
         depth = torch.cat([o[2] for o in outs])
+        median = torch.cat([o[3] for o in outs])
+        depth2 = torch.cat([o[4] for o in outs])
     stats = ErrorStats(count=count, contrib=contrib, err=err_sum) if with_stats else None
     return RenderOutput(rgb=rgb.reshape(H, W, 3), alpha=(1.0 - trans + tie).reshape(H, W),
-                        depth=(depth + tie).reshape(H, W), stats=stats)
+                        depth=(depth + tie).reshape(H, W), stats=stats, median_depth=median.reshape(H, W),
+                        depth2=(depth2 + tie).reshape(H, W))

@@ -54,6 +54,12 @@ class RenderOutput:
     alpha: torch.Tensor  # [H, W] = 1 - final transmittance
     depth: torch.Tensor  # [H, W] alpha-weighted sum of hit depths (divide by alpha for expected depth)
     stats: ErrorStats | None = None  # only when an error image was passed
+    # [H, W] the median depth: the hit depth of the last surfel blended while the transmittance in front of it was
+    # above 0.5 (2DGS's), 0 where nothing blended; no gradient. None where a render path does not compute it.
+    median_depth: torch.Tensor | None = None
+    # [H, W] alpha-weighted sum of squared hit depths, differentiable: with alpha and depth it gives the depth
+    # distortion sum_ij w_i w_j (z_i - z_j)^2 = 2 (alpha depth2 - depth^2) (ctgs.train.components.normal).
+    depth2: torch.Tensor | None = None
     # [N] bool: the primitives the compiled backends' binning put in a tile list for this view (what they
     # rasterize; the training loss's texture term regularises these, ctgs.train.step.loss). None elsewhere.
     rasterized: torch.Tensor | None = None

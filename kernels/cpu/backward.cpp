@@ -38,6 +38,7 @@ struct BackwardTileArgs {
   const S* v_rgb;
   const S* v_alpha;
   const S* v_depth;
+  const S* v_depth2;  // [H, W] or null (zero)
   const S* error_image;  // [H, W] or null: no error statistics
   int ntx;
   S* g_thread;    // [N, G_STRIDE] this thread's per-primitive gradients
@@ -73,7 +74,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
   const int64_t begin = b.bins->offsets[tile];
   const int x0 = (tile % b.ntx) * TILE_W, y0 = (tile / b.ntx) * TILE_H;
   const int x1 = std::min(x0 + TILE_W, Wimg), y1 = std::min(y0 + TILE_H, Himg);  // exclusive
-  alignas(32) S T[NP], acc[NP], g0[NP], g1[NP], g2[NP], gD[NP], dn[NP], ev[NP];
+  alignas(32) S T[NP], acc[NP], g0[NP], g1[NP], g2[NP], gD[NP], gD2[NP], dn[NP], ev[NP];
   const bool stats = b.error_image != nullptr;
   alignas(32) Int ncon[NP];
   alignas(32) S pxa[RS], dxa[RS], pya[TILE_H], dya[TILE_H];
@@ -90,7 +91,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
       const int p = r * RS + k;
       dn[p] = sqrt(dxa[k] * dxa[k] + dya[r] * dya[r] + S(1) * S(1));
       if (!(y0 + r < y1 && x0 + k < x1 && k < TILE_W)) {
-        T[p] = acc[p] = g0[p] = g1[p] = g2[p] = gD[p] = ev[p] = S(0);
+        T[p] = acc[p] = g0[p] = g1[p] = g2[p] = gD[p] = gD2[p] = ev[p] = S(0);
         ncon[p] = 0;  // padding: no entry is ever in front of where it stopped
         continue;
       }
@@ -100,11 +101,12 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
       g2[p] = b.v_rgb[3 * pix + 2];
       ev[p] = stats ? b.error_image[pix] : S(0);
       gD[p] = b.v_depth[pix];
+      gD2[p] = b.v_depth2 != nullptr ? b.v_depth2[pix] : S(0);
       T[p] = b.final_T[pix];
       b.bg_thread[0] += T[p] * g0[p];
       b.bg_thread[1] += T[p] * g1[p];
       b.bg_thread[2] += T[p] * g2[p];
-      // acc = sum_{j>i} w_j f_j + T_final (bg . gC - gA), f_j = c_j . gC + z_j gD: everything behind i
+      // acc = sum_{j>i} w_j f_j + T_final (bg . gC - gA), f_j = c_j . gC + z_j gD + z_j^2 gD2: everything behind i
       // that alpha_i attenuates (alpha = 1 - T_final, hence -gA).
       acc[p] = T[p] * (bg[0] * g0[p] + bg[1] * g1[p] + bg[2] * g2[p] - b.v_alpha[pix]);
       ncon[p] = b.n_contrib[pix];
@@ -168,7 +170,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
         }
         const V Tv = vload<V>(T + p0), accv = vload<V>(acc + p0);
         const V gc[3] = {vload<V>(g0 + p0), vload<V>(g1 + p0), vload<V>(g2 + p0)};
-        const V gd = vload<V>(gD + p0);
+        const V gd = vload<V>(gD + p0), gd2 = vload<V>(gD2 + p0);
         const V om = S(1) - h.alpha;
         const V one_minus = sel(om > S(T_RECOVER_EPS), om, splat(S(T_RECOVER_EPS)));
         const V T_i = Tv / one_minus;
@@ -177,7 +179,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
           g.cw += sel(pass, w, zero);
           g.ew += sel(pass, w * vload<V>(ev + p0), zero);
         }
-        const V f = c[0] * gc[0] + c[1] * gc[1] + c[2] * gc[2] + h.z * gd;
+        const V f = c[0] * gc[0] + c[1] * gc[1] + c[2] * gc[2] + h.z * (gd + h.z * gd2);
         const V v_a = T_i * f - accv / one_minus;
         // Colour: no gradient where clamped (c_raw <= 0); the texture gets what the colour gets.
         V vc[3], gtex[3];
@@ -234,7 +236,7 @@ CTGS_INLINE void backward_tile_impl(const BackwardTileArgs<S>& b, int tile) {
             }
           }
         }
-        const V v_z = w * gd;
+        const V v_z = w * (gd + S(2) * h.z * gd2);  // D and D2 = sum w z^2
         const I pv = pass & h.valid;
         // lx = u.(p - mu), ly = v.(p - mu), p = t d; t = (n.mu) / (n.d): dt/dmu = n/(n.d),
         // dt/dn = (mu - p)/(n.d). v_p . d = v_lx (u.d) + v_ly (v.d).
@@ -309,7 +311,7 @@ template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
               unsigned char* setup_prims, const int32_t* setup_spans, const S* error_image, S* stats_contrib,
-              S* stats_err) {
+              S* stats_err, const S* v_depth2) {
   ProfTimer timer;
   const int W = a.K.width, H = a.K.height, N = a.N;
   const int ntx = tiles_x(W), num_tiles = ntx * tiles_y(H);
@@ -373,7 +375,7 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   for (int k = 0; k < num_tiles; ++k) {
     const int tile = order[k];
     const int tid = omp_get_thread_num();
-    BackwardTileArgs<S> b{&a, &bins, lp, final_T, n_contrib, v_rgb, v_alpha, v_depth, error_image,
+    BackwardTileArgs<S> b{&a, &bins, lp, final_T, n_contrib, v_rgb, v_alpha, v_depth, v_depth2, error_image,
                           ntx, gbuf.get() + size_t(tid) * N * G_STRIDE,
                           (tid == 0 || !private_tex) ? out.v_textures : tbuf.get() + size_t(tid - 1) * tex_n,
                           use_atomics, bgbuf.data() + 3 * tid,
@@ -431,10 +433,10 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
 
 template void backward<float>(const SceneArgs<float>&, const TileBinsView&, const float*, const int32_t*,
                               const float*, const float*, const float*, const BackwardOut<float>&,
-                              unsigned char*, const int32_t*, const float*, float*, float*);
+                              unsigned char*, const int32_t*, const float*, float*, float*, const float*);
 template void backward<double>(const SceneArgs<double>&, const TileBinsView&, const double*, const int32_t*,
                                const double*, const double*, const double*, const BackwardOut<double>&,
-                               unsigned char*, const int32_t*, const double*, double*, double*);
+                               unsigned char*, const int32_t*, const double*, double*, double*, const double*);
 
 }  // namespace cpu
 }  // namespace ctgs

@@ -61,7 +61,7 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
   const bool stats = out.error_image != nullptr;
   const int x0 = (tile % f.ntx) * TILE_W, y0 = (tile / f.ntx) * TILE_H;
   const int x1 = std::min(x0 + TILE_W, Wimg), y1 = std::min(y0 + TILE_H, Himg);  // exclusive
-  alignas(32) S T[NP], C0[NP], C1[NP], C2[NP], D[NP], E[NP], dn[NP];
+  alignas(32) S T[NP], C0[NP], C1[NP], C2[NP], D[NP], D2[NP], M[NP], E[NP], dn[NP];
   alignas(32) Int last[NP], done[NP];
   alignas(32) S pxa[RS], dxa[RS], pya[TILE_H], dya[TILE_H];
   for (int k = 0; k < RS; ++k) {
@@ -77,7 +77,7 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
       const bool inside = y0 + r < y1 && x0 + k < x1 && k < TILE_W;
       dn[p] = sqrt(dxa[k] * dxa[k] + dya[r] * dya[r] + S(1) * S(1));
       T[p] = S(1);
-      C0[p] = C1[p] = C2[p] = D[p] = S(0);
+      C0[p] = C1[p] = C2[p] = D[p] = D2[p] = M[p] = S(0);
       E[p] = stats && inside ? out.error_image[int64_t(y0 + r) * Wimg + x0 + k] : S(0);
       last[p] = 0;
       done[p] = inside ? 0 : -1;  // padding never blends
@@ -137,6 +137,9 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
         vstore(C1 + p0, sel(blend, vload<V>(C1 + p0) + w * c[1], vload<V>(C1 + p0)));
         vstore(C2 + p0, sel(blend, vload<V>(C2 + p0) + w * c[2], vload<V>(C2 + p0)));
         vstore(D + p0, sel(blend, vload<V>(D + p0) + w * h.z, vload<V>(D + p0)));
+        vstore(D2 + p0, sel(blend, vload<V>(D2 + p0) + w * h.z * h.z, vload<V>(D2 + p0)));
+        // the median depth: the hit that takes T from above 0.5 to at most 0.5 (or the last one while it stays above)
+        vstore(M + p0, sel(blend & (Tv > S(0.5)), h.z, vload<V>(M + p0)));
         vstore(T + p0, sel(blend, T_next, Tv));
         vstore(last + p0, seli(blend, I{} + jpos, vload<I>(last + p0)));
         if (f.pairs) {
@@ -175,6 +178,8 @@ CTGS_INLINE void forward_tile_impl(const ForwardTileArgs<S>& f, int tile, int64_
       out.rgb[3 * pix + 2] = C2[p] + T[p] * bg[2];
       out.alpha[pix] = S(1) - T[p];
       out.depth[pix] = D[p];
+      out.median[pix] = M[p];
+      out.depth2[pix] = D2[p];
       out.final_T[pix] = T[p];
       out.n_contrib[pix] = int32_t(last[p]);
     }

@@ -71,6 +71,8 @@ struct ForwardOut {
   S* rgb;          // [H, W, 3]
   S* alpha;        // [H, W] 1 - final T
   S* depth;        // [H, W] sum of w z
+  S* median;       // [H, W] z of the last surfel blended while T > 0.5 (2DGS's median depth; 0 where none)
+  S* depth2;       // [H, W] sum of w z^2 (with alpha and depth: the depth distortion, sum_ij w_i w_j (z_i - z_j)^2)
   S* final_T;      // [H, W] saved for backward
   int32_t* n_contrib;  // [H, W] entries of the tile list processed (last blended position + 1)
   const S* error_image;  // [H, W] or null
@@ -105,7 +107,8 @@ void forward(const SceneArgs<S>& a, const ForwardOut<S>& out, TileBins* bins, Fr
 template <typename S>
 using BackwardOut = ctgs::BackwardOut<S>;
 
-// v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W]: dL/d outputs. final_T, n_contrib, bins from forward.
+// v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W], v_depth2 [H,W] (or null: zero): dL/d outputs. final_T, n_contrib,
+// bins from forward.
 // setup_prims / setup_spans: the forward's FrameSetup of this render (prims is updated in place: its span
 // pointers are re-aimed at setup_spans), or null to recompute it.
 // error_image [H, W] (or null): also the error statistics of the pixels blended, per primitive, as the forward's with
@@ -115,7 +118,8 @@ template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
               const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
               unsigned char* setup_prims = nullptr, const int32_t* setup_spans = nullptr,
-              const S* error_image = nullptr, S* stats_contrib = nullptr, S* stats_err = nullptr);
+              const S* error_image = nullptr, S* stats_contrib = nullptr, S* stats_err = nullptr,
+              const S* v_depth2 = nullptr);
 
 // Wall-clock seconds per phase, summed over calls since the last read (benchmarks/profile_train.py reads
 // them through the binding `profile_counters`). Only the calling thread touches them, outside parallel

@@ -116,7 +116,7 @@ template <typename S, int MIN_BLOCKS>
 __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
     backward_kernel(SceneArgs<S> a, const SurfelPrim<S>* prims, const PixelRect* rects, TileBinsView bins,
                     const S* final_T, const int32_t* n_contrib, const S* v_rgb, const S* v_alpha,
-                    const S* v_depth, BackwardOut<S> out, bool aggregate_texels) {
+                    const S* v_depth, const S* v_depth2, BackwardOut<S> out, bool aggregate_texels) {
   constexpr int B = Batch<S>::SIZE;
   __shared__ SurfelPrim<S> s_prim[B];
   __shared__ PixelRect s_rect[B];
@@ -134,11 +134,12 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
   const int64_t begin = bins.offsets[tile];
   const S bg[3] = {a.background[0], a.background[1], a.background[2]};
 
-  S gC[3] = {S(0), S(0), S(0)}, gD = S(0), gA = S(0), T = S(0);
+  S gC[3] = {S(0), S(0), S(0)}, gD = S(0), gD2 = S(0), gA = S(0), T = S(0);
   int32_t ncon = 0;  // pixels past the image edge contribute nothing
   if (inside) {
     for (int c = 0; c < 3; ++c) gC[c] = v_rgb[3 * pix + c];
     gD = v_depth[pix];
+    gD2 = v_depth2 != nullptr ? v_depth2[pix] : S(0);
     gA = v_alpha[pix];
     T = final_T[pix];
     ncon = n_contrib[pix];
@@ -148,7 +149,7 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
     const S s = warp_sum<S>(T * gC[c]);
     if (lane == 0 && s != S(0)) atomicAdd(out.v_background + c, s);
   }
-  // acc = sum_{j>i} w_j f_j + T_final (bg . gC - gA), f_j = c_j . gC + z_j gD: everything behind i that
+  // acc = sum_{j>i} w_j f_j + T_final (bg . gC - gA), f_j = c_j . gC + z_j gD + z_j^2 gD2: everything behind i that
   // alpha_i attenuates (alpha = 1 - T_final, hence -gA).
   S acc = T * (bg[0] * gC[0] + bg[1] * gC[1] + bg[2] * gC[2] - gA);
 
@@ -185,10 +186,10 @@ __global__ void __launch_bounds__(BLOCK_SIZE, MIN_BLOCKS)
           const S one_minus = fmax(S(T_RECOVER_EPS), S(1) - h.alpha);
           const S T_i = T / one_minus;
           const S w = h.alpha * T_i;
-          const S f = h.c[0] * gC[0] + h.c[1] * gC[1] + h.c[2] * gC[2] + h.z * gD;
+          const S f = h.c[0] * gC[0] + h.c[1] * gC[1] + h.c[2] * gC[2] + h.z * (gD + h.z * gD2);
           const S v_a = T_i * f - acc / one_minus;
           const S v_c[3] = {w * gC[0], w * gC[1], w * gC[2]};
-          surfel_backward(P, ray, a.K, h, a.textures, v_a, v_c, w * gD, g);
+          surfel_backward(P, ray, a.K, h, a.textures, v_a, v_c, w * (gD + S(2) * h.z * gD2), g);
           if (h.taps.active && aggregate_texels) {
             textured = true;
             taps = h.taps;
@@ -239,7 +240,7 @@ inline int backward_min_blocks() {
 
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
-              const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
+              const S* v_rgb, const S* v_alpha, const S* v_depth, const S* v_depth2, const BackwardOut<S>& out,
               const Allocators& alloc, cudaStream_t stream) {
   const int N = a.N;
   // Camera-space constants only: the lists come from forward.
@@ -262,23 +263,23 @@ void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T,
   if constexpr (sizeof(S) == 4) {
     if (min_blocks == 3) {
       backward_kernel<S, 3><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
-                                                        v_depth, out, aggregate);
+                                                        v_depth, v_depth2, out, aggregate);
     } else if (min_blocks == 4) {
       backward_kernel<S, 4><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
-                                                        v_depth, out, aggregate);
+                                                        v_depth, v_depth2, out, aggregate);
     }
   }
   if (min_blocks == 1)
     backward_kernel<S, 1><<<grid, block, 0, stream>>>(a, prims, rects, bins, final_T, n_contrib, v_rgb, v_alpha,
-                                                      v_depth, out, aggregate);
+                                                      v_depth, v_depth2, out, aggregate);
   CTGS_CUDA_LAUNCH_CHECK("backward_kernel");
 }
 
 template void backward<float>(const SceneArgs<float>&, const TileBinsView&, const float*, const int32_t*,
-                              const float*, const float*, const float*, const BackwardOut<float>&, const Allocators&,
-                              cudaStream_t);
+                              const float*, const float*, const float*, const float*, const BackwardOut<float>&,
+                              const Allocators&, cudaStream_t);
 template void backward<double>(const SceneArgs<double>&, const TileBinsView&, const double*, const int32_t*,
-                               const double*, const double*, const double*, const BackwardOut<double>&,
+                               const double*, const double*, const double*, const double*, const BackwardOut<double>&,
                                const Allocators&, cudaStream_t);
 
 }  // namespace gpu

@@ -31,7 +31,7 @@ __global__ void __launch_bounds__(BLOCK_SIZE)
   const int64_t begin = offsets[tile], end = offsets[tile + 1];
   const S e = (STATS && inside) ? out.error_image[pix] : S(0);
 
-  S T = S(1), D = S(0), C[3] = {S(0), S(0), S(0)};
+  S T = S(1), D = S(0), D2 = S(0), M = S(0), C[3] = {S(0), S(0), S(0)};
   int32_t last = 0;
   bool done = !inside;  // pixels past the image edge only help load batches
   for (int64_t base = begin; base < end; base += B) {
@@ -65,6 +65,8 @@ __global__ void __launch_bounds__(BLOCK_SIZE)
             C[1] += w * h.c[1];
             C[2] += w * h.c[2];
             D += w * h.z;
+            D2 += w * h.z * h.z;
+            if (T > S(0.5)) M = h.z;  // the median depth (kernels/cpu/forward.cpp)
             T = T_next;
             last = int32_t(base - begin + k + 1);
             blended = true;
@@ -91,6 +93,8 @@ __global__ void __launch_bounds__(BLOCK_SIZE)
   out.rgb[3 * pix + 2] = C[2] + T * bg[2];
   out.alpha[pix] = S(1) - T;
   out.depth[pix] = D;
+  out.median[pix] = M;
+  out.depth2[pix] = D2;
   out.final_T[pix] = T;
   out.n_contrib[pix] = last;
 }

@@ -42,6 +42,8 @@ struct ForwardOut {
   S* rgb;                // [H, W, 3]
   S* alpha;              // [H, W] 1 - final T
   S* depth;              // [H, W] sum of w z
+  S* median;             // [H, W] z of the last surfel blended while T > 0.5 (2DGS's median depth; 0 where none)
+  S* depth2;             // [H, W] sum of w z^2
   S* final_T;            // [H, W] saved for backward
   int32_t* n_contrib;    // [H, W] entries of the tile list processed (last blended position + 1)
   int64_t* tile_offsets; // [num_tiles + 1] (the list itself comes from Allocators::tile_list)
@@ -61,10 +63,11 @@ int64_t forward(const SceneArgs<S>& a, const ForwardOut<S>& out, const Allocator
 template <typename S>
 using BackwardOut = ctgs::BackwardOut<S>;
 
-// v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W]: dL/d outputs. final_T, n_contrib, bins from forward.
+// v_rgb [H,W,3], v_alpha [H,W], v_depth [H,W], v_depth2 [H,W] (or null: zero): dL/d outputs. final_T, n_contrib,
+// bins from forward.
 template <typename S>
 void backward(const SceneArgs<S>& a, const TileBinsView& bins, const S* final_T, const int32_t* n_contrib,
-              const S* v_rgb, const S* v_alpha, const S* v_depth, const BackwardOut<S>& out,
+              const S* v_rgb, const S* v_alpha, const S* v_depth, const S* v_depth2, const BackwardOut<S>& out,
               const Allocators& alloc, cudaStream_t stream);
 
 // Per-primitive preprocessing (kernels/cuda/dense.cu; the math: kernels/include/ctgs/preprocess.h), one

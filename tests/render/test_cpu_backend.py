@@ -63,6 +63,58 @@ def test_forward_matches_reference(seed, dtype):
 
 
 @pytest.mark.parametrize("seed", SEEDS)
+def test_median_depth_matches_reference(seed):
+    """The median depth (no gradient) on the overlapping random scene: the same hit depth at every pixel."""
+    s, cam = _case(seed, torch.float64)
+    a = render(s, cam, backend="cpu")
+    b = render(s, cam, backend="reference")
+    assert a.median_depth.shape == (cam.height, cam.width) and not a.median_depth.requires_grad
+    assert (a.median_depth > 0).float().mean() > 0.2
+    # a median that is not the mean: several surfels overlap at different depths
+    assert float((a.median_depth - a.depth / a.alpha.clamp_min(1e-9)).abs().max()) > 0.05
+    torch.testing.assert_close(a.median_depth, b.median_depth, atol=ATOL_F64, rtol=0)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_depth2_and_its_gradients_match_reference(seed):
+    """depth2 (sum of w z^2, the depth distortion's third sum) and the gradients of a random cotangent on it alone."""
+    s, cam = _case(seed, torch.float64)
+    g = torch.Generator().manual_seed(200 + seed)
+    v = torch.rand(cam.height, cam.width, generator=g, dtype=torch.float64) - 0.3
+    outs, grads = {}, {}
+    for backend in ("cpu", "reference"):
+        sg = with_grad(s)
+        out = render(sg, cam, backend=backend)
+        outs[backend] = out.depth2.detach()
+        grads[backend] = torch.autograd.grad((out.depth2 * v).sum(), [getattr(sg, n) for n in FLOAT_INPUTS])
+    assert float(outs["cpu"].max()) > 1.0  # depths beyond 1: z^2 differs from z
+    torch.testing.assert_close(outs["cpu"], outs["reference"], atol=ATOL_F64 * 10, rtol=0)
+    for name, x, y in zip(FLOAT_INPUTS, grads["cpu"], grads["reference"]):
+        scale = y.abs().max().item()
+        if name in ("means", "quats", "scales", "opacities"):  # what the depth depends on
+            assert scale > 0, f"{name}: the reference gradient is zero, the test would prove nothing"
+        torch.testing.assert_close(x, y, atol=GRAD_RTOL_F64 * max(scale, 1.0), rtol=0, msg=name)
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_median_depth_is_where_the_transmittance_falls_below_half(backend):
+    """Two fronto-parallel surfels on the optical axis, at depths 2 and 3: the median is the front one when it alone
+    takes T below 0.5, else the back one; 0 where nothing is drawn."""
+    from scenes import make_surfels
+
+    from ctgs.render.camera import Camera
+
+    cam = Camera(fx=40.0, fy=40.0, cx=8.0, cy=8.0, width=16, height=16, viewmat=torch.eye(4, dtype=torch.float64))
+    for front, expected in ((0.4, 3.0), (0.7, 2.0)):
+        s = make_surfels(means=[[0.0, 0.0, 2.0], [0.0, 0.0, 3.0]], quats=[[1.0, 0, 0, 0]] * 2,
+                         scales=[[0.05, 0.05], [0.05, 0.05]], opacities=[front, 0.9], sh=[[0.0, 0.0, 0.0]] * 2,
+                         texel_size=[0.01, 0.01], tex_res=[[0, 0], [0, 0]])
+        m = render(s, cam, backend=backend).median_depth
+        assert float(m[8, 8]) == pytest.approx(expected, abs=1e-9), front
+        assert float(m[0, 0]) == 0.0
+
+
+@pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_gradients_match_reference(seed, dtype):
     s, cam = _case(seed, dtype)

@@ -184,7 +184,7 @@ def test_backward_reusing_the_forward_setup_matches_recomputing_it(dtype):
     ext.load_cpu()
     forward, backward = torch.ops.ctgs.rasterize_forward, torch.ops.ctgs.rasterize_backward
     outs = forward(*scene, *cam_args, None, 2, False)
-    assert len(outs) == 12
+    assert len(outs) == 14  # ... setup_prims, setup_spans, median, depth2
     final_T, n_contrib, tile_offsets, tile_list, setup_prims, setup_spans = (
         outs[3], outs[4], outs[5], outs[6], outs[10], outs[11])
     assert setup_prims.dtype == torch.uint8 and setup_prims.numel() > 0 and setup_spans.numel() > 0

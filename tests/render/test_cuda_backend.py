@@ -83,7 +83,7 @@ def _to(s, device):
 def _loss(out, seed: int):
     g = torch.Generator().manual_seed(100 + seed)
     return sum((o * (torch.rand(o.shape, generator=g, dtype=torch.float64).to(o.dtype).to(o.device) - 0.3)).sum()
-               for o in (out.rgb, out.alpha, out.depth))
+               for o in (out.rgb, out.alpha, out.depth, out.depth2))
 
 
 def _render_both(s, cam, dtype, *, background=None, error_image=None, grads=False, seed=0):
@@ -104,7 +104,8 @@ def _render_both(s, cam, dtype, *, background=None, error_image=None, grads=Fals
             inputs = [getattr(sd, n) for n in FLOAT_INPUTS] + ([bg] if bg is not None else [])
             g = [t.cpu() for t in torch.autograd.grad(_loss(out, seed), inputs)]
         cpu_out = replace(out, rgb=out.rgb.detach().cpu(), alpha=out.alpha.detach().cpu(),
-                          depth=out.depth.detach().cpu(),
+                          depth=out.depth.detach().cpu(), median_depth=out.median_depth.cpu(),
+                          depth2=out.depth2.detach().cpu(),
                           stats=None if out.stats is None else replace(
                               out.stats, count=out.stats.count.cpu(), contrib=out.stats.contrib.cpu(),
                               err=out.stats.err.cpu()))
@@ -139,7 +140,7 @@ def _record(kind: str, name: str, dtype, err: float, scale: float | None, tol: f
 
 def _assert_images_close(a, b, dtype):
     atol = ATOL_F64 if dtype == torch.float64 else ATOL_F32
-    for name in ("rgb", "alpha", "depth"):
+    for name in ("rgb", "alpha", "depth", "median_depth", "depth2"):
         x, y = getattr(a, name), getattr(b, name)
         assert x.dtype == dtype and x.shape == y.shape, name
         err = _max_abs_diff(x, y, mixed=True) if bool(torch.isfinite(x).all()) else math.inf
