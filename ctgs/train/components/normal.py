@@ -1,4 +1,5 @@
-"""2DGS's depth-normal consistency term (Huang et al. 2024, "2D Gaussian Splatting", eq. 14), off by default.
+"""2DGS's geometric terms (Huang et al. 2024, "2D Gaussian Splatting"): depth-normal consistency (eq. 14) and depth
+distortion (eq. 13), off by default.
 
 The paper under reproduction trains without it (its sec. 5: the 2DGS regularisers "enhance the geometric
 reconstruction but often result in lower NVS quality"); `lambda_normal > 0` turns it on from `normal_from` (a fraction
@@ -15,6 +16,13 @@ N_r comes from a second render of the same surfels (the renderer blends per-prim
 weights w_i of the colour render: textures change colour, never alpha): each surfel's colour is its camera-space
 normal encoded as (n + 1) / 2 (the renderer clamps colours below at 0), no textures, black background, so the
 render is (N_r + alpha) / 2 and N_r = 2 rgb - alpha. Its depth gives N_d. One more forward and backward per step.
+
+    L_d = mean over pixels of sum_{i<j} w_i w_j (z_i - z_j)^2 / zbar^2 = (alpha depth2 - depth^2) / zbar^2
+
+from the same render (its alpha, depth = sum w z and depth2 = sum w z^2; the identity is exact, and so are its
+gradients): the blending weights' spread along each ray, which is zero when a ray meets one surfel or several at one
+depth. 2DGS measures z in a normalised device depth (near 0.2, far 100 in its scene units); here it is relative to the
+pixel's expected depth zbar (held constant), so the weight does not depend on the scene's units.
 """
 
 from __future__ import annotations
@@ -91,6 +99,32 @@ def consistency(out, camera, weight: torch.Tensor | None = None) -> torch.Tensor
     return (1.0 - weight * (n_r * n_d).sum(-1)).mean()
 
 
+def distortion_map(out, eps: float = 1e-6) -> torch.Tensor:
+    """[H, W] (alpha depth2 - depth^2) / zbar^2 of a render `out` (RenderOutput with depth2): the relative depth
+    distortion sum_{i<j} w_i w_j (z_i - z_j)^2 / zbar^2, zbar = depth / alpha held constant (0 where alpha <= eps)."""
+    a = out.alpha
+    zbar = expected_depth(out.depth.detach(), a.detach(), eps)
+    inv = torch.where(zbar > 0, 1.0 / zbar.clamp_min(eps) ** 2, torch.zeros_like(zbar))
+    return (a * out.depth2 - out.depth * out.depth) * inv
+
+
+def distortion(out, eps: float = 1e-6) -> torch.Tensor:
+    """Scalar: the mean of `distortion_map` over the pixels."""
+    return distortion_map(out, eps).mean()
+
+
 def normal_loss(inputs: SurfelInputs, camera, backend: str = "auto") -> torch.Tensor:
     """Scalar 2DGS normal-consistency term of one view (unweighted), from one more render of `inputs`."""
     return consistency(render_normals(inputs, camera, backend), camera)
+
+
+def geometry_terms(inputs: SurfelInputs, camera, backend: str = "auto", normal: bool = True,
+                   dist: bool = True) -> dict:
+    """{"normal": L_n, "dist": L_d} of one view (unweighted, each only if asked), from one more render of `inputs`."""
+    out = render_normals(inputs, camera, backend)
+    terms = {}
+    if normal:
+        terms["normal"] = consistency(out, camera)
+    if dist:
+        terms["dist"] = distortion(out)
+    return terms

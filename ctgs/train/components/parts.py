@@ -9,7 +9,7 @@ import math
 
 from ctgs.train.components.budget import SHARE, BudgetPlanner, median_seconds
 from ctgs.train.components.exposure import Exposure
-from ctgs.train.components.normal import normal_loss
+from ctgs.train.components.normal import geometry_terms
 from ctgs.train.components.shell import Shell
 from ctgs.train.components.virtual import VirtualCoverage
 from ctgs.train.config import schedule
@@ -19,33 +19,44 @@ from ctgs.train.routines import size_budget
 
 
 class NormalTerm(Component):
-    """lambda_normal: from normal_from on, 2DGS's depth-normal consistency term on the step's view, rendered and
-    back-propagated on its own; its last value goes into the step's log record."""
+    """2DGS's geometric terms on the step's view, from one more render back-propagated on its own: lambda_normal x the
+    depth-normal consistency from normal_from on, lambda_dist x the depth distortion from dist_from on; their last
+    values go into the step's log record."""
 
     def __init__(self):
-        self.last = float("nan")
+        self.last: dict = {}
 
     @staticmethod
-    def active(cfg, it: int) -> bool:
-        return it >= schedule.at_int(cfg, cfg.normal_from)
+    def active(cfg, it: int) -> dict:
+        """{"normal": bool, "dist": bool}: which terms step `it` adds."""
+        return {"normal": cfg.lambda_normal > 0 and it >= schedule.at_int(cfg, cfg.normal_from),
+                "dist": cfg.lambda_dist > 0 and it >= schedule.at_int(cfg, cfg.dist_from)}
 
     def post_backward(self, st, it: int, view) -> None:
-        if not self.active(st.cfg, it):
+        on = self.active(st.cfg, it)
+        if not any(on.values()):
             return
-        term = normal_loss(st.model.render_inputs(), view.camera, st.cfg.backend)
-        self.last = float(term.detach())
-        if not math.isfinite(self.last):  # (the parameters are scanned once per step, after the optimiser)
-            st.check_finite(term)
-        (st.cfg.lambda_normal * term).backward()
+        terms = geometry_terms(st.model.render_inputs(), view.camera, st.cfg.backend, **on)
+        weights = {"normal": st.cfg.lambda_normal, "dist": st.cfg.lambda_dist}
+        total = sum(weights[k] * t for k, t in terms.items())
+        self.last = {k: float(t.detach()) for k, t in terms.items()}
+        if not all(math.isfinite(v) for v in self.last.values()):  # (parameters are scanned after the optimiser)
+            st.check_finite(total)
+        total.backward()
 
     def log_fields(self, st, it: int) -> dict:
-        return {"normal": self.last} if self.active(st.cfg, it) else {}
+        on = self.active(st.cfg, it)
+        return {k: v for k, v in self.last.items() if on[k]}
 
     def step_seconds(self, st, view) -> float:
-        cfg = st.cfg  # its share of the run's steps (from normal_from on)
-        share = max(0.0, 1.0 - schedule.at(cfg, cfg.normal_from) / max(1, cfg.iterations))
+        cfg = st.cfg  # its share of the run's steps (from the earlier of the terms' starts on)
+        starts = [schedule.at(cfg, f) for f, lam in ((cfg.normal_from, cfg.lambda_normal),
+                                                     (cfg.dist_from, cfg.lambda_dist)) if lam > 0]
+        share = max(0.0, 1.0 - min(starts, default=cfg.iterations) / max(1, cfg.iterations))
+        both = {"normal": cfg.lambda_normal > 0, "dist": cfg.lambda_dist > 0}
         return share * median_seconds(
-            lambda: normal_loss(st.model.render_inputs(), view.camera, cfg.backend).backward(), device=st.device)
+            lambda: sum(geometry_terms(st.model.render_inputs(), view.camera, cfg.backend, **both).values()).backward(),
+            device=st.device)
 
 
 class SizeBudget(Component):
@@ -214,7 +225,7 @@ def make_components(cfg, scene, train_views, device) -> list[Component]:
     gains' record."""
     parts = [Shell(scene, train_views, device) if cfg.init_shell > 0 else None,
              VirtualCoverage(cfg, scene, train_views, device) if cfg.virtual_coverage > 0 else None,
-             NormalTerm() if cfg.lambda_normal > 0 else None,
+             NormalTerm() if cfg.lambda_normal > 0 or cfg.lambda_dist > 0 else None,
              SizeBudget() if cfg.max_params > 0 else None,
              ExposureCompensation([v.name for v in train_views], device, cfg.lr_exposure, cfg.exposure_channels)
              if cfg.exposure_comp else None,

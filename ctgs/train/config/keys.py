@@ -113,6 +113,10 @@ class TrainConfig:
     lambda_normal: float = _f(0.0, "> 0: weight of 2DGS's depth-normal consistency term "
                               "(ctgs.train.components.normal: one more render per step; 2DGS uses 0.05; 0 = off, the paper)")
     normal_from: int = _f(7000, "first iteration of the depth-normal term (paper scale; 2DGS's)")
+    lambda_dist: float = _f(0.0, "> 0: weight of 2DGS's depth-distortion term, the blending weights' spread along each "
+                            "ray: mean over pixels of sum_i<j w_i w_j (z_i - z_j)^2 / z^2, z the expected depth "
+                            "(ctgs.train.components.normal; the same extra render as lambda_normal; 0 = off, the paper)")
+    dist_from: int = _f(3000, "first iteration of the depth-distortion term (paper scale; 2DGS's)")
     exposure_comp: bool = _f(False, "learn a per-channel gain per training image, applied to its training renders "
                              "before the loss (ctgs.train.components.exposure; evaluation and exports use none; "
                              "false = the paper)")
@@ -285,7 +289,8 @@ _RANGES = [
     ("error_views", _ge(0), ">= 0 (0 = every view)"),
     ("error_pixels", _ge(0), ">= 0 (0 = off)"),
     ("lambda_texture", _ge(0), ">= 0"), ("lambda_normal", _ge(0), ">= 0"),
-    ("normal_from", _ge(0), ">= 0"), ("lr_exposure", _ge(0), ">= 0"),
+    ("normal_from", _ge(0), ">= 0"), ("lambda_dist", _ge(0), ">= 0"), ("dist_from", _ge(0), ">= 0"),
+    ("lr_exposure", _ge(0), ">= 0"),
     ("exposure_channels", lambda v: v in (1, 3), "1 or 3"), ("exposure_check", lambda v: 0 <= v < 1, "in [0, 1)"),
     ("exposure_min_gain", _ge(0), ">= 0"), ("virtual_coverage", _ge(0), ">= 0 (0 = off)"),
     ("virtual_every", _ge(1), ">= 1"), ("texture_start", _ge(0), ">= 0"), ("start_texels", _gt(0), "> 0"),
