@@ -43,11 +43,15 @@ class _Bars:
               help="cameras: the surfaces within --depth-trunc of the training cameras, in a box around them (a room, "
                    "an object and its surroundings); contract: all of space, with voxels growing beyond the cameras' "
                    "sphere as in 2DGS's unbounded meshing (Mip-NeRF 360 backgrounds).")
-@click.option("--resolution", default=1024, show_default=True, type=click.IntRange(min=8),
+@click.option("--resolution", default=None, type=click.IntRange(min=8),
               help="Voxels across the scene extent (twice the cameras' median distance from the point they look at); "
-                   "the voxel size unless --voxel-size is given.")
+                   "default: voxels of 2 pixels at that distance, what the photos resolve, coarser where the volume "
+                   "would not fit in --max-memory.")
 @click.option("--voxel-size", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Voxel size in world units (default: the scene extent / --resolution).")
+              help="Voxel size in world units (default: see --resolution).")
+@click.option("--depth", "depth_kind", type=click.Choice(["median", "mean"]), default="median", show_default=True,
+              help="The rendered depth fused: median, the surfel where the transmittance falls below 0.5; mean, the "
+                   "expected depth (depth / alpha), which surfels far along the ray pull off the surface.")
 @click.option("--depth-trunc", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Depth beyond which rendered pixels are not fused, world units (default: with --bound cameras the "
                    "scene extent, with --bound contract none).")
@@ -65,9 +69,9 @@ class _Bars:
 @click.option("--scene", "scene_dir", default=None, type=click.Path(file_okay=False),
               help="This machine's copy of the scene the run trained on, when the run moved from the machine or "
                    "folder it trained on (default: the folder its model.pt names).")
-def command(run_dir: str, out: str, bound: str, resolution: int, voxel_size: float | None, depth_trunc: float | None,
-            sdf_trunc: float | None, pieces: int, views: str, max_memory: float | None, backend: str,
-            scene_dir: str | None) -> None:
+def command(run_dir: str, out: str, bound: str, resolution: int | None, voxel_size: float | None, depth_kind: str,
+            depth_trunc: float | None, sdf_trunc: float | None, pieces: int, views: str, max_memory: float | None,
+            backend: str, scene_dir: str | None) -> None:
     """Fuse RUN_DIR's rendered depth over the training cameras into a TSDF and write its surface with vertex colours."""
     import torch
 
@@ -88,15 +92,18 @@ def command(run_dir: str, out: str, bound: str, resolution: int, voxel_size: flo
         raise UserError(f"{run.scene_dir}: no {views} views to fuse; pass --views all")
     opts = MeshOptions(bound=bound, resolution=resolution, voxel_size=voxel_size, depth_trunc=depth_trunc,
                        sdf_trunc=sdf_trunc, pieces=pieces,
-                       max_memory=None if max_memory is None else max_memory * 1e9)
+                       max_memory=None if max_memory is None else max_memory * 1e9, depth=depth_kind)
     start = time.perf_counter()
     with _Bars() as bars:
         plan = plan_volume(run.model, cameras, scene.points, opts, backend, what=run_dir,
                            progress=bars.step(f"rendering {len(cameras)} views"))
         d = plan.domain
         reach = "all of space, contracted" if d.contract else f"depth <= {plan.depth_trunc:.3g}"
+        if plan.coarsened_from is not None:
+            reach += f" (voxels of {plan.coarsened_from:.3g} would not fit in {plan.limit / 1e9:.3g} GB)"
         bars.progress.console.print(f"volume: {plan.voxels / 1e6:.1f}M voxels of {d.voxel:.3g} around the cameras' "
-                                    f"sphere (radius {d.radius:.3g}), {reach}, about {plan.bytes / 1e9:.2f} GB",
+                                    f"sphere (radius {d.radius:.3g}), {reach}, about {plan.bytes / 1e9:.2f} GB; "
+                                    f"{plan.depth} depth",
                                     soft_wrap=True, markup=False, highlight=False)
         volume = fuse(run.model, cameras, plan, backend, bars.step(f"fusing {len(cameras)} views"))
         mesh, dropped = extract(volume, pieces, bars.step("marching cubes"))
