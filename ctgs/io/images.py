@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import os
 import sys
 import zlib
@@ -255,9 +256,46 @@ def _jpeg_problem(data: bytes, width: int, height: int) -> str | None:
     return "no JPEG frame header"
 
 
-def resize_image(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Antialiased resize of float32 [H, W, C] to [height, width, C] (OIIO's default filter)."""
+# OpenImageIO's default filter when an image shrinks: Lanczos-3 stretched by the shrink ratio, pixels beyond the edge
+# taken as the edge pixel. OIIO evaluates it as a 2D filter, every tap of a window 6 ratios wide in both axes (0.2-0.3 s
+# a level of a 798x531 photo); the filter is separable, so shrinking applies it as two sparse matrix products, one per
+# axis (2-12 ms), with OIIO's weights: the same values within 1e-5 (tests/io/test_images_resize.py).
+LANCZOS_LOBES = 3
+
+
+@functools.lru_cache(maxsize=64)
+def _shrink_matrix(n_in: int, n_out: int):
+    """[n_out, n_in] sparse weights of OIIO's shrinking filter along one axis (rows sum to 1)."""
+    import scipy.sparse
+
+    ratio = n_in / n_out
+    centres = (np.arange(n_out) + 0.5) * ratio  # output pixel centres, in input pixels
+    taps = int(np.ceil(2 * LANCZOS_LOBES * ratio)) + 2
+    x = np.floor(centres - LANCZOS_LOBES * ratio).astype(np.int64)[:, None] + np.arange(taps)[None, :]  # [n_out, taps]
+    d = (x + 0.5 - centres[:, None]) / ratio
+    weights = np.where(np.abs(d) < LANCZOS_LOBES, np.sinc(d) * np.sinc(d / LANCZOS_LOBES), 0.0)
+    weights /= weights.sum(1, keepdims=True)
+    rows = np.repeat(np.arange(n_out), taps)
+    m = scipy.sparse.csr_matrix((weights.ravel().astype(np.float32), (rows, np.clip(x, 0, n_in - 1).ravel())),
+                                shape=(n_out, n_in))
+    m.sum_duplicates()  # taps beyond an edge fold onto the edge pixel
+    return m
+
+
+def _shrink(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
     h, w, c = pixels.shape
+    rows = _shrink_matrix(h, height) @ np.ascontiguousarray(pixels, dtype=np.float32).reshape(h, w * c)
+    cols = rows.reshape(height, w, c).transpose(1, 0, 2).reshape(w, height * c)
+    out = _shrink_matrix(w, width) @ cols  # [width, height * c]
+    return np.ascontiguousarray(out.reshape(width, height, c).transpose(1, 0, 2), dtype=np.float32)
+
+
+def resize_image(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Antialiased resize of float32 [H, W, C] to [height, width, C] (OIIO's default filter: Lanczos-3 when it
+    shrinks, applied per axis here; OIIO itself when either side grows)."""
+    h, w, c = pixels.shape
+    if width <= w and height <= h:
+        return _shrink(pixels, width, height)
     src = oiio.ImageBuf(oiio.ImageSpec(w, h, c, "float"))
     src.set_pixels(oiio.ROI(0, w, 0, h, 0, 1, 0, c), np.ascontiguousarray(pixels, dtype=np.float32))
     dst = oiio.ImageBuf(oiio.ImageSpec(width, height, c, "float"))

@@ -2,10 +2,11 @@
 
 A benchmark scene often ships some levels only (Mip-NeRF 360 has images_2/4/8; a local copy may have fewer), and a
 run asks for the one the protocol or the machine needs. The level is made once, by the same resampling as `ctgs sfm`
-(OpenImageIO's antialiased resize to round(W / N) x round(H / N), same file names and bit depth), and kept: in the
-scene folder when it is writable, else in the cache (CTGS_CACHE_DIR, ~/.cache/ctgs) under a key of the scene's path
-and photos. It is written under a temporary name and renamed when complete, so a killed run leaves no half level, and
-two runs that make the same level at once both use the one renamed into place first.
+(OpenImageIO's antialiased Lanczos-3 filter, ctgs.io.images.resize_image, to round(W / N) x round(H / N), same file
+names and bit depth), and kept: in the scene folder when it is writable, else in the cache (CTGS_CACHE_DIR,
+~/.cache/ctgs) under a key of the scene's path and photos. It is written under a temporary name and renamed when
+complete, so a killed run leaves no half level, and two runs that make the same level at once both use the one
+renamed into place first.
 """
 
 from __future__ import annotations

@@ -212,7 +212,7 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
              lambda: steps.map_photos(work, images_dir, names, opts, mapper, progress, verbose)),
             ("undistort", "undistorting", lambda: steps.undistort(work, images_dir, opts, progress, verbose)),
             ("pyramid", "images_2/4/8",
-             lambda: steps.build_pyramid(os.path.join(work, "scene"), progress=progress)),
+             lambda: steps.build_pyramid(os.path.join(work, "scene"), progress=progress, threads=opts.threads)),
         ):
             if step_done(work, step):
                 continue

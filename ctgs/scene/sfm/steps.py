@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 
 from ctgs.errors import UserError
 from ctgs.io.images import image_info, list_images, read_image, resize_image, write_image
@@ -129,6 +130,7 @@ def undistort(work: str, images_dir: str, opts: SfmOptions, progress: ProgressFn
 
 
 def _shrink_one(src: str, scene_dir: str, name: str, factors) -> None:
+    """One photo's levels from one decode."""
     path = os.path.join(src, name)
     bits = 16 if image_info(path).format == "uint16" else 8
     pixels = read_image(path)
@@ -138,15 +140,17 @@ def _shrink_one(src: str, scene_dir: str, name: str, factors) -> None:
         write_image(os.path.join(scene_dir, f"images_{f}", name), small, bits=bits)
 
 
-def build_pyramid(scene_dir: str, factors=PYRAMID_FACTORS, progress: ProgressFn = no_progress) -> None:
-    """scene_dir/images_F for each factor F: every image shrunk by F (antialiased, OpenImageIO). One image at a
-    time: write_image points file descriptor 2 at /dev/null while it reads a file back, process-wide, so writes
-    from two threads can leave stderr (and the progress display) silenced."""
+def build_pyramid(scene_dir: str, factors=PYRAMID_FACTORS, progress: ProgressFn = no_progress,
+                  threads: int = -1) -> None:
+    """scene_dir/images_F for each factor F: every image shrunk by F (antialiased: ctgs.io.images.resize_image), each
+    photo decoded once for all its levels, `threads` photos at a time (-1: one per core). The decoding, the filter's
+    matrix products and the encoding let go of Python's lock, so the threads share the cores."""
     src = os.path.join(scene_dir, "images")
     names = list_images(src)
-    for done, name in enumerate(names, 1):
-        _shrink_one(src, scene_dir, name, factors)
-        progress("pyramid", done, len(names), "photos")
+    workers = max(1, min(len(names), (os.cpu_count() or 1) if threads <= 0 else threads))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for done, _ in enumerate(pool.map(lambda name: _shrink_one(src, scene_dir, name, factors), names), 1):
+            progress("pyramid", done, len(names), "photos")
 
 
 def make_report(work: str, images_dir: str, scene_dir: str, names: list[str], opts: SfmOptions, matcher: str,
