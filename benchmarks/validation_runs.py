@@ -3,7 +3,7 @@
 For tuning on validation views only: each run's validation views (the same split `ctgs train` made: every K-th
 training view from the K//2-th) are rendered from its model, and per view the PSNR, the open pixels (rendered
 alpha < 0.9: the black background shows) and the alpha of the scene's own primitives (the model with every
-primitive farther than 2x the scene's reach dropped, ctgs.train.components.shell.far_mask: below 1 where the scene is
+primitive farther than 2x the scene's reach dropped, ctgs.train.routines.far.far_mask: below 1 where the scene is
 see-through and something far behind fills in) are reported, with the run's validation SSIM, primitives, params and
 train time from its train_summary.json. Groups are compared with the first group (the reference) by seed.
 
@@ -40,7 +40,8 @@ from ctgs.metrics.lpips import load_lpips, lpips_hwc
 from ctgs.metrics.ssim import ssim as ssim_of
 from ctgs.render.api import render
 from ctgs.runs import load_run, training_scene
-from ctgs.train.components.shell import far_mask, scene_sphere
+from ctgs.train.components.shell import scene_sphere
+from ctgs.train.routines.far import far_mask
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paired_stats import group_specs  # noqa: E402

@@ -82,7 +82,7 @@ def _pays_better(trainer) -> str | None:
 
     if trainer.device.type != "cpu" or trainer.cfg.method != "content_aware" or trainer.time.planner is None:
         return None
-    iterations = trainer.time.plan_now(trainer.state)
+    iterations = trainer.plan_now()
     views = len(trainer.train_views)
     if iterations is None or iterations >= budget.FEW_PASSES * views:
         return None
@@ -202,11 +202,14 @@ OVERFIT_NOTE_DB = 0.5
 
 
 def list_keys() -> str:
+    """Every config key with its default and help, and the methods whose strategy reads it (its Settings)."""
     from ctgs.train.config import describe_keys
+    from ctgs.train.strategies import STRATEGIES
 
     lines = []
     for key, default, help_text in describe_keys():
-        lines.append(f"{key} = {default!r}\n    {help_text}")
+        users = [method for method, strategy in STRATEGIES.items() if key in strategy.KEYS]
+        lines.append(f"{key} = {default!r}" + (f"    [{', '.join(users)}]" if users else "") + f"\n    {help_text}")
     return "\n".join(lines)
 
 

@@ -27,15 +27,19 @@ Calibration (ctgs.train.loop.calibration): step_seconds(st, view) -> its own sec
 
 What each part reads of the state (and writes, marked =):
     ContentAware     cfg, device, model, opt (its routines edit both), it, train_views, cameras, render_fn,
-                     textures_started (=), calendar, far, view_gains
-    Densify          cfg, device, model, opt, extent, gen, calendar
+                     textures_started (=), shift, textures_may_start, routine_kept, far_sphere, view_gains
+    Densify          cfg, device, model, opt, extent, gen, shift
     Shell            model, render_fn, background
     VirtualCoverage  cfg, model, render_fn, device
     NormalTerm       cfg, model, device, check_finite
     SizeBudget       cfg, model, opt, it
-    ExposureComp.    cfg, it, log
-    TimeBudget       cfg (= iterations: the plan), user_cfg, it, train_views, test_views, start_time, wall_before,
-                     spent, wall_seconds, textures_started, calibrate, log
+    ExposureComp.    cfg, it, log, view_gains (=)
+    TimeBudget       cfg, user_cfg, it, train_views, test_views, start_time, wall_before, spent, wall_seconds,
+                     textures_started, calibration, log
+Every other field is the loop's to write: the model and optimiser it builds, the counters, and the time budget's
+decisions, which it takes from the TimeBudget part and hands on as values (the plan's length into cfg.iterations from
+its Planned events, the calendar's shift, whether textures may start and whether a routine date is kept) together
+with the calibration it times before the first plan.
 """
 
 from __future__ import annotations
@@ -75,7 +79,6 @@ class TrainState:
     gen: torch.Generator  # the run's generator (view order, random backgrounds, the baselines' splits)
     log: Callable[[dict], None]  # append a record to the run's log.jsonl
     check_finite: Callable[..., None]  # check_finite(loss): raise TrainingDiverged on NaN/Inf (the loop's guard)
-    calibrate: Callable[[], tuple]  # time the loop's steps on a copy (ctgs.train.loop.calibration.calibrate)
     model: object = None  # the SurfelModel
     opt: object = None  # its SurfelAdam
     it: int = 0  # iterations done
@@ -83,11 +86,20 @@ class TrainState:
     wall_before: float = 0.0  # wall seconds of earlier sessions of the run (resume)
     spent: dict = field(default_factory=dict)  # wall seconds of routines, evaluations and checkpoints so far
     textures_started: bool = False  # a content-aware run's textures are allocated
-    # The calendar of the run's dates: the time budget (ctgs.train.components.TimeBudget): shift, the periodic
-    # dates' phase shift; textures_may_start; admits(st, kind, it), whether a routine or evaluation date is kept.
-    calendar: object = None
-    far: Callable | None = None  # init_shell: model -> [N] bool, its primitives on the far shell (None: no shell)
-    view_gains: Callable[[], dict] | None = None  # exposure_comp: {training view name: its gain} (None: no gains)
+    # The time budget's decisions (ctgs.train.components.TimeBudget), as the loop hands them on: the periodic calendar's
+    # phase shift (ctgs.train.config.schedule.every); whether textures may start (not before the plan rests on
+    # measured steps); whether this iteration's full-routine date is kept (a budget holds routines to their share).
+    shift: float = 0.0
+    textures_may_start: bool = True
+    routine_kept: bool = True
+    # The seconds the loop timed on a copy of the model before the first plan (ctgs.train.loop.calibration.calibrate:
+    # step, render, textured step, E of one view), None where no plan or estimate needs them
+    calibration: tuple | None = None
+    # init_shell: (centre, reach) of the sphere beyond which primitives are the far shell's (ctgs.train.routines.far);
+    # None: no shell
+    far_sphere: tuple | None = None
+    # exposure_comp: [training views, 3] their gains after this step's update, in train_views' order (None: no gains)
+    view_gains: torch.Tensor | None = None
 
     @property
     def cameras(self) -> list:

@@ -97,3 +97,7 @@ def test_list_keys_prints_every_key():
     assert r.exit_code == 0, r.stderr
     for key, default, _ in describe_keys():
         assert f"{key} = {default!r}" in r.stdout
+    # each key says which methods' strategies read it (ctgs.train.strategies: KEYS)
+    assert "tau_ds = 0.02    [content_aware]\n" in r.stdout
+    assert "densify_every = 100    [2dgs, fixed_texture]\n" in r.stdout
+    assert "fixed_texture_res = 16    [fixed_texture]\n" in r.stdout and "\nseed = 0\n" in r.stdout

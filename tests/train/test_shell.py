@@ -73,7 +73,8 @@ def test_init_shell_trains(tmp_path):
 
 
 def test_far_mask_and_scene_sphere():
-    from ctgs.train.components.shell import FAR_FACTOR, far_mask, scene_sphere
+    from ctgs.train.components.shell import scene_sphere
+    from ctgs.train.routines.far import FAR_FACTOR, far_mask
 
     pts = np.random.default_rng(1).normal(size=(500, 3))
     views = [_view((0.5, 0.5, 0.5))]  # camera at the origin

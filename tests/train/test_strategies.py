@@ -48,6 +48,110 @@ def test_a_run_holds_the_parts_its_config_turns_on_in_calling_order(scene, tmp_p
     assert every.strategy is every.parts[0] and every.exposure is every.part(components.ExposureCompensation)
 
 
+def test_the_state_holds_values_never_a_part_nor_the_trainer(scene, tmp_path):
+    """TrainState is data: the parts get the time budget's decisions (the calendar's shift, whether textures may start,
+    whether a routine date is kept), the shell's sphere and the exposure gains as values, never a part, a part's method
+    or the trainer; the only functions it lends are the loop's own log and NaN guard."""
+    import dataclasses
+    import inspect
+
+    t = _trainer(scene, str(tmp_path / "run"), ("init_shell=20", "exposure_comp=true", "exposure_in_E=true",
+                                                "time_budget=0.05"))
+    events = list(t.run())
+    st = t.state
+    assert st.far_sphere is not None and st.view_gains is not None and st.calibration is not None
+    assert any(type(ev).__name__ == "Planned" for ev in events)
+    for f in dataclasses.fields(st):
+        value = getattr(st, f.name)
+        owner = getattr(value, "__self__", None)  # a bound method's object
+        assert not isinstance(value, (Component, Trainer)) and not isinstance(owner, Component), f.name
+        if callable(value) and not isinstance(value, type):
+            assert f.name in ("log", "check_finite") and (owner is t or inspect.isfunction(value)), f.name
+
+
+def _keys_read(strategy: type) -> set[str]:
+    """The config keys a strategy's code reads: `cfg.X` in its class, in the functions and classes of its module and of
+    ctgs.train.routines that the code it reaches names (followed through imports), and in the
+    ctgs.train.config.schedule functions it calls (and those call)."""
+    import ast
+    import importlib
+    import inspect
+
+    trees = {}
+
+    def parse(module):
+        if module not in trees:
+            trees[module] = ast.parse(inspect.getsource(importlib.import_module(module)))
+        return trees[module]
+
+    def reads(node) -> set[str]:
+        return {n.attr for n in ast.walk(node) if isinstance(n, ast.Attribute) and (
+            isinstance(n.value, ast.Name) and n.value.id == "cfg"
+            or isinstance(n.value, ast.Attribute) and n.value.attr == "cfg")}
+
+    sched = {f.name: f for f in parse("ctgs.train.config.schedule").body if isinstance(f, ast.FunctionDef)}
+
+    def sched_keys(name: str, seen: set) -> set[str]:
+        if name in seen or name not in sched:
+            return set()
+        seen.add(name)
+        calls = {n.func.id for n in ast.walk(sched[name]) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+        return reads(sched[name]).union(*(sched_keys(c, seen) for c in calls))
+
+    seen, keys = set(), set()
+
+    def visit(module: str, name: str) -> None:
+        if (module, name) in seen:
+            return
+        seen.add((module, name))
+        tree = parse(module)
+        defs = {n.name: n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+        if name not in defs:
+            return
+        node = defs[name]
+        keys.update(reads(node))
+        froms = [n for n in tree.body if isinstance(n, ast.ImportFrom) and n.module
+                 and n.module.startswith("ctgs.train.routines")]
+        names = {a.asname or a.name: (n.module, a.name) for n in froms for a in n.names}  # from M import f
+        modules = {a.asname or a.name: f"{n.module}.{a.name}" for n in froms if n.module == "ctgs.train.routines"
+                   for a in n.names}  # from ctgs.train.routines import M (then M.f)
+        for n in ast.walk(node):
+            if isinstance(n, ast.Name) and n.id != name:
+                if n.id in defs:
+                    visit(module, n.id)
+                elif n.id in names and n.id not in modules:
+                    visit(*names[n.id])
+            elif isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name):
+                if n.value.id in modules:
+                    visit(modules[n.value.id], n.attr)
+                elif n.value.id == "schedule":
+                    keys.update(sched_keys(n.attr, set()))
+
+    visit(strategy.__module__, strategy.__name__)
+    return keys
+
+
+def test_each_strategy_names_exactly_the_config_keys_its_code_reads():
+    """A strategy's KEYS (its Settings' fields) are what a reader needs to know of its config: checked against its
+    code, so a key added to a routine and not to its strategy's list fails here."""
+    import dataclasses
+
+    from ctgs.train.config import TrainConfig, load_config
+    from ctgs.train.strategies.base import RUN_KEYS
+
+    for strategy in (ContentAware, Densify):
+        assert set(strategy.KEYS) == _keys_read(strategy) - set(RUN_KEYS), strategy.__name__
+    assert FixedTexture.KEYS == (*Densify.KEYS, "fixed_texture_res")  # its textures are made at initialisation
+    for strategy in (ContentAware, Densify, FixedTexture):
+        assert len(set(strategy.KEYS)) == len(strategy.KEYS)
+        settings = strategy.settings(load_config(None, preset="fast"))
+        assert [f.name for f in dataclasses.fields(settings)] == list(strategy.KEYS)
+        defaults = TrainConfig()
+        assert all(f.default == getattr(defaults, f.name) for f in dataclasses.fields(strategy.Settings))
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            settings.max_primitives = 1
+
+
 class Recorder(Component):
     """A component that records each hook called on it: (hook, the state's iteration then)."""
 

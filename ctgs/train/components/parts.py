@@ -78,11 +78,6 @@ class ExposureCompensation(Exposure, Component):
         self.names = list(names)
         self.index = {name: i for i, name in enumerate(self.names)}
 
-    def view_gains(self) -> dict:
-        """{training view name: its gain} (E with exposure_in_E)."""
-        g = self.gains().detach()
-        return {name: g[i] for i, name in enumerate(self.names)}
-
     def restore(self, st, saved: dict) -> None:
         if "exposure" in saved:
             self.load_state_dict(saved["exposure"])
@@ -96,6 +91,8 @@ class ExposureCompensation(Exposure, Component):
     def post_step(self, st, it: int) -> None:
         self.step()
         cfg = st.cfg
+        if cfg.exposure_in_E:  # the gains the routines' E takes (names in train_views' order: make_components)
+            st.view_gains = self.gains().detach()
         if cfg.exposure_check > 0 and not self.checked and it >= max(1, round(cfg.exposure_check * cfg.iterations)):
             st.log({"type": "exposure_check", "it": it, **self.check(cfg.exposure_min_gain)})
 
@@ -114,7 +111,6 @@ class TimeBudget(Component):
     def __init__(self):
         self.planner = None
         self.estimator = None
-        self.last_kept: dict = {}  # {calendar kind: iteration of its last date kept} (admits)
 
     @property
     def clock(self) -> BudgetPlanner | None:
@@ -127,16 +123,12 @@ class TimeBudget(Component):
 
     def admits(self, st, kind: str, it: int) -> bool:
         """A date of the `kind` calendar ("routine", "eval") at iteration `it`: kept, unless it would take that kind's
-        wall seconds so far past its share of the run's (components.budget.SHARE; the first date of each kind is
-        always kept). A fixed-length run keeps every date."""
-        if self.planner is None or kind not in self.last_kept:
-            self.last_kept[kind] = it
+        wall seconds so far past its share of the run's (components.budget.SHARE; while none of that kind has taken any
+        time, the first date, it is kept). A fixed-length run keeps every date. Asking changes nothing."""
+        if self.planner is None or st.spent[kind] == 0.0:
             return True
         cost = self.planner.date_cost(kind, it)
-        if st.spent[kind] + cost > SHARE[kind] * (st.wall_seconds() + cost):
-            return False
-        self.last_kept[kind] = it
-        return True
+        return st.spent[kind] + cost <= SHARE[kind] * (st.wall_seconds() + cost)
 
     @property
     def textures_may_start(self) -> bool:
@@ -157,38 +149,42 @@ class TimeBudget(Component):
         if st.user_cfg.time_budget <= 0:
             return
         self.planner = self._planner(st)
-        self.last_kept = dict(saved.get("calendar_last_kept", {}))
         if "planner" in saved:
             self.planner.load_state_dict(saved["planner"])
             if st.textures_started and self.planner.tex_at is None:  # a checkpoint of an earlier planner
                 self.planner.observe_texture_start(min(st.it, schedule.texture_start(st.cfg)))
 
     def checkpoint(self, st) -> dict:
-        return {"planner": self.planner.state_dict(), "calendar_last_kept": dict(self.last_kept)} if self.planner else {}
+        return {"planner": self.planner.state_dict()} if self.planner else {}
 
-    def plan_now(self, st) -> int | None:
-        """A fresh --time-budget run's first plan (calibrated on a copy of the model), made now instead of at the first
-        step, which then logs it; the planned iterations, or None for a run without a budget or already planned."""
-        if self.planner is None or self.planner.plan.iterations != 0:
-            return None
-        st.cfg.iterations = self.planner.calibrate(*st.calibrate())
-        return st.cfg.iterations
+    def needs_first_plan(self) -> bool:
+        """A fresh --time-budget run not yet planned."""
+        return self.planner is not None and self.planner.plan.iterations == 0
+
+    def needs_calibration(self) -> bool:
+        """Whether `begin` plans or estimates from the loop's calibration (st.calibration): a fresh run's first plan or
+        its fixed length's estimate."""
+        return self.needs_first_plan() or self.estimator is not None
+
+    def first_plan(self, st) -> int:
+        """The planned iterations of a fresh --time-budget run, from st.calibration."""
+        return self.planner.calibrate(*st.calibration)
 
     def begin(self, st):
         if self.estimator is not None:
             # (not in log.jsonl, which holds what the run did: the estimates are clock readings, in the summary)
-            self.estimator.calibrate(*st.calibrate())
+            self.estimator.calibrate(*st.calibration)
             yield Estimated(st.it, st.cfg.iterations, self.estimator.estimates[0][1])
         if self.planner is None:
             return
-        if self.planner.plan.iterations == 0:  # a fresh run (a resumed one keeps its plan)
-            st.cfg.iterations = self.planner.calibrate(*st.calibrate())
+        # a fresh run's plan (unless ctgs train made it before the run: Trainer.plan_now); a resumed run keeps its own
+        iterations = self.first_plan(st) if self.needs_first_plan() else self.planner.plan.iterations
         plan = self.planner.plan
-        st.log({"type": "plan", "it": st.it, "time_budget_s": plan.budget_s, "iterations": st.cfg.iterations,
+        st.log({"type": "plan", "it": st.it, "time_budget_s": plan.budget_s, "iterations": iterations,
                 "calibration_step_s": plan.calib_step_s, "calibration_render_s": plan.calib_render_s,
                 "calibration_textured_step_s": plan.calib_textured_step_s,
                 "budget_left_s": round(self.planner.budget_s_left(), 2)})
-        yield Planned(st.it, st.cfg.iterations, plan.budget_s)
+        yield Planned(st.it, iterations, plan.budget_s)
 
     def timed_step(self, st, it: int, step_s: float, routine_s: float, events) -> None:
         if (clock := self.clock) is None:
@@ -211,7 +207,6 @@ class TimeBudget(Component):
         if self.planner is not None:
             planned = self.planner.maybe_replan(it)
             if planned is not None and planned != st.cfg.iterations:
-                st.cfg.iterations = planned
                 st.log({"type": "plan", "it": it, "iterations": planned,
                         "budget_left_s": round(self.planner.budget_s_left(), 2)})
                 yield Planned(it, planned, self.planner.plan.budget_s)

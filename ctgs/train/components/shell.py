@@ -20,13 +20,11 @@ import numpy as np
 import torch
 
 from ctgs.train.hooks import Component
+from ctgs.train.routines.far import far_mask
 
 # Shell radius: this many times the radius holding 98% of the SfM points and every camera centre (around the SfM
 # points' median), so the shell lies beyond the reconstructed scene.
 SHELL_RADIUS_FACTOR = 3.0
-# Primitives farther than this many times the reach from the centre count as background (`far_mask`): between the
-# reconstructed scene (<= 1x) and the shell (3x).
-FAR_FACTOR = 2.0
 # Candidate directions per requested point (Fibonacci sphere); the visible ones are thinned to the request.
 CANDIDATES_PER_POINT = 40
 # A shell point counts for a view only where no SfM point projects within about this many pixels (cells of this size,
@@ -63,13 +61,6 @@ def scene_sphere(points: np.ndarray, views: list) -> tuple[np.ndarray, float]:
     reach = max(float(np.quantile(np.linalg.norm(pts - centre, axis=1), 0.98)) if len(pts) else 0.0,
                 float(np.linalg.norm(cams - centre, axis=1).max()), 1e-6)
     return centre, reach
-
-
-def far_mask(means, centre: np.ndarray, reach: float):
-    """[N] bool tensor: primitives beyond FAR_FACTOR x reach from the centre (the shell's, and anything that drifted
-    as far)."""
-    c = torch.as_tensor(centre, dtype=means.dtype, device=means.device)
-    return (means.detach() - c).norm(dim=1) > FAR_FACTOR * reach
 
 
 def _occupied_cells(pts: np.ndarray, c) -> np.ndarray:

@@ -1,5 +1,6 @@
-"""The time budget's calibration (ctgs.train.components.TimeBudget, through TrainState.calibrate): training steps timed
-as the loop takes them, on a copy of the run's model and optimiser (the run's own are not touched)."""
+"""The time budget's calibration (ctgs.train.components.TimeBudget; the loop times it before the first plan and hands
+the seconds on as TrainState.calibration): training steps timed as the loop takes them, on a copy of the run's model
+and optimiser (the run's own are not touched)."""
 
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ from ctgs.ops import fused
 from ctgs.runs import checkpoint as ckpt
 from ctgs.train.components import ExposureCompensation, Shell, TimeBudget, make_components
 from ctgs.train.config import TrainConfig, rules, schedule
-from ctgs.train.events import Checkpoint, Done, Eval, Step
+from ctgs.train.events import Checkpoint, Done, Eval, Planned, Step
 from ctgs.train.hooks import TrainState, TrainView
 from ctgs.train.loop import calibration
 from ctgs.train.loop.summary import write_outputs
@@ -130,10 +130,8 @@ class Trainer:
             cfg=resolved, user_cfg=cfg, device=device, train_views=train_views, test_views=test_views,
             extent=float(scene.extent), background=torch.tensor(cfg.background, dtype=torch.float32, device=device),
             gen=torch.Generator().manual_seed(cfg.seed), log=self.log, check_finite=self._check_finite,
-            calibrate=lambda: calibration.calibrate(self),
-            start_time=time.monotonic() if start_time is None else start_time, calendar=self.time,
-            far=None if shell is None else shell.far,
-            view_gains=None if self.exposure is None else self.exposure.view_gains)
+            start_time=time.monotonic() if start_time is None else start_time,
+            far_sphere=None if shell is None else shell.sphere)
         os.makedirs(os.path.join(run_dir, "checkpoints"), exist_ok=True)
         self.log_path = os.path.join(run_dir, "log.jsonl")
         saved = ckpt.load_checkpoint(run_dir) if resume else None
@@ -312,8 +310,11 @@ class Trainer:
             self.log({"type": "start", "n": self.model.num_primitives, "method": cfg.method,
                       "device": str(self.device), "backend": cfg.backend, "pixels": self.pixels,
                       "coverage": round(self.coverage, 3), "max_primitives": cfg.max_primitives})
+        if self.time.needs_calibration():
+            st.calibration = calibration.calibrate(self)
         for part in self.parts:
-            yield from part.begin(st)
+            yield from self._applied(part.begin(st))
+        self._take_decisions()
         while self.it < cfg.iterations:
             with self._whole_step():
                 it, loss, terms, lrs, events = self._train_step(cfg)
@@ -328,7 +329,7 @@ class Trainer:
                        self.train_seconds)
             yield from self._logged(events)
             # scored before the step at each test multiple, where routines and opacity resets fall (after one: ~14 dB)
-            if self._due(cfg.test_every, it + 1) and st.calendar.admits(st, "eval", it + 1):
+            if self._due(cfg.test_every, it + 1) and self.time.admits(st, "eval", it + 1):
                 yield self._evaluation(it, timed=True)
             if self._due(cfg.checkpoint_every, it) or self._checkpoint_late(it):
                 t0 = time.perf_counter()
@@ -336,7 +337,8 @@ class Trainer:
                 self._timed("checkpoint", time.perf_counter() - t0, it)
                 yield Checkpoint(it, path)
             for part in self.parts:
-                yield from part.after_step(st, it)
+                yield from self._applied(part.after_step(st, it))
+            self._take_decisions()
         for part in self.parts:
             t0 = time.perf_counter()
             events = list(part.finish(st))
@@ -347,9 +349,31 @@ class Trainer:
         self._save_checkpoint()
         yield Done(self.it, write_outputs(self, final.test_psnr, final.test_ssim))
 
+    def _applied(self, events):
+        """Pass on a part's run events, taking a new plan's length into the config (the time budget's Planned)."""
+        for ev in events:
+            if isinstance(ev, Planned):
+                self.state.cfg.iterations = ev.iterations
+            yield ev
+
+    def _take_decisions(self) -> None:
+        """The time budget's calendar decisions, handed to the parts as the state's values."""
+        self.state.shift = self.time.shift
+        self.state.textures_may_start = self.time.textures_may_start
+
+    def plan_now(self) -> int | None:
+        """A fresh --time-budget run's first plan, made now on a calibration of a copy of the model (ctgs train's choice
+        of method), instead of at the first step, which then logs it; the planned iterations, or None for a run without
+        a budget or already planned."""
+        if not self.time.needs_first_plan():
+            return None
+        self.state.calibration = calibration.calibrate(self)
+        self.state.cfg.iterations = self.time.first_plan(self.state)
+        return self.state.cfg.iterations
+
     def _due(self, paper_period: float, it: int) -> bool:
         """A periodic evaluation or checkpoint at `it` (none at the last iteration: the run's end has its own)."""
-        return bool(paper_period) and schedule.every(self.cfg, paper_period, it, self.state.calendar.shift) \
+        return bool(paper_period) and schedule.every(self.cfg, paper_period, it, self.state.shift) \
             and it < self.cfg.iterations
 
     def _checkpoint_late(self, it: int) -> bool:
@@ -434,9 +458,13 @@ class Trainer:
         return it, loss, terms, lrs, events
 
     def _adapt(self, it: int):
-        """The routines of iteration `it` (the strategy's step_end)."""
+        """The routines of iteration `it` (the strategy's step_end), with the time budget's word on a full-routine date
+        at `it` (asked only where the calendar has one: a kept date is counted against the routines' share)."""
+        st = self.state
+        st.routine_kept = (not st.textures_started or schedule.routine_kind(st.cfg, it, st.shift) != "full"
+                           or self.time.admits(st, "routine", it))
         for part in self.parts:
-            yield from part.step_end(self.state, it)
+            yield from part.step_end(st, it)
 
     @contextlib.contextmanager
     def _whole_step(self):

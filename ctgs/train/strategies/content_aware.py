@@ -11,14 +11,32 @@ from ctgs.train.events import Routine
 from ctgs.train.routines import size_budget, texels
 from ctgs.train.routines.densify import RESET_OPACITY, reset_opacity
 from ctgs.train.routines.error import StepErrors
+from ctgs.train.routines.far import far_mask
 from ctgs.train.routines.kmin import compute_k_min
 from ctgs.train.routines.passes import full_routine, late_prune, late_routine
 from ctgs.train.routines.split import prune
 from ctgs.train.step.adam import TEX_PARAM
-from ctgs.train.strategies.base import Strategy
+from ctgs.train.strategies.base import Strategy, settings_class
 
 
 class ContentAware(Strategy):
+    KEYS = (
+        # when
+        "texture_start", "routine_every", "routine_until", "routine_margin", "late_downscale_every",
+        "late_prune_every", "realloc_every", "tau_tr_start", "tau_tr_end", "tau_tr_iters", "content_opacity_reset",
+        "opacity_reset_every", "densify_until",
+        # textures
+        "start_texels", "start_exp_ceil", "min_t2p_exp", "max_texture_res", "texture_alloc", "texture_sigma",
+        "texture_fresh_moments", "texture_steps_from_start", "texture_trim", "tau_ds", "downscale_thin",
+        "downscale_corners",
+        # E and the split
+        "error_views", "error_from_steps", "exposure_in_E", "lambda_ssim", "top_fraction", "upscale_after_split",
+        "upscale_split_children", "split_fresh_moments", "split_offset_truncated", "split_scale_cap", "init_shell",
+        # pruning and size
+        "prune_opacity", "prune_opacity_late", "prune_opacity_final", "max_primitives", "max_params",
+    )
+    Settings = settings_class("ContentAwareSettings", KEYS,
+                              "The config keys of the content-aware method (`content_aware`).")
     texture_mode = "content_aware"
     starts_textures = True
 
@@ -71,10 +89,9 @@ class ContentAware(Strategy):
             st.opt.steps[TEX_PARAM] = max(st.opt.steps[TEX_PARAM], st.it)
 
     def step_end(self, st, it: int):
-        cfg, model, opt, calendar = st.cfg, st.model, st.opt, st.calendar
-        shift = calendar.shift
+        cfg, model, opt, shift = st.cfg, st.model, st.opt, st.shift
         # --time-budget: not before the plan rests on measured steps (BudgetPlanner.measured_plan)
-        if not st.textures_started and it >= schedule.texture_start(cfg) and calendar.textures_may_start:
+        if not st.textures_started and it >= schedule.texture_start(cfg) and st.textures_may_start:
             st.textures_started = True
             self.start_textures(st)
             budget = size_budget.fit(model, opt, cfg)
@@ -85,7 +102,7 @@ class ContentAware(Strategy):
         kind = schedule.routine_kind(cfg, it, shift) if st.textures_started else None
         if kind == "full" and not self.errors_ready(st):
             kind = None  # error_from_steps: E of fewer steps than E would render views waits for more
-        if kind == "full" and not calendar.admits(st, "routine", it):
+        if kind == "full" and not st.routine_kept:
             kind = None  # --time-budget: a date its routine calendar leaves out (ctgs.train.components.budget.SHARE)
         if kind == "full":
             yield Routine(it, "full", self.full_routine(st, it))
@@ -109,9 +126,11 @@ class ContentAware(Strategy):
 
     def full_routine(self, st, it: int) -> dict:
         cfg = st.cfg
-        gains = st.view_gains() if st.view_gains is not None and cfg.exposure_in_E else None
-        # st.far (init_shell): the far primitives the split/upscale ranking leaves out
-        stats = full_routine(st.model, st.opt, cfg, it, st.train_views, st.render_fn, st.cameras, st.far,
+        gains = ({v.name: st.view_gains[i] for i, v in enumerate(st.train_views)}
+                 if st.view_gains is not None and cfg.exposure_in_E else None)
+        # init_shell: the far primitives the split/upscale ranking leaves out
+        far = None if st.far_sphere is None else (lambda model: far_mask(model.means, *st.far_sphere))
+        stats = full_routine(st.model, st.opt, cfg, it, st.train_views, st.render_fn, st.cameras, far,
                              gains=gains, step_errors=self.errors if cfg.error_from_steps else None)
         self.errors.reset()  # the primitives changed: the next routine's E starts from its own steps
         return stats

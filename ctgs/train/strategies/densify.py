@@ -6,7 +6,7 @@ from __future__ import annotations
 from ctgs.train.config import schedule
 from ctgs.train.events import Routine
 from ctgs.train.routines.densify import GradAccumulator, densify_and_prune, reset_opacity
-from ctgs.train.strategies.base import Strategy
+from ctgs.train.strategies.base import Strategy, settings_class
 
 # Steps a reset's primitives get before a densification may prune them by opacity: 2DGS resets to 0.01 and prunes below
 # 0.05 at its next densification, 100 steps later. A schedule scaled to a short run can densify sooner, which pruned
@@ -17,6 +17,9 @@ RESET_RECOVERY_STEPS = 100
 class Densify(Strategy):
     """`2dgs`: untextured surfels."""
 
+    KEYS = ("densify_from", "densify_until", "densify_every", "densify_min_steps", "densify_grad_threshold",
+            "percent_dense", "opacity_reset_every", "prune_opacity_2dgs", "max_primitives")
+    Settings = settings_class("DensifySettings", KEYS, "The config keys of the 2DGS baseline's densification (`2dgs`).")
     texture_mode = "none"
     prune_rules = "opacity below its threshold, or larger than 0.1 x the scene extent"
 
@@ -41,7 +44,7 @@ class Densify(Strategy):
             self.acc.add_view(st.model.means, st.model.means.grad, view.camera)
 
     def step_end(self, st, it: int):
-        cfg, shift = st.cfg, st.calendar.shift
+        cfg, shift = st.cfg, st.shift
         if schedule.densify_active(cfg, it, shift):
             prune_big = it > schedule.at(cfg, schedule.opacity_reset_period(cfg))
             recovered = self.last_reset is None or it - self.last_reset >= RESET_RECOVERY_STEPS
@@ -55,5 +58,9 @@ class Densify(Strategy):
 
 class FixedTexture(Densify):
     """`fixed_texture`: the same densification, a fixed_texture_res^2 texture per primitive that stretches with it."""
+
+    KEYS = (*Densify.KEYS, "fixed_texture_res")
+    Settings = settings_class("FixedTextureSettings", KEYS,
+                              "The config keys of the fixed-texture baseline (`fixed_texture`).")
 
     texture_mode = "fixed"
