@@ -29,6 +29,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -139,10 +140,16 @@ def summarise(args, runs: dict) -> dict:
         rows.append(row)
     return {"scene": args.scene, "images": args.images, "minutes": args.minutes, "seeds": args.seeds,
             "variants": args.variants, "baseline_preset": args.baseline_preset, "parallel": args.parallel, "threads": args.threads,
-            "split": "validation (validation_holdout 8)" if args.validation else "test (every 8th photo)",
-            "commit": record.commit(), "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "split": "validation (validation_holdout 8)" if args.validation else
+            ("test (the scene's test_views.txt)" if any(_test_list(r) for r in runs.values()) else "test (every 8th photo)"),
+            "commit": args.commit_start, "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "processor": platform.processor()},
             "load_average_start": args.load_start, "load_average_end": os.getloadavg(), "rows": rows}
+
+
+def _test_list(run: str) -> bool:
+    with open(os.path.join(run, "eval", "metrics.json")) as fh:
+        return bool(json.load(fh).get("test_list"))
 
 
 def markdown(res: dict) -> str:
@@ -219,6 +226,7 @@ def main() -> None:
     args = ap.parse_args()
     args.scene_dir, args.work = os.path.abspath(args.scene_dir), os.path.abspath(args.work)  # the runs' cwd is the repo
     args.load_start = os.getloadavg()
+    args.commit_start = record.commit()  # the code the runs train with (HEAD may move while they run)
     threads = args.threads or max(1, (os.cpu_count() or 2) // max(args.parallel, 1))
     args.threads = threads
     jobs = [(v, s) for s in args.seeds for v in args.variants]
@@ -228,7 +236,8 @@ def main() -> None:
     name = args.name or (f"{args.scene}_{args.images}_{args.minutes:g}min_{'_'.join(v.partition('@')[0] for v in args.variants)}_"
                          f"{len(args.seeds)}seed{'s' if len(args.seeds) > 1 else ''}"
                          + ("_validation" if args.validation else ""))
-    path = record.stem("scene_trade", name)
+    # named by the commit the runs trained at (a name that ends with a commit keeps it)
+    path = record.stem("scene_trade", name if re.search(r"_[0-9a-f]{7}$", name) else f"{name}_{args.commit_start}")
     record.write_record(path, res, markdown)
     plot(res, path + ".png")
 
