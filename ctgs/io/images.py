@@ -266,7 +266,7 @@ LANCZOS_LOBES = 3
 @functools.lru_cache(maxsize=64)
 def _shrink_matrix(n_in: int, n_out: int):
     """[n_out, n_in] sparse weights of OIIO's shrinking filter along one axis (rows sum to 1)."""
-    import scipy.sparse
+    import scipy.sparse  # scikit-learn's dependency, loaded only when a pyramid level is made
 
     ratio = n_in / n_out
     centres = (np.arange(n_out) + 0.5) * ratio  # output pixel centres, in input pixels
