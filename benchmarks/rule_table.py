@@ -1,7 +1,13 @@
 """Write results/rule_table/rules_<commit>.md: every scene-relative rule (ctgs/train/config/rules.py, ctgs/train/config/schedule.py) with
 its value at the paper's scale and at 200 px wide images, for the paper's recipe and the fast preset.
 
-Usage: .venv/bin/python benchmarks/rule_table.py
+Usage: .venv/bin/python benchmarks/rule_table.py [--scene NAME=SCENE_DIR[@IMAGES] ...]
+
+With --scene, also what each preset bounds on those scenes (rules.for_scene, as `ctgs train` resolves it): for the
+content-aware method and for 2dgs under each preset, the initial points kept of the SfM points, the primitive cap,
+the size budget, the iterations, and the baselines' densifications (their spacing in steps and how many the run
+makes). Written to results/rule_table/presets_<scenes>_<commit>.md. Caps, not counts: what a run ends with is in its
+record.
 """
 
 from __future__ import annotations
@@ -16,7 +22,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import record  # noqa: E402 (benchmarks/record.py: where records go and how they are named)
 
 from ctgs.train.config import TrainConfig, load_config, schedule  # noqa: E402
-from ctgs.train.config.rules import ITERATION_KEYS, MIN_TEXTURE_CAP, resolve, with_size_budget  # noqa: E402
+from ctgs.train.config.keys import PRESETS, config_path  # noqa: E402
+from ctgs.train.config.rules import ITERATION_KEYS, MIN_TEXTURE_CAP, for_scene, resolve, with_size_budget  # noqa: E402
 
 SIZES = {"paper scale (1000x1000)": (1000, 1000), "200x150": (200, 150)}
 
@@ -51,6 +58,39 @@ def rule_table(cfg: TrainConfig, sizes: dict[str, tuple[int, int]], iterations: 
     return rows
 
 
+def preset_bounds(scene_dir: str, images: str) -> tuple[dict, list[dict]]:
+    """(the scene's figures, one row per preset and method): what `ctgs train --preset P [--config 2dgs]` resolves
+    for this scene's training views, as the trainer does (its pixels, observed values and view coverage)."""
+    import numpy as np
+    import torch
+
+    from ctgs.scene.loader import load_scene
+    from ctgs.train.loop.trainer import observed_values
+    from ctgs.train.routines.kmin import view_coverage
+
+    scene = load_scene(scene_dir, images=images, load_images=False)
+    cams = [v.camera for v in scene.train]
+    pixels = float(np.median([c.width * c.height for c in cams]))
+    coverage = view_coverage(torch.from_numpy(np.asarray(scene.points, np.float32)), cams)
+    values = observed_values(scene.train)
+    info = {"views": len(cams), "size": f"{cams[0].width}x{cams[0].height}", "points": len(scene.points),
+            "coverage": coverage}
+    rows = []
+    for preset in PRESETS:
+        for method, path in (("content-aware", None), ("2dgs", config_path("2dgs"))):
+            cfg = load_config(path, preset=preset)
+            resolved, init_cap = for_scene(cfg, values, pixels, coverage)
+            row = {"preset": preset, "method": method, "iterations": cfg.iterations,
+                   "init": min(init_cap, len(scene.points)) if init_cap else len(scene.points),
+                   "cap": resolved.max_primitives, "max_params": resolved.max_params}
+            if method == "2dgs":
+                every = schedule.at(cfg, cfg.densify_every * schedule.densify_stretch(cfg))
+                window = schedule.at(cfg, cfg.densify_until) - schedule.at(cfg, cfg.densify_from)
+                row.update(densify_every=every, densifications=int(window // every))
+            rows.append(row)
+    return info, rows
+
+
 def fmt(v) -> str:
     if isinstance(v, float):
         if v.is_integer():
@@ -62,7 +102,13 @@ def fmt(v) -> str:
 def main() -> None:
     import argparse
 
-    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", action="append", default=[], metavar="NAME=SCENE_DIR[@IMAGES]",
+                    help="also what each preset bounds on this scene (IMAGES: its image folder, default images)")
+    args = ap.parse_args()
+    if args.scene:
+        print(scene_table(args.scene))
+        return
     lines = ["# Scene-relative settings: rule -> value", "",
              "Written by `benchmarks/rule_table.py` from ctgs/train/config/rules.py and ctgs/train/config/schedule.py (no "
              "measurement: the rules themselves). Iteration counts are fractions of the run; pixel and texel "
@@ -83,6 +129,38 @@ def main() -> None:
     with open(out, "w") as fh:
         fh.write("\n".join(lines))
     print(out)
+
+
+def scene_table(specs: list[str]) -> str:
+    lines = ["# What each preset bounds on real scenes", "",
+             "Written by `benchmarks/rule_table.py --scene ...` from the scenes' cameras and SfM points and the presets "
+             "as they resolve in `ctgs train` (ctgs/train/config/rules.py `for_scene`; no training). Initial points: "
+             "the SfM points a run starts from (subsampled to the cap). Primitive cap: `primitives_per_pixel` "
+             "(content-aware) or `baseline_primitives_per_pixel` (2dgs) x the median training view's pixels x the "
+             "capture's view coverage (views' worth of scene: SfM points over the median a view sees), and a "
+             "--max-params budget's cap; 0 = none. Size budget: `max_params_per_value` x the observed values. "
+             "Densifications (2dgs): every `densify_every` paper iterations scaled to the run and spaced at least "
+             "`densify_min_steps` steps apart, over the window densify_from..densify_until, at the preset's own "
+             "length (a --time-budget run rescales the window with its plan and keeps the spacing floor).", ""]
+    names = []
+    for spec in specs:
+        name, _, rest = spec.partition("=")
+        scene_dir, _, images = rest.partition("@")
+        info, rows = preset_bounds(scene_dir, images or "images")
+        names.append(name)
+        lines += [f"## {name}: {info['views']} training views at {info['size']} ({images or 'images'}), "
+                  f"{info['points']:,} SfM points, view coverage {info['coverage']:.2f}", "",
+                  "| preset | method | iterations | initial points | primitive cap | size budget (params) | "
+                  "densify every (steps) | densifications |", "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        for r in rows:
+            dens = (f"{r['densify_every']:.0f} | {r['densifications']}" if "densify_every" in r else "- | -")
+            lines.append(f"| {r['preset']} | {r['method']} | {r['iterations']} | {r['init']:,} | "
+                         f"{r['cap']:,} | {r['max_params']:,} | {dens} |")
+        lines.append("")
+    out = record.stem("rule_table", "presets_" + "_".join(names)) + ".md"
+    with open(out, "w") as fh:
+        fh.write("\n".join(lines))
+    return out
 
 
 if __name__ == "__main__":
