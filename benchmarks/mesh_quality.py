@@ -4,6 +4,8 @@ the exact surfaces on the demo scene, and a picture of each mesh beside a photo.
     .venv/bin/python benchmarks/mesh_quality.py --run ctgs=runs/demo --run 2dgs=runs/demo_2dgs --tag demo192 \\
         --resolution 256 512 1024
 
+--resolution 0 (the default) meshes with `ctgs mesh`'s own default voxel (no --resolution).
+
 Each run is meshed once per --resolution by `ctgs mesh` in its own process (its wall time, user + system CPU seconds
 and peak resident memory from wait4). On a demo scene (demo_meta.json) every mesh is scored by
 measures/mesh_accuracy.py (Chamfer distance, normal consistency, F-score against the true rectangles, seen from the
@@ -146,12 +148,13 @@ def markdown(r: dict) -> str:
              f"({r['machine']['cores']} cores), load average {r['loadavg_start']} at the start.", "",
              f"Command: `{r['command']}`", ""]
     demo = any("accuracy" in m for m in r["meshes"])
-    head = "| run | resolution | voxel | triangles | MB | wall s | CPU s | peak RSS MB |"
+    head = "| run | resolution | voxel | vertices | triangles | MB | wall s | CPU s | peak RSS MB |"
     if demo:
         head += " Chamfer (cm) | accuracy / completeness (cm) | normal consistency | F@1cm | F@2cm | F@5cm |"
     lines += [head, "|" + " --- |" * (head.count("|") - 1)]
     for m in r["meshes"]:
-        row = (f"| {m['run']} | {m['resolution']} | {m['voxel']} | {m['triangles']:,} | {m['mb']:.1f} | "
+        row = (f"| {m['run']} | {m['resolution']} | {m['voxel']} | {m.get('vertices', 0):,} | {m['triangles']:,} | "
+               f"{m['mb']:.1f} | "
                f"{m['wall_s']} | {m['cpu_s']} | {m['peak_rss_mb']} |")
         if demo:
             a = m["accuracy"]
@@ -181,7 +184,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", action="append", required=True, metavar="LABEL=RUN_DIR")
     ap.add_argument("--tag", required=True, help="record name (scene, resolution, variant)")
-    ap.add_argument("--resolution", type=int, nargs="+", default=[1024])
+    ap.add_argument("--resolution", type=int, nargs="+", default=[0], help="voxels across the extent (0: the default)")
     ap.add_argument("--mesh-args", default="", help="more `ctgs mesh` options, one string (e.g. '--bound contract')")
     ap.add_argument("--pictures", type=int, default=None, metavar="N", help="picture of the scene's N-th test view")
     ap.add_argument("--picture-width", type=int, default=400)
@@ -201,9 +204,9 @@ def main() -> None:
         scene_dir = load_run(run_dir).scene_dir
         for res in args.resolution:
             out = os.path.join(work, f"{label}_{res}.ply")
-            m = mesh_once(run_dir, out, ["--resolution", str(res), *shlex.split(args.mesh_args)])
+            m = mesh_once(run_dir, out, [*(["--resolution", str(res)] if res else []), *shlex.split(args.mesh_args)])
             words = m["line"].split()
-            m.update(run=label, resolution=res, triangles=int(words[3]), mb=os.path.getsize(out) / 1e6,
+            m.update(run=label, resolution=res or "default", vertices=int(words[1]), triangles=int(words[3]), mb=os.path.getsize(out) / 1e6,
                      voxel=m["plan"].split(" voxels of ")[1].split()[0] if " voxels of " in m["plan"] else "")
             if os.path.isfile(os.path.join(scene_dir, "demo_meta.json")):
                 m["accuracy"] = accuracy(out, scene_dir)

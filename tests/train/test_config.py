@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import os
 
@@ -32,6 +33,15 @@ def test_experiments_change_only_their_key():
     assert load_config(os.path.join(ROOT, "configs", "higher_tau_ds.toml")).tau_ds == 0.04
     assert load_config(os.path.join(ROOT, "configs", "points40k.toml")).max_primitives == 40000
     assert load_config(os.path.join(ROOT, "configs", "2dgs.toml")).method == "2dgs"
+
+
+def test_surfaces_overlay_adds_the_normal_term_to_any_method():
+    fast = load_config(preset="fast")
+    surfaces = load_config("surfaces", preset="fast")
+    assert surfaces.lambda_normal == 0.05 and surfaces.method == fast.method
+    assert dataclasses.replace(surfaces, lambda_normal=fast.lambda_normal) == fast
+    both = load_config("2dgs_surfaces", preset="fast")
+    assert both == dataclasses.replace(load_config("2dgs", preset="fast"), lambda_normal=0.05)
 
 
 def test_unknown_key_names_the_key(tmp_path):
