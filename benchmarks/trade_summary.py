@@ -111,20 +111,20 @@ def summarise(scene: str) -> list[dict]:
     return points
 
 
-def plot(scene: str, points: list[dict], path: str) -> None:
+def plot(columns: list[tuple[str, str]], points: dict[str, list[dict]], path: str) -> None:
+    """One panel column per (scene, image size) of `columns`, from each scene's summarised points."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import matplotlib.ticker
 
-    sizes = list(REGISTRY[scene])
-    rows_of_key = max(len(REGISTRY[scene][size]) for size in sizes)
+    rows_of_key = max(len(REGISTRY[scene][size]) for scene, size in columns)
     key_h = 0.75 + 0.17 * rows_of_key  # inches: one line per point of the longest column
-    fig, axes = plt.subplots(3, len(sizes), figsize=(6.5 * len(sizes), 9 + key_h), squeeze=False,
+    fig, axes = plt.subplots(3, len(columns), figsize=(6.5 * len(columns), 9 + key_h), squeeze=False,
                              gridspec_kw={"height_ratios": [4.5, 4.5, key_h]})
-    for col, size in enumerate(sizes):
-        mine = [p for p in points if p["size"] == size]
+    for col, (scene, size) in enumerate(columns):
+        mine = [p for p in points[scene] if p["size"] == size]
         for row, (key, xlabel) in enumerate((("wall_min", "wall-clock minutes (2-core VM, log scale)"),
                                              ("params", "parameters (log scale)"))):
             ax = axes[row][col]
@@ -137,7 +137,7 @@ def plot(scene: str, points: list[dict], path: str) -> None:
                 ax.annotate(str(p["number"]), (x, p["psnr"]), textcoords="offset points", fontsize=8, color=c,
                             fontweight="bold", xytext=(5, 2) if p["method"] == "content-aware" else (5, -9))
             ax.set_xscale("log")
-            xs = [p[key] / (1e6 if key == "params" else 1) for p in points if p["size"] == size]
+            xs = [p[key] / (1e6 if key == "params" else 1) for p in mine]
             lo, hi = min(xs) / 1.4, max(xs) * 1.6  # room for the labels, also when every point has one x
             ax.set_xlim(lo, hi)
             ticks = [t for t in (0.3, 0.5, 1, 2, 3, 5, 10, 20, 30, 60) if lo <= t <= hi]
@@ -145,7 +145,7 @@ def plot(scene: str, points: list[dict], path: str) -> None:
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             ax.set_xlabel(xlabel.replace("parameters", "parameters, millions") if key == "params" else xlabel)
             ax.set_ylabel("test PSNR (dB)")
-            ys = [(p["psnr"] - (p["psnr_sd"] or 0), p["psnr"] + (p["psnr_sd"] or 0)) for p in points if p["size"] == size]
+            ys = [(p["psnr"] - (p["psnr_sd"] or 0), p["psnr"] + (p["psnr_sd"] or 0)) for p in mine]
             y_lo, y_hi = min(y for y, _ in ys), max(y for _, y in ys)
             if y_hi - y_lo < MIN_PSNR_SPAN:  # a panel of close points is not zoomed until 0.2 dB looks like 2 dB
                 mid = (y_lo + y_hi) / 2
@@ -199,7 +199,7 @@ def write(scene: str, points: list[dict]) -> None:
     with open(tmp, "w") as fh:
         fh.write("\n".join(lines))
     os.replace(tmp, base + ".md")
-    plot(scene, points, base + ".png")
+    plot([(scene, size) for size in REGISTRY[scene]], {scene: points}, base + ".png")
 
 
 def main() -> None:
@@ -207,10 +207,24 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", choices=sorted(REGISTRY), action="append", help="only these scenes (default: all)")
+    ap.add_argument("--figure", metavar="NAME=SCENE:SIZE,SCENE:SIZE", action="append", default=[],
+                    help="also one plot of these panel columns side by side, NAME.png (e.g. the README's: "
+                         "datasets=bonsai252:200x133,playroom225:158x104)")
     args = ap.parse_args()
+    summaries = {}
     for scene in args.scene or REGISTRY:
-        write(scene, summarise(scene))
+        summaries[scene] = summarise(scene)
+        write(scene, summaries[scene])
         print(f"wrote benchmarks/results/trade_summary/{scene}.md and .png")
+    for spec in args.figure:
+        name, _, cols = spec.partition("=")
+        columns = [tuple(c.split(":", 1)) for c in cols.split(",")]
+        for scene, size in columns:
+            if scene not in REGISTRY or size not in REGISTRY[scene]:
+                raise SystemExit(f"--figure {spec}: {scene} {size} is not in {REGISTRY_FILE}")
+            summaries.setdefault(scene, summarise(scene))
+        plot(columns, summaries, os.path.join(RESULTS, "trade_summary", f"{name}.png"))
+        print(f"wrote benchmarks/results/trade_summary/{name}.png")
 
 
 if __name__ == "__main__":
