@@ -59,8 +59,8 @@ class _Bars:
 @click.option("--verbose", is_flag=True, help="Show COLMAP's own log lines.")
 def command(images_dir: str, scene_dir: str, matcher: str, mapper: str, max_features: int, max_image_size: int,
             threads: int, frames: int, force: bool, verbose: bool) -> None:
-    """Reconstruct cameras and sparse points from a folder of photos, or from a video's frames (pycolmap; SIFT on
-    the GPU when pycolmap has CUDA).
+    """Reconstruct cameras and sparse points from a folder of photos, or from a video's frames (pycolmap; SIFT
+    features by OpenCV on the CPU, by COLMAP on the GPU when pycolmap has CUDA).
 
     Re-running skips finished steps; an interrupted run resumes from its work folder.
     """

@@ -270,11 +270,11 @@ def test_a_colmap_abort_is_one_line_and_the_work_is_kept(tmp_path, monkeypatch, 
 
 
 def test_a_really_full_disk_is_one_line(tmp_path, monkeypatch, tiny_demo_master):
-    """A 600 KiB tmpfs (root only): SQLite reports "database or disk is full" inside COLMAP's SIFT extraction,
-    which aborts its process; `ctgs sfm` says so in one line (the free-space check is bypassed to get there)."""
+    """A 200 KiB tmpfs (root only): SQLite reports "database or disk is full" while the features database is written, which
+    stops the worker; `ctgs sfm` says so in one line (the free-space check is bypassed to get there)."""
     small = tmp_path / "small"
     small.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(small)],
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(small)],
                                            capture_output=True).returncode != 0:
         pytest.skip("mounting a small tmpfs needs root")
     try:

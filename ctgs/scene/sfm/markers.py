@@ -59,16 +59,17 @@ def inputs_digest(images_dir: str, names: list[str]) -> str:
     return h.hexdigest()
 
 
-def inputs_fingerprint(images_dir: str, names: list[str], opts: SfmOptions, matcher: str, mapper: str) -> dict:
+def inputs_fingerprint(images_dir: str, names: list[str], opts: SfmOptions, matcher: str, mapper: str,
+                       extractor: str = "opencv") -> dict:
     """What each step's result depends on; a step is redone when its part (or an earlier one) changed."""
     files = [[n, os.path.getsize(os.path.join(images_dir, n)), int(os.path.getmtime(os.path.join(images_dir, n)))]
              for n in names]
     return {"images_dir": images_dir, "files": files, "max_image_size": opts.max_image_size,
-            "max_features": opts.max_features, "matcher": matcher, "mapper": mapper}
+            "max_features": opts.max_features, "extractor": extractor, "matcher": matcher, "mapper": mapper}
 
 
 # The fingerprint keys each step depends on first (later steps depend on everything before them).
-_STEP_KEYS = (("features", ("images_dir", "files", "max_image_size", "max_features")),
+_STEP_KEYS = (("features", ("images_dir", "files", "max_image_size", "max_features", "extractor")),
               ("matches", ("matcher",)), ("mapping", ("mapper",)))
 
 

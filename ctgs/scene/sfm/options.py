@@ -55,7 +55,16 @@ class SfmOptions:
     threads: int = -1  # -1: all cores
     force: bool = False  # redo every step even if finished
     seed: int = 0  # mapper RANSAC seed, for reproducible runs
-    device: str = "auto"  # "auto": SIFT extraction and matching on the GPU when pycolmap was built with CUDA
+    device: str = "auto"  # "auto": COLMAP's SIFT extraction and matching on the GPU when pycolmap has CUDA
+
+
+def feature_extractor(device: str, has_cuda: bool) -> str:
+    """Whose SIFT extracts the features: "colmap" (SiftGPU) where pycolmap runs it on a GPU, else "opencv". On the
+    CPU, COLMAP's SIFT (VLFeat) computes every scale level whole and then drops the finest ones beyond the feature
+    budget; OpenCV's keeps the strongest features over all scales and took a quarter of the CPU time (bonsai252:
+    38.7 vs 165.1 CPU s, playroom225: 14.9 vs 58.1), with cameras as close to the reference
+    (benchmarks/results/sfm_profile/)."""
+    return "colmap" if has_cuda and device != "cpu" else "opencv"
 
 
 def resolve_modes(opts: SfmOptions, num_images: int) -> tuple[str, str, int]:

@@ -16,12 +16,13 @@ from dataclasses import asdict
 from ctgs.errors import UserError
 from ctgs.io import atomic, owner
 from ctgs.io.images import image_info, list_images, read_image, stderr_silenced
+from ctgs.scene.colmap import import_pycolmap
 from ctgs.scene.sfm import steps
 from ctgs.scene.sfm.markers import (inputs_digest, inputs_fingerprint, invalidate_from, mark_done, prepare_work,
                                     step_done, work_dir)
 from ctgs.scene.sfm.options import (DEFAULT_MAX_FEATURES, EXHAUSTIVE_MAX_IMAGES, LARGE_CAPTURE_MAX_FEATURES, MAPPERS,
                                     MATCHERS, MIN_IMAGES, PYRAMID_FACTORS, RETRIEVAL_NEIGHBOURS, SEQUENTIAL_OVERLAP,
-                                    SfmOptions, resolve_modes)
+                                    SfmOptions, feature_extractor, resolve_modes)
 from ctgs.scene.sfm.progress import ProgressFn, no_progress
 from ctgs.scene.sfm.report import REPORT_NAME, SfmReport, read_report
 
@@ -196,9 +197,10 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
                progress: ProgressFn, verbose: bool) -> tuple[SfmReport, bool]:
     matcher, mapper, features = resolve_modes(opts, len(names))
     opts = dataclasses.replace(opts, max_features=features)
+    extractor = feature_extractor(opts.device, bool(import_pycolmap().has_cuda))
     work = work_dir(scene_dir)
     os.makedirs(os.path.dirname(work), exist_ok=True)
-    prepare_work(work, inputs_fingerprint(images_dir, names, opts, matcher, mapper), opts.force)
+    prepare_work(work, inputs_fingerprint(images_dir, names, opts, matcher, mapper, extractor), opts.force)
     n = len(names)
     pairs = n * (n - 1) // 2 if matcher == "exhaustive" else n * (RETRIEVAL_NEIGHBOURS + SEQUENTIAL_OVERLAP)
     try:
@@ -206,7 +208,7 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
             check_free_space(work, images_dir, names, opts, pairs)
         for step, message, fn in (
             ("features", "SIFT features",
-             lambda: steps.extract_features(work, images_dir, names, opts, progress, verbose)),
+             lambda: steps.extract_features(work, images_dir, names, opts, progress, verbose, extractor)),
             ("matches", f"matching: {matcher}", lambda: steps.match_pairs(work, opts, matcher, progress, verbose)),
             ("mapping", f"mapping: {mapper}",
              lambda: steps.map_photos(work, images_dir, names, opts, mapper, progress, verbose)),

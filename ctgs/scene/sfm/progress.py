@@ -15,12 +15,23 @@ def no_progress(step: str, done: int, total: int | None, note: str) -> None:
     pass
 
 
-def count_rows(database: str, table: str) -> int | None:
-    """Rows of a table of the (WAL-mode) database a worker is writing, or None while it cannot be read."""
+def count_rows(database: str, table: str, where: str = "") -> int | None:
+    """Rows of a table of the (WAL-mode) database a worker is writing (those meeting `where`, SQL), or None while it
+    cannot be read."""
+    value = _query(database, f"SELECT COUNT(*) FROM {table}" + (f" WHERE {where}" if where else ""))
+    return None if value is None else int(value)
+
+
+def mean_rows(database: str, table: str) -> float:
+    """The mean of a COLMAP blob table's `rows` column (keypoints: features per photo); 0 when unknown."""
+    return float(_query(database, f"SELECT AVG(rows) FROM {table}") or 0.0)
+
+
+def _query(database: str, sql: str):
     try:
         con = sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=0.05)
         try:
-            return int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
+            return con.execute(sql).fetchone()[0]
         finally:
             con.close()
     except sqlite3.Error:

@@ -37,6 +37,9 @@ class SfmReport:
     pairs: int = 0  # image pairs matched
     reregistered: list[str] = field(default_factory=list)  # photos the global mapper left without points, redone
     inputs_digest: str = ""  # of the photos' names, sizes and first bytes: which photos made this scene
+    features_per_photo: float = 0.0  # SIFT features, mean over the photos
+    pairs_verified: int = 0  # matched pairs whose two-view geometry kept 15+ inlier matches
+    extractor: str = ""  # whose SIFT: "opencv" (CPU) or "colmap" (GPU)
 
 
 def read_report(scene_dir: str) -> SfmReport | None:

@@ -15,12 +15,18 @@ from ctgs.scene.sfm.options import (LOOP_NEIGHBOURS, MIN_IMAGES, MIN_POINTS_PER_
                                     PYRAMID_FACTORS, RETRIEVAL_NEIGHBOURS, RETRIEVAL_OVERLAP, SEQUENTIAL_OVERLAP,
                                     SfmOptions)
 from ctgs.scene.sfm.pairs import make_pairs, write_pairs
-from ctgs.scene.sfm.progress import ProgressFn, count_rows, global_phase, no_progress, read_json
+from ctgs.scene.sfm.progress import ProgressFn, count_rows, global_phase, mean_rows, no_progress, read_json
 from ctgs.scene.sfm.report import SfmReport
 from ctgs.scene.sfm.supervise import run_worker
 
+# COLMAP's two-view geometry keeps a pair with this many inlier matches or more (TwoViewGeometryOptions.min_num_inliers)
+MIN_PAIR_INLIERS = 15
+
+
 def extract_features(work: str, images_dir: str, names: list[str], opts: SfmOptions,
-                     progress: ProgressFn = no_progress, verbose: bool = False) -> None:
+                     progress: ProgressFn = no_progress, verbose: bool = False, extractor: str = "opencv") -> None:
+    """SIFT features of every photo into the work folder's database; `extractor` "opencv" (on the CPU) or "colmap"
+    (pycolmap's, on a GPU): options.feature_extractor."""
     db = os.path.join(work, "database.db")
     if os.path.exists(db):
         os.remove(db)
@@ -33,7 +39,7 @@ def extract_features(work: str, images_dir: str, names: list[str], opts: SfmOpti
 
     run_worker(work, "extract", {"database": db, "images_dir": images_dir, "names": names,
                                  "max_image_size": opts.max_image_size, "max_features": opts.max_features,
-                                 "threads": opts.threads, "device": opts.device}, poll, verbose)
+                                 "threads": opts.threads, "device": opts.device, "extractor": extractor}, poll, verbose)
     progress("features", total, total, "photos")
 
 
@@ -166,7 +172,10 @@ def make_report(work: str, images_dir: str, scene_dir: str, names: list[str], op
     for step in STEPS:
         figures = step_figures(os.path.join(work, f"{step}.done"))
         seconds[step], cpu_seconds[step] = figures[0], figures[1]
-    pairs = count_rows(os.path.join(work, "database.db"), "two_view_geometries") or 0
+    database = os.path.join(work, "database.db")
+    pairs = count_rows(database, "two_view_geometries") or 0
+    features = mean_rows(database, "keypoints")
+    verified = count_rows(database, "two_view_geometries", f"rows >= {MIN_PAIR_INLIERS}") or 0
     reregistered = read_json(os.path.join(work, "map_global.result.json")).get("reregistered", [])
     return SfmReport(
         images_dir=images_dir, scene_dir=scene_dir, given=len(names), registered=len(registered),
@@ -175,5 +184,7 @@ def make_report(work: str, images_dir: str, scene_dir: str, names: list[str], op
         width=int(cam.width), height=int(cam.height), fx=fx, fy=fy, cx=cx, cy=cy, matcher=matcher,
         unregistered=sorted(set(names) - registered), seconds=seconds, pycolmap_version=pycolmap.__version__,
         cpu_seconds=cpu_seconds, mapper=mapper, max_features=opts.max_features, pairs=pairs, reregistered=reregistered,
+        features_per_photo=features, pairs_verified=verified,
+        extractor=read_json(os.path.join(work, "extract.result.json")).get("extractor", ""),
         inputs_digest=inputs_digest(images_dir, names),
     )

@@ -28,16 +28,33 @@ def _device(pycolmap, name: str):
 
 
 def extract(pycolmap, job: dict) -> dict:
+    """SIFT features of every photo into the database: job["extractor"] "colmap" (COLMAP's SIFT, on a GPU) or
+    "opencv" (OpenCV's, on the CPU: extract_cpu)."""
+    if job["extractor"] == "opencv":
+        return extract_cpu(pycolmap, job)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = job["max_image_size"]
     extraction.num_threads = job["threads"]
     extraction.sift.max_num_features = job["max_features"]
+    pycolmap.extract_features(job["database"], job["images_dir"], image_names=job["names"],
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=_reader(pycolmap),
+                              extraction_options=extraction, device=_device(pycolmap, job["device"]))
+    return {"extractor": "colmap"}
+
+
+def _reader(pycolmap):
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "SIMPLE_RADIAL"  # one radial term: enough for most lenses, undistorted later
-    pycolmap.extract_features(job["database"], job["images_dir"], image_names=job["names"],
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=_device(pycolmap, job["device"]))
-    return {}
+    return reader
+
+
+def extract_cpu(pycolmap, job: dict) -> dict:
+    """OpenCV's SIFT on the CPU (ctgs.scene.sfm.sift_cpu), a photo per thread."""
+    # OpenCV loads only where it extracts (the other calls and a GPU machine's extraction never need it)
+    from ctgs.scene.sfm import sift_cpu
+
+    sift_cpu.extract(pycolmap, job, _reader(pycolmap))
+    return {"extractor": "opencv"}
 
 
 def match(pycolmap, job: dict) -> dict:
