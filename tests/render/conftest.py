@@ -29,11 +29,22 @@ def check_command(jobs: int | None = None) -> list[str]:
             *(["--jobs", str(jobs)] if jobs else [])]
 
 
+def _lower_priority(nice: int) -> None:
+    """In the check's process (a session of its own): its nice value, and its autogroup's where the kernel groups
+    sessions (sched_autogroup): there a new session competes with the suite's as an equal whatever its nice value."""
+    os.nice(nice)
+    try:
+        with open("/proc/self/autogroup", "w") as fh:
+            fh.write(str(nice))
+    except OSError:  # no autogroups (or not writable): the nice value alone
+        pass
+
+
 def _start(jobs: int | None, nice: int) -> tuple[subprocess.Popen, object, object]:
     out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
     proc = subprocess.Popen(check_command(jobs), stdout=out, stderr=err, text=True, cwd=ROOT,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True,
-                            preexec_fn=(lambda: os.nice(nice)) if nice else None)
+                            preexec_fn=(lambda: _lower_priority(nice)) if nice else None)
     return proc, out, err
 
 

@@ -300,3 +300,15 @@ def test_a_damaged_record_of_the_inputs_redoes_every_step(tmp_path, capsys):
     assert os.listdir(work) == ["inputs.json"]
     assert json.loads((work / "inputs.json").read_text()) == fingerprint
     assert "inputs.json: unreadable (damaged)" in capsys.readouterr().err
+
+
+def test_opencv_sift_through_the_pipeline_registers_the_demo_scene(tmp_path, monkeypatch, demo24):
+    """The CPU extractor of captures above 50 photos (OpenCV's SIFT written into COLMAP's database), chosen here for
+    the 24 demo photos: every later step reads its features and the scene registers as with COLMAP's."""
+    monkeypatch.setattr(pipeline, "feature_extractor", lambda device, has_cuda, n: "opencv")
+    scene_dir = tmp_path / "recon_opencv"
+    sfm.run_sfm(os.path.join(demo24, "images"), str(scene_dir), sfm.SfmOptions(threads=2))
+    with open(scene_dir / "sfm_report.json") as f:
+        report = json.load(f)
+    assert report["extractor"] == "opencv"
+    assert report["registered"] >= 0.9 * VIEWS and report["points"] > 100, report

@@ -58,13 +58,17 @@ class SfmOptions:
     device: str = "auto"  # "auto": COLMAP's SIFT extraction and matching on the GPU when pycolmap has CUDA
 
 
-def feature_extractor(device: str, has_cuda: bool) -> str:
-    """Whose SIFT extracts the features: "colmap" (SiftGPU) where pycolmap runs it on a GPU, else "opencv". On the
-    CPU, COLMAP's SIFT (VLFeat) computes every scale level whole and then drops the finest ones beyond the feature
-    budget; OpenCV's keeps the strongest features over all scales and took a quarter of the CPU time (bonsai252:
-    38.7 vs 165.1 CPU s, playroom225: 14.9 vs 58.1), with cameras as close to the reference
-    (benchmarks/results/sfm_profile/)."""
-    return "colmap" if has_cuda and device != "cpu" else "opencv"
+def feature_extractor(device: str, has_cuda: bool, num_images: int) -> str:
+    """Whose SIFT extracts the features: "colmap" (SiftGPU) where pycolmap runs it on a GPU, and on the CPU for a
+    capture of up to EXHAUSTIVE_MAX_IMAGES photos; "opencv" on the CPU above that. COLMAP's CPU SIFT (VLFeat)
+    computes every scale level whole and then drops the finest ones beyond the feature budget; OpenCV's keeps the
+    strongest features over all scales and took a quarter of the CPU time (bonsai252: 38.7 vs 165.1 CPU s,
+    playroom225: 14.9 vs 58.1), with cameras as close to the reference (benchmarks/results/sfm_profile/). On a
+    small capture of small photos (the demo scene's 12 views at 128x96) it registered 8 of 12 where COLMAP's
+    registers all, and there extraction takes seconds either way."""
+    if has_cuda and device != "cpu":
+        return "colmap"
+    return "opencv" if num_images > EXHAUSTIVE_MAX_IMAGES else "colmap"
 
 
 def resolve_modes(opts: SfmOptions, num_images: int) -> tuple[str, str, int]:

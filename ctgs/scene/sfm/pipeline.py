@@ -197,7 +197,7 @@ def _run_steps(images_dir: str, scene_dir: str, names: list[str], opts: SfmOptio
                progress: ProgressFn, verbose: bool) -> tuple[SfmReport, bool]:
     matcher, mapper, features = resolve_modes(opts, len(names))
     opts = dataclasses.replace(opts, max_features=features)
-    extractor = feature_extractor(opts.device, bool(import_pycolmap().has_cuda))
+    extractor = feature_extractor(opts.device, bool(import_pycolmap().has_cuda), len(names))
     work = work_dir(scene_dir)
     os.makedirs(os.path.dirname(work), exist_ok=True)
     prepare_work(work, inputs_fingerprint(images_dir, names, opts, matcher, mapper, extractor), opts.force)
