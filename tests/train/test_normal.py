@@ -132,30 +132,39 @@ def test_two_crossing_surfels_disagree_and_the_gradient_matches_the_reference_re
     assert float(loss.detach()) > floor + 0.005, (float(loss.detach()), floor)
 
 
-def test_lambda_normal_trains_and_brings_normals_to_the_depth(tmp_path):
+def _train(scene_dir: str, run: str, sets: list[str]):
+    """80 `fast` iterations of the small demo scene, seed 3, one thread: the finished Trainer."""
+    from ctgs.runs import training_scene
+    from ctgs.stages.train import resolve_config
+    from ctgs.train.loop.trainer import Trainer
+
+    cfg = resolve_config(scene_dir, run, None, 80, sets + ["threads=1", "seed=3"], None, False, None, None,
+                         preset="fast")
+    t = Trainer(cfg, training_scene(cfg), run)
+    for _ in t.run():
+        pass
+    return t
+
+
+@pytest.fixture(scope="module")
+def demo_and_plain_run(tmp_path_factory):
+    """(the demo scene, the run without either term): the baseline both short-run tests compare against, trained once."""
+    from ctgs.scene.demo import make_demo_scene
+
+    root = tmp_path_factory.mktemp("geometry_terms")
+    scene_dir = make_demo_scene(str(root / "demo"), num_views=8, width=64, height=48, points=300)
+    return scene_dir, _train(scene_dir, str(root / "off"), [])
+
+
+def test_lambda_normal_trains_and_brings_normals_to_the_depth(tmp_path, demo_and_plain_run):
     """A short run with the term trains (finite, logged) and ends with rendered normals closer to the depth's than
     the same run without it."""
     import numpy as np
 
-    from ctgs.runs import training_scene
-    from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import resolve_config
-    from ctgs.train.loop.trainer import Trainer
+    scene_dir, off = demo_and_plain_run
+    on = _train(scene_dir, str(tmp_path / "on"), ["lambda_normal=0.5", "normal_from=0"])
 
-    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=64, height=48, points=300)
-
-    def train(run: str, sets: list[str]) -> Trainer:
-        cfg = resolve_config(scene_dir, run, None, 80, sets + ["threads=1", "seed=3"], None, False, None, None,
-                             preset="fast")
-        t = Trainer(cfg, training_scene(cfg), run)
-        for _ in t.run():
-            pass
-        return t
-
-    on = train(str(tmp_path / "on"), ["lambda_normal=0.5", "normal_from=0"])
-    off = train(str(tmp_path / "off"), [])
-
-    def term(t: Trainer) -> float:
+    def term(t) -> float:
         with torch.no_grad():
             inp = t.model.render_inputs()
             return float(np.mean([float(normal_loss(inp, v.camera, "cpu")) for v in t.train_views]))
@@ -208,32 +217,17 @@ def test_distortion_gradient_matches_the_reference_renderer():
     assert torch.autograd.gradcheck(f, (s64.means, s64.opacities), eps=1e-6, atol=1e-5)
 
 
-def test_lambda_dist_trains_and_gathers_the_weights_on_the_ray(tmp_path):
+def test_lambda_dist_trains_and_gathers_the_weights_on_the_ray(tmp_path, demo_and_plain_run):
     """A short run with the distortion term (logged) ends with less of it over the training views than the same run
     without."""
     import json
 
     import numpy as np
 
-    from ctgs.runs import training_scene
-    from ctgs.scene.demo import make_demo_scene
-    from ctgs.stages.train import resolve_config
-    from ctgs.train.loop.trainer import Trainer
+    scene_dir, off = demo_and_plain_run
+    on = _train(scene_dir, str(tmp_path / "on"), ["lambda_dist=1.0", "dist_from=0"])
 
-    scene_dir = make_demo_scene(str(tmp_path / "demo"), num_views=8, width=64, height=48, points=300)
-
-    def train(run: str, sets: list[str]) -> Trainer:
-        cfg = resolve_config(scene_dir, run, None, 80, sets + ["threads=1", "seed=3"], None, False, None, None,
-                             preset="fast")
-        t = Trainer(cfg, training_scene(cfg), run)
-        for _ in t.run():
-            pass
-        return t
-
-    on = train(str(tmp_path / "on"), ["lambda_dist=1.0", "dist_from=0"])
-    off = train(str(tmp_path / "off"), [])
-
-    def term(t: Trainer) -> float:
+    def term(t) -> float:
         with torch.no_grad():
             inp = t.model.render_inputs()
             return float(np.mean([float(distortion(render(inp, v.camera, backend="cpu"))) for v in t.train_views]))
