@@ -14,6 +14,9 @@ from __future__ import annotations
 import json
 import os
 import sys
+from collections import Counter, defaultdict
+
+import numpy as np
 
 
 def _write_json(path: str, obj) -> None:
@@ -90,8 +93,9 @@ def map_incremental(pycolmap, job: dict) -> dict:
 def map_global(pycolmap, job: dict) -> dict:
     """GLOMAP's global mapper, then a repair: a photo it keeps with (nearly) no 3D points has a pose nothing
     constrains (on bonsai252 with 2,048 features one such photo sat 3,900 units from the others, which are 5
-    apart), so it is taken out and registered again by the incremental mapper's absolute pose step, with the
-    global model's photos held fixed (pycolmap.incremental_mapping from that model)."""
+    apart), and a photo far from the photos it shares its points with is misplaced (far_from_partners), so each is
+    taken out and registered again by the incremental mapper's absolute pose step, with the global model's photos
+    held fixed (pycolmap.incremental_mapping from that model)."""
     options = pycolmap.GlobalPipelineOptions()
     options.num_threads = job["threads"]
     options.random_seed = job["seed"]
@@ -99,7 +103,9 @@ def map_global(pycolmap, job: dict) -> dict:
     if not models:
         return {"registered": 0, "models": 0}
     best = max(models.values(), key=lambda rec: rec.num_reg_images())
-    weak = [im for im in best.images.values() if im.has_pose and im.num_points3D < job["min_points"]]
+    far = set(far_from_partners(*_covisibility(best)))
+    weak = [im for im in best.images.values()
+            if im.has_pose and (im.num_points3D < job["min_points"] or im.image_id in far)]
     if weak:
         for im in weak:
             best.deregister_frame(im.frame_id)
@@ -120,6 +126,39 @@ def map_global(pycolmap, job: dict) -> dict:
                 best = candidate
     result = _keep_best({0: best}, job)
     return {**result, "models": len(models), "reregistered": [im.name for im in weak]}
+
+
+# A photo placed farther from the photos it shares the most points with than this many times the typical such
+# distance is misplaced (playroom225: healthy photos up to 2.5x; the misplaced ones 2,000x, or 100% of the cameras'
+# spread away): it is taken out and registered again as a weak photo is.
+FAR_FROM_PARTNERS = 10.0
+PARTNERS = 5
+
+
+def _covisibility(rec) -> tuple[dict, dict]:
+    """({image id: camera centre}, {image id: Counter of the image ids it shares 3D points with}) of a model."""
+    shared = defaultdict(Counter)
+    for point in rec.points3D.values():
+        ids = {el.image_id for el in point.track.elements}
+        for a in ids:
+            shared[a].update(ids - {a})
+    centres = {i: im.projection_center() for i, im in rec.images.items() if im.has_pose}
+    return centres, shared
+
+
+def far_from_partners(centres: dict, shared: dict, partners: int = PARTNERS,
+                      factor: float = FAR_FROM_PARTNERS) -> list:
+    """Ids of the photos whose median distance to the `partners` photos they share the most points with exceeds
+    `factor` times the median of that distance over all photos."""
+    spacing = {}
+    for i, centre in centres.items():
+        near = [j for j, _ in shared.get(i, Counter()).most_common(partners) if j in centres]
+        if near:
+            spacing[i] = float(np.median([np.linalg.norm(np.asarray(centre) - np.asarray(centres[j])) for j in near]))
+    if not spacing:
+        return []
+    typical = float(np.median(list(spacing.values())))
+    return sorted(i for i, d in spacing.items() if d > factor * typical)
 
 
 def _keep_best(models: dict, job: dict) -> dict:
