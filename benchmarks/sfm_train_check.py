@@ -18,7 +18,8 @@ with each PINHOLE camera moved to A's image size about its centre (focal length 
 half the size difference), so that both runs are scored on the same photos and differ only in the cameras (and the
 points they start from).
 
-Record: benchmarks/results/sfm_train_check/<scene>_<images>_<preset>_<minutes>min_<commit>.json and .md.
+Record: benchmarks/results/sfm_train_check/<scene>_<images>_<preset>_<minutes>min|<N>it[_photos_of_a]_<commit>.json
+and .md.
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ def _train_command(scene: str, run: str, args) -> list[str]:
 
 def cameras_on_photos(scene_a: str, scene_b: str, out: str) -> str:
     """A scene of A's photos with B's cameras and points (--photos-of-a); returns its folder."""
-    import pycolmap
+    import pycolmap  # only this option reads COLMAP models here
+
 
     size = {(c.width, c.height) for c in pycolmap.Reconstruction(os.path.join(scene_a, "sparse", "0")).cameras.values()}
     if len(size) != 1:
