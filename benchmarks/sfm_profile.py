@@ -21,7 +21,8 @@ tree's resident memory. Per step it records:
 When mapping starts, the COLMAP database is read (read-only): features per photo, pairs matched, pairs verified.
 At the end the scene's cameras are compared with the reference model (sfm_modes.agreement: a similarity fit on
 the centres, errors in % of the camera spread radius, the focal length's relative error), and per camera: the
-median and 95th percentile of the centre errors, how many exceed 0.5%, the three worst by name.
+median and 95th percentile of the centre errors, how many exceed 0.5%, the three worst by name, both with that fit
+and with a robust one (measures.align) that leaves out the cameras a least-squares fit lets bend the rest.
 
 Record: benchmarks/results/sfm_profile/<scene>_<W>x<H>_<variants>_<commit>.json and .md.
 """
@@ -184,7 +185,8 @@ class Sampler(threading.Thread):
 
 def camera_errors(scene_dir: str, reference: dict, worst: int = 3) -> dict:
     """Each camera's centre error (% of the spread radius, the same similarity fit as sfm_modes.agreement): the
-    median, the 95th percentile and the worst cameras by name."""
+    median, the 95th percentile and the worst cameras by name; under "robust", the same with the fit left to the
+    cameras that agree (measures.align: one far camera pulls a least-squares fit and so every other camera)."""
     # pycolmap and numpy: only once a scene was made
     import numpy as np
     import pycolmap
@@ -192,13 +194,37 @@ def camera_errors(scene_dir: str, reference: dict, worst: int = 3) -> dict:
     rec = pycolmap.Reconstruction(os.path.join(scene_dir, "sparse", "0"))
     names = sorted(im.name for im in rec.images.values() if im.name in reference)
     est_c, est_r = _poses(rec, names)
-    fit = align_cameras(est_c, est_r, np.stack([reference[n][0] for n in names]),
-                        np.stack([reference[n][1] for n in names]))
-    ce = fit.center_errors / fit.spread_radius * 100
-    order = np.argsort(-ce)[:worst]
-    return {"center_error_median_pct": float(np.median(ce)), "center_error_p95_pct": float(np.percentile(ce, 95)),
-            "cameras_over_0_5_pct": int((ce > 0.5).sum()),
-            "worst": [[names[i], float(ce[i])] for i in order]}
+    out = {}
+    for robust in (False, True):
+        fit = align_cameras(est_c, est_r, np.stack([reference[n][0] for n in names]),
+                            np.stack([reference[n][1] for n in names]), robust=robust)
+        ce = fit.center_errors / fit.spread_radius * 100
+        order = np.argsort(-ce)[:worst]
+        errors = {"center_error_median_pct": float(np.median(ce)),
+                  "center_error_p95_pct": float(np.percentile(ce, 95)), "cameras_over_0_5_pct": int((ce > 0.5).sum()),
+                  "worst": [[names[i], float(ce[i])] for i in order],
+                  "left_out": [names[i] for i in np.flatnonzero(~fit.fitted)]}
+        out.update({"robust": errors} if robust else errors)
+    return out
+
+
+def camera_table(runs: list[dict]) -> list[str]:
+    """Markdown lines: each run's per-camera centre errors, with the least-squares fit over all cameras and (where
+    measured) with the robust fit, which names the cameras it left out."""
+    lines = ["", "## Camera centres against the reference, per camera (% of the spread radius)", "",
+             "Fit: `all`, least squares over every camera (the table above); `robust`, refitted on the cameras within "
+             "5x the median error, every camera still measured.", "",
+             "| run | fit | median | 95th percentile | cameras over 0.5% | worst | left out of the fit |",
+             "|---|---|---:|---:|---:|---|---|"]
+    for r in runs:
+        a = r.get("agreement", {})
+        for fit, e in (("all", a), ("robust", a.get("robust"))):
+            if e and "worst" in e:
+                worst = ", ".join(f"{n} {v:.2f}" for n, v in e["worst"])
+                lines.append(f"| {r['variant']} r{r['round']} | {fit} | {e['center_error_median_pct']:.3f} | "
+                             f"{e['center_error_p95_pct']:.3f} | {e['cameras_over_0_5_pct']} | {worst} | "
+                             f"{', '.join(e.get('left_out', [])) if fit == 'robust' else ''} |")
+    return lines
 
 
 def summarise_steps(sampled: dict, report) -> dict:
@@ -288,14 +314,7 @@ def markdown(result: dict) -> str:
         lines.append(f"| {r['variant']} r{r['round']} | {r['date_utc'][11:19]} | {load} | {_row(r)} | "
                      f"{r['wall_s']:.0f} | {rep['registered']}/{rep['given']} | {a['center_error_mean_pct']:.3f} / "
                      f"{a['center_error_max_pct']:.3f} | {a['focal_error_pct']:+.3f} |")
-    lines += ["", "## Camera centres against the reference, per camera (% of the spread radius)", "",
-              "| run | median | 95th percentile | cameras over 0.5% | worst |", "|---|---:|---:|---:|---|"]
-    for r in result["runs"]:
-        a = r.get("agreement", {})
-        if "worst" in a:
-            worst = ", ".join(f"{n} {e:.2f}" for n, e in a["worst"])
-            lines.append(f"| {r['variant']} r{r['round']} | {a['center_error_median_pct']:.3f} | "
-                         f"{a['center_error_p95_pct']:.3f} | {a['cameras_over_0_5_pct']} | {worst} |")
+    lines += camera_table(result["runs"])
     lines += ["", "## Per step: threads, memory (each variant's first run)", "",
               "| variant | step | wall s | CPU s | threads used | parallel | cores held | peak RSS MB |",
               "|---|---|---:|---:|---:|---:|---:|---:|"]
