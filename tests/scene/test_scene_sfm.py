@@ -176,6 +176,18 @@ def test_retrieval_pairs_and_global_mapper_reconstruct_the_demo_scene(tmp_path, 
     assert np.linalg.norm(s * src @ R.T + t - dst, axis=1).max() < MAX_ALIGNED_ERROR * spread
 
 
+@pytest.mark.slow
+def test_the_repair_registers_a_photo_again_only_with_enough_inliers(tmp_path, monkeypatch, demo24):
+    """The repair's bar for a photo taken out (REPAIR_MIN_INLIERS 2D-3D inliers) reaches the mapper: set above
+    what any photo has, the photos taken out stay out and are reported unregistered."""
+    monkeypatch.setattr(steps, "MIN_POINTS_PER_IMAGE", 450)
+    monkeypatch.setattr(steps, "REPAIR_MIN_INLIERS", 100_000)
+    report, _ = sfm.run_sfm(os.path.join(demo24, "images"), str(tmp_path / "big"),
+                            sfm.SfmOptions(matcher="retrieval", mapper="global", threads=2))
+    assert report.reregistered and set(report.reregistered) <= set(report.unregistered)
+    assert report.registered == VIEWS - len(report.unregistered)
+
+
 def test_auto_modes_follow_the_number_of_photos():
     small, large = sfm.EXHAUSTIVE_MAX_IMAGES, sfm.EXHAUSTIVE_MAX_IMAGES + 1
     assert sfm.resolve_modes(sfm.SfmOptions(), small)[::2] == ("exhaustive", sfm.DEFAULT_MAX_FEATURES)

@@ -36,6 +36,9 @@ LOOP_NEIGHBOURS = 5
 
 # The global mapper's photos with fewer 3D points than this are registered again (ctgs.scene.sfm.worker.map_global).
 MIN_POINTS_PER_IMAGE = 20
+# ... and are registered again with this many 2D-3D inliers enough (COLMAP's default, 30, is more than such a photo
+# has: playroom225's DSC05644, 14 points, was dropped by every repair at 30 and placed 0.29% from the reference at 15).
+REPAIR_MIN_INLIERS = 15
 
 # SIFT features per photo: COLMAP's default up to EXHAUSTIVE_MAX_IMAGES photos, fewer above, where matching and
 # mapping cost grow with them (--max-features 0, the default: "auto"). bonsai252, retrieval + global mapper:

@@ -12,8 +12,8 @@ from ctgs.io.images import image_info, list_images, read_image, resize_image, wr
 from ctgs.scene.colmap import import_pycolmap
 from ctgs.scene.sfm.markers import STEPS, inputs_digest, step_figures
 from ctgs.scene.sfm.options import (LOOP_NEIGHBOURS, MIN_IMAGES, MIN_POINTS_PER_IMAGE, MIN_REGISTERED_FRACTION,
-                                    PYRAMID_FACTORS, RETRIEVAL_NEIGHBOURS, RETRIEVAL_OVERLAP, SEQUENTIAL_OVERLAP,
-                                    SfmOptions)
+                                    PYRAMID_FACTORS, REPAIR_MIN_INLIERS, RETRIEVAL_NEIGHBOURS, RETRIEVAL_OVERLAP,
+                                    SEQUENTIAL_OVERLAP, SfmOptions)
 from ctgs.scene.sfm.pairs import make_pairs, write_pairs
 from ctgs.scene.sfm.progress import ProgressFn, count_rows, global_phase, mean_rows, no_progress, read_json
 from ctgs.scene.sfm.report import SfmReport
@@ -98,7 +98,8 @@ def map_photos(work: str, images_dir: str, names: list[str], opts: SfmOptions, m
 
     result = run_worker(work, call, {"database": os.path.join(work, "database.db"), "images_dir": images_dir,
                                      "output": out, "threads": opts.threads, "seed": opts.seed,
-                                     "min_points": MIN_POINTS_PER_IMAGE}, poll, verbose)
+                                     "min_points": MIN_POINTS_PER_IMAGE,
+                                     "repair_min_inliers": REPAIR_MIN_INLIERS}, poll, verbose)
     registered = int(result.get("registered", 0))
     if not result.get("models"):
         raise UserError(f"{images_dir}: SfM could not register any image pair (too little overlap or texture); "

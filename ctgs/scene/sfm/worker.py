@@ -95,7 +95,8 @@ def map_global(pycolmap, job: dict) -> dict:
     constrains (on bonsai252 with 2,048 features one such photo sat 3,900 units from the others, which are 5
     apart), and a photo far from the photos it shares its points with is misplaced (far_from_partners), so each is
     taken out and registered again by the incremental mapper's absolute pose step, with the global model's photos
-    held fixed (pycolmap.incremental_mapping from that model)."""
+    held fixed (pycolmap.incremental_mapping from that model) and job["repair_min_inliers"] 2D-3D inliers enough
+    (such photos have few points: COLMAP's 30 would drop them)."""
     options = pycolmap.GlobalPipelineOptions()
     options.num_threads = job["threads"]
     options.random_seed = job["seed"]
@@ -118,6 +119,7 @@ def map_global(pycolmap, job: dict) -> dict:
         more.num_threads = job["threads"]
         more.random_seed = job["seed"]
         more.fix_existing_frames = True
+        more.mapper.abs_pose_min_num_inliers = job["repair_min_inliers"]
         redone = pycolmap.incremental_mapping(job["database"], job["images_dir"], completed, options=more,
                                               input_path=start)
         if redone:
