@@ -213,7 +213,7 @@ def camera_table(runs: list[dict]) -> list[str]:
     measured) with the robust fit, which names the cameras it left out."""
     lines = ["", "## Camera centres against the reference, per camera (% of the spread radius)", "",
              "Fit: `all`, least squares over every camera (the table above); `robust`, refitted on the cameras within "
-             "5x the median error, every camera still measured.", "",
+             "5x the median error or 0.5% of the spread, whichever is larger; every camera still measured.", "",
              "| run | fit | median | 95th percentile | cameras over 0.5% | worst | left out of the fit |",
              "|---|---|---:|---:|---:|---|---|"]
     for r in runs:
