@@ -51,7 +51,6 @@ def cameras_on_photos(scene_a: str, scene_b: str, out: str) -> str:
     """A scene of A's photos with B's cameras and points (--photos-of-a); returns its folder."""
     import pycolmap  # only this option reads COLMAP models here
 
-
     size = {(c.width, c.height) for c in pycolmap.Reconstruction(os.path.join(scene_a, "sparse", "0")).cameras.values()}
     if len(size) != 1:
         raise SystemExit(f"{scene_a}: --photos-of-a needs one image size, found {sorted(size)}")
